@@ -1,0 +1,74 @@
+"""Pinhole intrinsics in the 3DGS pixel convention (pixel centres at integers, centre (W-1)/2)."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Optional
+
+import torch
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole camera. `cx, cy` None means the image centre ((W-1)/2, (H-1)/2), as 3DGS assumes."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: Optional[float] = None
+    cy: Optional[float] = None
+
+    def __post_init__(self):
+        for name in ("width", "height"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v <= 0:
+                raise ValueError(f"Intrinsics.{name} must be a positive int, got {v!r}")
+        for name in ("fx", "fy"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"Intrinsics.{name} must be a positive finite number, got {v!r}")
+        for name in ("cx", "cy"):
+            v = getattr(self, name)
+            if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v)):
+                raise ValueError(f"Intrinsics.{name} must be a finite number or None, got {v!r}")
+
+    @property
+    def cx_px(self) -> float:
+        return (self.width - 1) / 2.0 if self.cx is None else float(self.cx)
+
+    @property
+    def cy_px(self) -> float:
+        return (self.height - 1) / 2.0 if self.cy is None else float(self.cy)
+
+    @property
+    def fov_x(self) -> float:
+        return 2.0 * math.atan(self.width / (2.0 * self.fx))
+
+    @property
+    def fov_y(self) -> float:
+        return 2.0 * math.atan(self.height / (2.0 * self.fy))
+
+    @classmethod
+    def from_fov(cls, width: int, height: int, fov_x: float, fov_y: Optional[float] = None) -> "Intrinsics":
+        """From horizontal (and optionally vertical) field of view in radians; square pixels by default."""
+        fx = width / (2.0 * math.tan(fov_x / 2.0))
+        fy = fx if fov_y is None else height / (2.0 * math.tan(fov_y / 2.0))
+        return cls(width, height, fx, fy)
+
+    def scaled(self, scale: float) -> "Intrinsics":
+        """Intrinsics of the image resized by `scale` (sizes rounded; focal scaled by the real ratio)."""
+        w = max(1, int(round(self.width * scale)))
+        h = max(1, int(round(self.height * scale)))
+        sx, sy = w / self.width, h / self.height
+        cx = None if self.cx is None else (self.cx + 0.5) * sx - 0.5
+        cy = None if self.cy is None else (self.cy + 0.5) * sy - 0.5
+        return replace(self, width=w, height=h, fx=self.fx * sx, fy=self.fy * sy, cx=cx, cy=cy)
+
+    def K(self, dtype=torch.float64, device=None) -> torch.Tensor:
+        """3x3 calibration matrix."""
+        return torch.tensor(
+            [[self.fx, 0.0, self.cx_px], [0.0, self.fy, self.cy_px], [0.0, 0.0, 1.0]],
+            dtype=dtype,
+            device=device,
+        )

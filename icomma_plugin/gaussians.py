@@ -1,0 +1,128 @@
+"""A 3DGS model in the raw (trainable) parametrisation of the graphdeco-inria codebase.
+
+Activations follow `GaussianModel.setup_functions` upstream: opacity = sigmoid(logit),
+scale = exp(log-scale), rotation = normalise(quaternion w, x, y, z), colour from SH with
+RGB = SH_C0 * f_dc + 0.5 + higher bands.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Optional
+
+import torch
+
+SH_C0 = 0.28209479177387814
+
+
+def num_sh_coeffs(degree: int) -> int:
+    return (degree + 1) ** 2
+
+
+def rgb_to_sh(rgb: torch.Tensor) -> torch.Tensor:
+    return (rgb - 0.5) / SH_C0
+
+
+def sh_to_rgb(sh: torch.Tensor) -> torch.Tensor:
+    return sh * SH_C0 + 0.5
+
+
+@dataclass
+class GaussianModel:
+    """Raw Gaussian parameters; P Gaussians, SH degree D (K = (D+1)^2 - 1 rest coefficients)."""
+
+    means: torch.Tensor  # [P, 3] world units
+    sh_dc: torch.Tensor  # [P, 1, 3]
+    sh_rest: torch.Tensor  # [P, K, 3]
+    opacity_logit: torch.Tensor  # [P, 1]
+    scale_log: torch.Tensor  # [P, 3]
+    quat: torch.Tensor  # [P, 4] (w, x, y, z), not necessarily normalised
+    sh_degree: int
+
+    def __post_init__(self):
+        P = self.means.shape[0] if self.means.ndim == 2 else -1
+        K = num_sh_coeffs(self.sh_degree) - 1 if 0 <= self.sh_degree <= 3 else None
+        expected = {
+            "means": (P, 3),
+            "sh_dc": (P, 1, 3),
+            "sh_rest": (P, K, 3),
+            "opacity_logit": (P, 1),
+            "scale_log": (P, 3),
+            "quat": (P, 4),
+        }
+        if K is None:
+            raise ValueError(f"GaussianModel.sh_degree must be 0..3, got {self.sh_degree!r}")
+        for name, shape in expected.items():
+            t = getattr(self, name)
+            if not isinstance(t, torch.Tensor):
+                raise ValueError(f"GaussianModel.{name} must be a torch.Tensor, got {type(t).__name__}")
+            if tuple(t.shape) != shape:
+                raise ValueError(f"GaussianModel.{name} must have shape {list(shape)}, got {list(t.shape)}")
+
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.means.shape[0])
+
+    @property
+    def device(self) -> torch.device:
+        return self.means.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.means.dtype
+
+    def opacities(self) -> torch.Tensor:
+        return torch.sigmoid(self.opacity_logit)
+
+    def scales(self) -> torch.Tensor:
+        return torch.exp(self.scale_log)
+
+    def rotations(self) -> torch.Tensor:
+        return torch.nn.functional.normalize(self.quat, dim=-1)
+
+    def shs(self) -> torch.Tensor:
+        """[P, (D+1)^2, 3] SH coefficients, DC first (the rasterizer's `shs` input)."""
+        return torch.cat([self.sh_dc, self.sh_rest], dim=1)
+
+    def tensors(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "sh_degree"}
+
+    def to(self, device=None, dtype: Optional[torch.dtype] = None) -> "GaussianModel":
+        return GaussianModel(
+            **{k: v.to(device=device, dtype=dtype) for k, v in self.tensors().items()},
+            sh_degree=self.sh_degree,
+        )
+
+    def detach(self) -> "GaussianModel":
+        return GaussianModel(**{k: v.detach() for k, v in self.tensors().items()}, sh_degree=self.sh_degree)
+
+    def index(self, mask: torch.Tensor) -> "GaussianModel":
+        """Subset by boolean mask or index tensor over the P Gaussians."""
+        return GaussianModel(**{k: v[mask] for k, v in self.tensors().items()}, sh_degree=self.sh_degree)
+
+    @staticmethod
+    def concatenate(models: "list[GaussianModel]") -> "GaussianModel":
+        if not models:
+            raise ValueError("models must be a non-empty list")
+        degree = max(m.sh_degree for m in models)
+        padded = [m.with_sh_degree(degree) for m in models]
+        return GaussianModel(
+            **{k: torch.cat([getattr(m, k) for m in padded], 0) for k in padded[0].tensors()},
+            sh_degree=degree,
+        )
+
+    def with_sh_degree(self, degree: int) -> "GaussianModel":
+        """Same model with SH truncated or zero-padded to `degree`."""
+        K = num_sh_coeffs(degree) - 1
+        rest = self.sh_rest[:, :K]
+        if rest.shape[1] < K:
+            pad = rest.new_zeros(rest.shape[0], K - rest.shape[1], 3)
+            rest = torch.cat([rest, pad], 1)
+        return GaussianModel(
+            self.means, self.sh_dc, rest, self.opacity_logit, self.scale_log, self.quat, degree
+        )
+
+    @classmethod
+    def empty(cls, sh_degree: int = 3, dtype=torch.float32, device=None) -> "GaussianModel":
+        K = num_sh_coeffs(sh_degree) - 1
+        z = lambda *s: torch.zeros(*s, dtype=dtype, device=device)  # noqa: E731
+        return cls(z(0, 3), z(0, 1, 3), z(0, K, 3), z(0, 1), z(0, 3), z(0, 4), sh_degree)
