@@ -1,0 +1,149 @@
+"""Native (compiled) backend: an autograd.Function around `gaussian_renderer_pose._C`.
+
+`rasterize_gaussians_native` follows the internal backend contract of docs/CONTRACTS.md and has the
+same signature as `gaussian_renderer_pose.reference.rasterize_gaussians_reference`. The forward and
+the complete backward (every tensor input, including viewmatrix / projmatrix / campos) run in C++
+(csrc/cpu/rasterize_cpu.cpp); the camera gradient is only computed when one of the camera tensors
+requires grad. Arguments are assumed validated (`_validate.py`); C++ TORCH_CHECKs are a second line
+of defence and raise RuntimeError.
+"""
+from __future__ import annotations
+
+from typing import Optional, Tuple
+
+import torch
+
+from . import _backend
+
+__all__ = ["rasterize_gaussians_native", "mark_visible"]
+
+_NUM_TENSOR_INPUTS = 12  # means3D .. campos
+
+
+def _f32c(t: Optional[torch.Tensor]) -> Optional[torch.Tensor]:
+    return None if t is None else t.contiguous()
+
+
+class _RasterizeGaussians(torch.autograd.Function):
+    @staticmethod
+    def forward(
+        ctx,
+        means3D,  # [P, 3]
+        means2D,  # [P, 3] or None (gradient holder only)
+        opacities,  # [P, 1]
+        shs,  # [P, M, 3] or None
+        colors_precomp,  # [P, 3] or None
+        scales,  # [P, 3] or None
+        rotations,  # [P, 4] or None
+        cov3D_precomp,  # [P, 6] or None
+        bg,  # [3]
+        viewmatrix,  # [4, 4]
+        projmatrix,  # [4, 4]
+        campos,  # [3]
+        settings,  # tuple (H, W, tanfovx, tanfovy, scale_modifier, sh_degree, prefiltered, aa)
+    ):
+        C = _backend.load_native()
+        H, W, tanfovx, tanfovy, scale_modifier, sh_degree, prefiltered, antialiasing = settings
+        args = [
+            _f32c(means3D),
+            _f32c(opacities),
+            _f32c(shs),
+            _f32c(colors_precomp),
+            _f32c(scales),
+            _f32c(rotations),
+            _f32c(cov3D_precomp),
+            _f32c(bg),
+            _f32c(viewmatrix),
+            _f32c(projmatrix),
+            _f32c(campos),
+        ]
+        outs = C.forward(
+            *args, int(H), int(W), float(tanfovx), float(tanfovy), float(scale_modifier),
+            int(sh_degree), bool(prefiltered), bool(antialiasing),
+        )
+        color, radii, invdepth, depth_acc, alpha = outs[:5]
+        state = outs[5:]
+        ctx.settings = settings
+        ctx.has = [a is not None for a in args]
+        ctx.save_for_backward(*[a for a in args if a is not None], radii, *state)
+        ctx.mark_non_differentiable(radii)
+        return color, radii, invdepth, depth_acc, alpha
+
+    @staticmethod
+    def backward(ctx, grad_color, _grad_radii, grad_invdepth, grad_depth_acc, grad_alpha):
+        C = _backend.load_native()
+        H, W, tanfovx, tanfovy, scale_modifier, sh_degree, _prefiltered, antialiasing = ctx.settings
+        saved = list(ctx.saved_tensors)
+        args = [saved.pop(0) if present else None for present in ctx.has]
+        radii = saved.pop(0)
+        geom, binning, tile_ranges, offsets, final_T, last_contrib = saved
+        need = ctx.needs_input_grad
+        want_camera = bool(need[9] or need[10] or need[11])
+
+        def g(t, shape):
+            return torch.zeros(shape, dtype=torch.float32) if t is None else t.contiguous()
+
+        grads = C.backward(
+            *args, int(H), int(W), float(tanfovx), float(tanfovy), float(scale_modifier),
+            int(sh_degree), bool(antialiasing),
+            radii, geom, binning, tile_ranges, offsets, final_T, last_contrib,
+            g(grad_color, (3, H, W)), g(grad_invdepth, (1, H, W)), g(grad_depth_acc, (1, H, W)),
+            g(grad_alpha, (1, H, W)), want_camera,
+        )
+        (d_means3D, d_means2D, d_opac, d_shs, d_colors, d_scales, d_rots, d_cov, d_bg,
+         d_view, d_proj, d_campos) = grads
+        out = [d_means3D, d_means2D, d_opac, d_shs, d_colors, d_scales, d_rots, d_cov, d_bg,
+               d_view, d_proj, d_campos]
+        out = [o if need[i] else None for i, o in enumerate(out)]
+        return (*out, None)
+
+
+def rasterize_gaussians_native(
+    means3D: torch.Tensor,  # [P, 3] world
+    means2D: Optional[torch.Tensor],  # [P, 3] gradient holder (d/d NDC xy)
+    opacities: torch.Tensor,  # [P, 1]
+    shs: Optional[torch.Tensor],  # [P, M, 3]
+    colors_precomp: Optional[torch.Tensor],  # [P, 3]
+    scales: Optional[torch.Tensor],  # [P, 3]
+    rotations: Optional[torch.Tensor],  # [P, 4] (w, x, y, z), unnormalised
+    cov3D_precomp: Optional[torch.Tensor],  # [P, 6]
+    bg: torch.Tensor,  # [3]
+    viewmatrix: torch.Tensor,  # [4, 4] w2c^T
+    projmatrix: torch.Tensor,  # [4, 4] (P w2c)^T
+    campos: torch.Tensor,  # [3] world
+    *,
+    image_height: int,
+    image_width: int,
+    tanfovx: float,
+    tanfovy: float,
+    scale_modifier: float,
+    sh_degree: int,
+    prefiltered: bool = False,
+    antialiasing: bool = False,
+) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Native twin of `reference.rasterize_gaussians_reference`.
+
+    -> (color [3,H,W], radii [P] int32, invdepth [1,H,W], depth_acc [1,H,W], alpha [1,H,W]).
+    """
+    if means3D.device.type != "cpu":
+        raise _backend.NativeUnavailable(
+            f"the native backend for device {means3D.device.type!r} is not built (CPU only)"
+        )
+    settings = (
+        int(image_height), int(image_width), float(tanfovx), float(tanfovy), float(scale_modifier),
+        int(sh_degree), bool(prefiltered), bool(antialiasing),
+    )
+    return _RasterizeGaussians.apply(
+        means3D, means2D, opacities, shs, colors_precomp, scales, rotations, cov3D_precomp, bg,
+        viewmatrix, projmatrix, campos, settings,
+    )
+
+
+def mark_visible(means3D: torch.Tensor, viewmatrix: torch.Tensor, projmatrix: torch.Tensor) -> torch.Tensor:
+    """bool [P]: view-space z > 0.2 (upstream markVisible)."""
+    C = _backend.load_native()
+    with torch.no_grad():
+        return C.mark_visible(
+            means3D.detach().contiguous(), viewmatrix.detach().contiguous(),
+            projmatrix.detach().contiguous(),
+        )

@@ -1,0 +1,116 @@
+"""Every constant of the CPU 3DGS fit, in one dataclass.
+
+Learning rates, loss weights and densification thresholds are upstream 3DGS's
+(`arguments/__init__.py::OptimizationParams`, newer upstream opacity lr 2.5e-2). The iteration
+schedule is upstream's (30k iterations, densify 500..15k every 100, opacity reset every 3k,
+SH degree +1 every 1k) compressed for a CPU budget: see `FitConfig.cpu_default` and
+docs in tools/fit_scene.py.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields
+from typing import Optional, Tuple
+
+
+@dataclass
+class FitConfig:
+    # schedule
+    iterations: int = 5000
+    sh_degree: int = 3
+    sh_increase_interval: int = 500  # active SH degree +1 every this many iterations (upstream 1000)
+    # Adam learning rates (upstream); position lr is multiplied by the scene extent and decays
+    # log-linearly from init to final over `position_lr_max_steps` (None: `iterations`).
+    position_lr_init: float = 1.6e-4
+    position_lr_final: float = 1.6e-6
+    position_lr_delay_mult: float = 0.01
+    position_lr_max_steps: Optional[int] = None
+    feature_lr: float = 2.5e-3  # f_dc; f_rest uses feature_lr / 20
+    opacity_lr: float = 2.5e-2
+    scaling_lr: float = 5e-3
+    rotation_lr: float = 1e-3
+    adam_eps: float = 1e-15
+    # loss
+    lambda_dssim: float = 0.2
+    # densification (upstream semantics, CPU schedule)
+    percent_dense: float = 0.01
+    densify_from_iter: int = 200
+    densify_until_iter: int = 2500
+    densification_interval: int = 100
+    opacity_reset_interval: int = 1500
+    densify_grad_threshold: float = 2e-4
+    min_opacity: float = 0.005
+    max_screen_size: float = 20.0  # pixels; applied after the first opacity reset (as upstream)
+    max_gaussians: int = 300_000  # densification budget (top screen-space gradients win)
+    # initialisation
+    num_random_points: int = 10_000  # when the dataset has no point cloud (Blender)
+    random_points_half_extent: float = 1.3  # upstream: cube [-1.3, 1.3]^3
+    max_init_points: int = 200_000  # a bigger dataset cloud is subsampled
+    init_opacity: float = 0.1
+    # rendering / data
+    backend: str = "auto"
+    random_background: bool = False
+    # evaluation / saving
+    eval_interval: int = 0  # 0: evaluate on the test split only at the end
+    eval_views: int = 0  # 0: all test views, else this many evenly spaced
+    save_iterations: Tuple[int, ...] = ()
+    seed: int = 0
+
+    def __post_init__(self):
+        ints = {
+            "iterations": 1,
+            "sh_increase_interval": 1,
+            "densification_interval": 1,
+            "opacity_reset_interval": 1,
+            "max_gaussians": 1,
+            "num_random_points": 1,
+            "max_init_points": 1,
+            "densify_from_iter": 0,
+            "densify_until_iter": 0,
+            "eval_interval": 0,
+            "eval_views": 0,
+        }
+        for name, lo in ints.items():
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+                raise ValueError(f"FitConfig.{name} must be an int >= {lo}, got {v!r}")
+        if not (isinstance(self.sh_degree, int) and 0 <= self.sh_degree <= 3):
+            raise ValueError(f"FitConfig.sh_degree must be an int in 0..3, got {self.sh_degree!r}")
+        if not 0.0 <= self.lambda_dssim <= 1.0:
+            raise ValueError(f"FitConfig.lambda_dssim must be in [0, 1], got {self.lambda_dssim!r}")
+        if not 0.0 < self.init_opacity < 1.0:
+            raise ValueError(f"FitConfig.init_opacity must be in (0, 1), got {self.init_opacity!r}")
+        if self.backend not in ("auto", "reference", "cpu", "cuda"):
+            raise ValueError(f"FitConfig.backend must be auto|reference|cpu|cuda, got {self.backend!r}")
+        self.save_iterations = tuple(int(i) for i in self.save_iterations)
+        for i in self.save_iterations:
+            if i < 1:
+                raise ValueError(f"FitConfig.save_iterations must be positive, got {self.save_iterations!r}")
+
+    @classmethod
+    def scaled_schedule(cls, iterations: int, **overrides) -> "FitConfig":
+        """A config whose densification / SH / reset schedule is scaled to `iterations`.
+
+        Fractions of the run (defaults tuned on CPU for lego at 200x200, 5000 iterations):
+        densify from 4 % to 50 % of the run every 2 %, opacity reset every 30 %, SH degree +1
+        every 10 %. Explicit keyword overrides win.
+        """
+        it = int(iterations)
+        sched = dict(
+            iterations=it,
+            densify_from_iter=max(1, round(0.04 * it)),
+            densify_until_iter=max(1, round(0.5 * it)),
+            densification_interval=max(1, round(0.02 * it)),
+            opacity_reset_interval=max(1, round(0.3 * it)),
+            sh_increase_interval=max(1, round(0.1 * it)),
+        )
+        sched.update(overrides)
+        return cls(**sched)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["save_iterations"] = list(self.save_iterations)
+        return d
+
+    @classmethod
+    def field_names(cls) -> Tuple[str, ...]:
+        return tuple(f.name for f in fields(cls))

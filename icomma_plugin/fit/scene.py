@@ -1,0 +1,260 @@
+"""Fit a 3DGS model to a dataset folder and write the upstream model-folder layout.
+
+    result = fit_scene("../shared/data/nerf_synthetic/lego_400", "/tmp/icomma_scenes/lego_200",
+                       FitConfig.scaled_schedule(5000), resolution=2)
+
+Writes (icomma_plugin.io.model_folder.write_model_folder): cfg_args, cameras.json (test then
+train, original sizes), input.ply (the init cloud), point_cloud/iteration_N/point_cloud.ply at
+the configured save iterations and the last one, plus metrics.json (test PSNR, iterations,
+Gaussian count, seconds, resolution). The folder is built in a hidden staging folder beside the
+target and renamed into place at the end, so a model folder is never half-written, and an
+existing one is replaced only with `overwrite=True`.
+
+Resolution (upstream `-r`): -1 (auto: native size, widths above 1600 scaled to 1600), 1, 2, 4, 8
+(divide the size), any other positive int (target width). `downscale` (a positive float factor)
+is the alternative.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import os
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
+
+import numpy as np
+import torch
+
+from ..io.atomic import write_json_atomic
+from .config import FitConfig
+from .init import model_from_points, random_cube_points, subsample_points
+from .trainer import FitResult, FitView, ProgressFn, Trainer
+
+log = logging.getLogger(__name__)
+
+PathLike = Union[str, os.PathLike]
+
+
+class ModelFolderExistsError(ValueError, FileExistsError):
+    """The target model folder exists and overwriting was not asked for."""
+
+
+@dataclass
+class SceneFitResult:
+    model_path: Path
+    fit: FitResult
+    metrics: Dict
+
+
+def resolution_scale(resolution: Optional[int], downscale: Optional[float], width: int) -> float:
+    """Image scale factor of an original `width`-wide image (upstream `-r` semantics, see module doc)."""
+    if downscale is not None and resolution not in (None, -1):
+        raise ValueError(f"give either resolution or downscale, not both (got resolution={resolution!r}, "
+                         f"downscale={downscale!r})")
+    if downscale is not None:
+        if isinstance(downscale, bool) or not isinstance(downscale, (int, float)) or not (
+                math.isfinite(downscale) and downscale > 0):
+            raise ValueError(f"downscale must be a positive finite number, got {downscale!r}")
+        return 1.0 / float(downscale)
+    r = -1 if resolution is None else resolution
+    if isinstance(r, bool) or not isinstance(r, int) or r == 0 or r < -1:
+        raise ValueError(f"resolution must be -1 (auto), 1, 2, 4, 8 (divide) or a target width in pixels, "
+                         f"got {resolution!r}")
+    if r == -1:
+        return 1600.0 / width if width > 1600 else 1.0
+    if r in (1, 2, 4, 8):
+        return 1.0 / r
+    return r / float(width)
+
+
+def cfg_resolution_value(resolution: Optional[int], downscale: Optional[float], width: int) -> int:
+    """The `resolution` to store in cfg_args so that upstream reproduces the same image size."""
+    if downscale is None:
+        return -1 if resolution is None else int(resolution)
+    if float(downscale) in (1.0, 2.0, 4.0, 8.0):
+        return int(downscale)
+    return max(1, int(round(width / float(downscale))))
+
+
+def _subset(n: int, k: int) -> List[int]:
+    """k evenly spaced indices of range(n) (all when k == 0 or k >= n)."""
+    if k <= 0 or k >= n:
+        return list(range(n))
+    return sorted(set(int(round(x)) for x in np.linspace(0, n - 1, k)))
+
+
+def views_to_fit(views, resolution, downscale, background, dtype=torch.float32, device=None,
+                 keep_alpha: bool = False) -> List[FitView]:
+    """Load dataset `View`s at the requested resolution, composited over `background`."""
+    out = []
+    for v in views:
+        s = resolution_scale(resolution, downscale, v.intrinsics.width)
+        rgb, alpha = v.load(scale=s, background=background)
+        intr = v.intrinsics.scaled(s)
+        w2c = torch.as_tensor(v.w2c, dtype=dtype, device=device)
+        out.append(FitView(v.name, rgb.to(dtype=dtype, device=device), intr, w2c,
+                           alpha=alpha.to(dtype=dtype, device=device) if (keep_alpha and alpha is not None) else None))
+    return out
+
+
+def camera_entries(train, test) -> list:
+    """cameras.json entries: test cameras first, then train (upstream), original sizes."""
+    from ..io.cameras_json import CameraEntry
+
+    entries = []
+    for v in list(test) + list(train):
+        i = v.intrinsics
+        entries.append(CameraEntry(id=len(entries), img_name=v.name, width=i.width, height=i.height,
+                                   c2w=np.asarray(v.c2w, dtype=np.float64), fx=float(i.fx), fy=float(i.fy)))
+    return entries
+
+
+def _staging_path(final: Path) -> Path:
+    return final.parent / f".{final.name}.partial"
+
+
+def fit_scene(
+    source_path: PathLike,
+    model_path: PathLike,
+    config: Optional[FitConfig] = None,
+    *,
+    resolution: Optional[int] = -1,
+    downscale: Optional[float] = None,
+    white_background: Optional[bool] = None,
+    overwrite: bool = False,
+    progress: Optional[ProgressFn] = None,
+    progress_every: int = 10,
+    device: Optional[Union[str, torch.device]] = None,
+    dataset_kwargs: Optional[dict] = None,
+) -> SceneFitResult:
+    """Read the dataset at `source_path`, fit, and write the model folder `model_path`.
+
+    white_background: None picks white for Blender/NeRF-synthetic scenes (the NeRF convention),
+    black otherwise.
+    """
+    from ..io.datasets import detect_dataset_kind, read_dataset
+    from ..io.model_folder import write_model_folder
+
+    t_total = time.perf_counter()
+    config = config or FitConfig()
+    if source_path is None or str(source_path) == "":
+        raise ValueError("source_path must be a dataset folder, got an empty value")
+    src = Path(source_path).expanduser().resolve()
+    if not src.is_dir():
+        raise ValueError(f"source_path must be an existing dataset folder, got {str(source_path)!r} "
+                         f"({'not a folder' if src.exists() else 'does not exist'})")
+    if model_path is None or str(model_path) == "":
+        raise ValueError("model_path must be a folder path, got an empty value")
+    final = Path(model_path).expanduser().resolve()
+    if final.exists() and not overwrite:
+        raise ModelFolderExistsError(f"model_path {str(final)!r} already exists; pass overwrite=True "
+                                     "(--overwrite) to replace it")
+    kind = detect_dataset_kind(src)
+    if white_background is None:
+        white_background = kind == "blender"
+    kwargs = dict(dataset_kwargs or {})
+    kwargs.setdefault("white_background", bool(white_background))
+    scene = read_dataset(src, kind=kind, **kwargs)
+    if not scene.train:
+        raise ValueError(f"source_path {str(src)!r}: the dataset has no training views")
+    # validate the resolution before loading anything heavy
+    w0 = scene.train[0].intrinsics.width
+    resolution_scale(resolution, downscale, w0)
+    bg = (1.0, 1.0, 1.0) if scene.white_background else (0.0, 0.0, 0.0)
+    dev = torch.device(device) if device is not None else torch.device("cpu")
+
+    log.info("loading %d train views of %s", len(scene.train), src)
+    train = views_to_fit(scene.train, resolution, downscale, bg, device=dev, keep_alpha=config.random_background)
+    test_idx = _subset(len(scene.test), config.eval_views)
+    test = views_to_fit([scene.test[i] for i in test_idx], resolution, downscale, bg, device=dev)
+    W, H = train[0].intrinsics.width, train[0].intrinsics.height
+    log.info("images at %dx%d; %d test views for evaluation", W, H, len(test))
+
+    # initial point cloud
+    if scene.points is not None and len(scene.points) > 0:
+        xyz, rgb = np.asarray(scene.points), np.asarray(scene.colors if scene.colors is not None
+                                                         else np.full_like(scene.points, 0.5))
+        xyz, rgb = subsample_points(xyz, rgb, config.max_init_points, config.seed)
+        init_source = "dataset"
+    else:
+        xyz, rgb = random_cube_points(config.num_random_points, config.random_points_half_extent, config.seed)
+        init_source = "random"
+    init = model_from_points(xyz, rgb, config.sh_degree, config.init_opacity, device=dev)
+    extent = scene.scene_radius()
+    log.info("init: %d points (%s); scene extent %.3f", init.num_gaussians, init_source, extent)
+
+    cfg = {
+        "data_device": "cpu",
+        "eval": True,
+        "images": "images",
+        "model_path": str(final),
+        "resolution": cfg_resolution_value(resolution, downscale, w0),
+        "sh_degree": int(config.sh_degree),
+        "source_path": str(src),
+        "white_background": bool(scene.white_background),
+    }
+    cameras = camera_entries(scene.train, scene.test)
+    staging = _staging_path(final)
+    if staging.exists():
+        shutil.rmtree(staging)
+
+    def on_save(iteration, model):
+        write_model_folder(staging, model, cfg, cameras, iteration, input_points=(xyz, rgb))
+        log.info("saved iteration %d (%d Gaussians)", iteration, model.num_gaussians)
+
+    trainer = Trainer(init, train, extent, config, background=bg, test=test, progress=progress,
+                      on_save=on_save, progress_every=progress_every)
+    result = trainer.run()
+    metrics = {
+        "test_psnr": result.test_psnr,
+        "test_views": result.test_views,
+        "test_views_total": len(scene.test),
+        "iterations": result.iterations,
+        "num_gaussians": result.num_gaussians,
+        "seconds_train": round(result.seconds_train, 2),
+        "seconds_total": None,
+        "resolution": [W, H],
+        "white_background": bool(scene.white_background),
+        "init": {"source": init_source, "points": int(len(xyz))},
+        "scene_extent": extent,
+        "backend": _backend_name(config.backend, dev),
+        "threads": torch.get_num_threads(),
+        "timings": {k: round(v, 2) for k, v in result.timings.items()},
+        "history": result.history,
+        "config": config.to_dict(),
+    }
+    metrics["seconds_total"] = round(time.perf_counter() - t_total, 2)
+    write_json_atomic(staging / "metrics.json", metrics)
+    _publish(staging, final, overwrite)
+    log.info("model folder written: %s", final)
+    return SceneFitResult(model_path=final, fit=result, metrics=metrics)
+
+
+def _backend_name(backend: str, device: torch.device) -> str:
+    if backend != "auto":
+        return backend
+    try:
+        from gaussian_renderer_pose import available_backends
+
+        return device.type if available_backends().get(device.type) is None else "reference"
+    except Exception:  # pragma: no cover
+        return "auto"
+
+
+def _publish(staging: Path, final: Path, overwrite: bool) -> None:
+    """Move the finished staging folder to `final` (replacing an old one only if allowed)."""
+    if final.exists():
+        if not overwrite:
+            raise ModelFolderExistsError(f"model_path {str(final)!r} appeared during the fit; the result "
+                                         f"is kept in {str(staging)!r}")
+        old = final.parent / f".{final.name}.old"
+        if old.exists():
+            shutil.rmtree(old)
+        os.replace(final, old)
+        os.replace(staging, final)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(staging, final)

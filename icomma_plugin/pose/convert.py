@@ -1,0 +1,295 @@
+"""Frame conversions, pose error metrics (iComMa) and pose perturbation.
+
+Conventions: docs/CONTRACTS.md and `icomma_plugin/pose/se3.py` (column vectors, OpenCV camera
+axes x right / y down / z forward, ``c2w = inv(w2c)``, camera centre = ``c2w[:3, 3]``).
+
+Every function accepts numpy arrays or torch tensors. Unless stated otherwise the result has the
+input's kind, dtype and device; metrics are computed in float64.
+"""
+from __future__ import annotations
+
+import math
+from typing import Optional, Union
+
+import numpy as np
+import torch
+
+ArrayLike = Union[np.ndarray, torch.Tensor]
+GeneratorLike = Union[None, int, np.random.Generator, torch.Generator]
+
+__all__ = [
+    "invert_rigid",
+    "c2w_to_w2c",
+    "w2c_to_c2w",
+    "opengl_to_opencv_c2w",
+    "opencv_to_opengl_c2w",
+    "look_at_c2w",
+    "rotation_about_axis",
+    "random_rotation_about_axis",
+    "rotation_error_deg",
+    "translation_error",
+    "perturb_pose",
+]
+
+
+def _check_mat(T, name: str, allowed=((4, 4),)) -> None:
+    if not isinstance(T, (np.ndarray, torch.Tensor)):
+        raise ValueError(f"{name} must be a numpy array or torch tensor, got {type(T).__name__}")
+    if T.ndim < 2 or tuple(T.shape[-2:]) not in allowed:
+        want = " or ".join(f"[..., {a}, {b}]" for a, b in allowed)
+        raise ValueError(f"{name} must have shape {want}, got {list(T.shape)}")
+
+
+def _to_np64(x) -> np.ndarray:
+    if isinstance(x, torch.Tensor):
+        return x.detach().cpu().to(torch.float64).numpy()
+    return np.asarray(x, dtype=np.float64)
+
+
+def invert_rigid(T: ArrayLike) -> ArrayLike:
+    """Inverse of rigid transforms ``[..., 4, 4]`` as ``[[R^T, -R^T t], [0, 1]]``.
+
+    Exact for rigid inputs (no general matrix inverse); differentiable for torch inputs.
+
+    Raises:
+        ValueError: if ``T`` is not ``[..., 4, 4]``.
+    """
+    _check_mat(T, "T")
+    if isinstance(T, torch.Tensor):
+        Rt = T[..., :3, :3].transpose(-1, -2)
+        t = -(Rt @ T[..., :3, 3:4])
+        return torch.cat([torch.cat([Rt, t], -1), T[..., 3:4, :]], -2)
+    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
+    out = np.array(T, copy=True)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3:4] = -(Rt @ T[..., :3, 3:4])
+    return out
+
+
+def c2w_to_w2c(c2w: ArrayLike) -> ArrayLike:
+    """Camera-to-world -> world-to-camera (``invert_rigid``)."""
+    return invert_rigid(c2w)
+
+
+def w2c_to_c2w(w2c: ArrayLike) -> ArrayLike:
+    """World-to-camera -> camera-to-world (``invert_rigid``)."""
+    return invert_rigid(w2c)
+
+
+def opengl_to_opencv_c2w(c2w: ArrayLike) -> ArrayLike:
+    """Blender/NeRF (OpenGL: y up, z back) c2w -> OpenCV/COLMAP c2w: negate columns 1 and 2.
+
+    This is 3DGS ``readCamerasFromTransforms``' ``c2w[:3, 1:3] *= -1``. The camera centre is
+    unchanged. The map is its own inverse (see :func:`opencv_to_opengl_c2w`). Returns a copy.
+
+    Args:
+        c2w: ``[..., 4, 4]`` or ``[..., 3, 4]``.
+    """
+    _check_mat(c2w, "c2w", ((4, 4), (3, 4)))
+    out = c2w.clone() if isinstance(c2w, torch.Tensor) else np.array(c2w, copy=True)
+    out[..., :3, 1:3] = -out[..., :3, 1:3]
+    return out
+
+
+def opencv_to_opengl_c2w(c2w: ArrayLike) -> ArrayLike:
+    """OpenCV c2w -> OpenGL/Blender c2w (same column flip as :func:`opengl_to_opencv_c2w`)."""
+    return opengl_to_opencv_c2w(c2w)
+
+
+def look_at_c2w(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """OpenCV-axes c2w of a camera at ``eye`` looking at ``target``; image "up" towards ``up``.
+
+    Columns of the rotation: x = normalise(forward x up) (right), y = forward x x (down, i.e.
+    against ``up``), z = forward.
+
+    Returns:
+        ``[4, 4]`` float64 numpy.
+
+    Raises:
+        ValueError: if ``eye == target`` or ``up`` is parallel to the viewing direction.
+    """
+    eye, target, up = (_to_np64(v).reshape(3) for v in (eye, target, up))
+    f = target - eye
+    if np.linalg.norm(f) < 1e-12:
+        raise ValueError(f"look_at_c2w: eye and target must differ, got eye={eye} target={target}")
+    f = f / np.linalg.norm(f)
+    x = np.cross(f, up)
+    if np.linalg.norm(x) < 1e-9:
+        raise ValueError(f"look_at_c2w: up={up} is parallel to the viewing direction {f}")
+    x = x / np.linalg.norm(x)
+    y = np.cross(f, x)
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = x, y, f, eye
+    return c2w
+
+
+def rotation_about_axis(axis, angle_deg: float) -> np.ndarray:
+    """Rotation matrix ``[3, 3]`` float64 (numpy) by ``angle_deg`` degrees about ``axis``
+    (right-hand rule; ``axis`` need not be normalised).
+
+    Raises:
+        ValueError: if ``axis`` is zero or not a 3-vector.
+    """
+    a = _to_np64(axis)
+    if a.shape != (3,) or not np.all(np.isfinite(a)) or np.linalg.norm(a) < 1e-12:
+        raise ValueError(f"axis must be a finite non-zero 3-vector, got {a!r}")
+    a = a / np.linalg.norm(a)
+    th = math.radians(float(angle_deg))
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + math.sin(th) * K + (1.0 - math.cos(th)) * (K @ K)
+
+
+class _Rng:
+    """Uniform interface over numpy / torch generators; draws float64 numpy values."""
+
+    def __init__(self, generator: GeneratorLike):
+        if isinstance(generator, torch.Generator):
+            self.torch_gen, self.np_gen = generator, None
+        elif generator is None or isinstance(generator, (int, np.integer)):
+            self.torch_gen, self.np_gen = None, np.random.default_rng(generator)
+        elif isinstance(generator, np.random.Generator):
+            self.torch_gen, self.np_gen = None, generator
+        else:
+            raise ValueError(
+                "generator must be None, an int seed, a numpy Generator or a torch.Generator, "
+                f"got {type(generator).__name__}"
+            )
+
+    def normal(self, n: int) -> np.ndarray:
+        if self.torch_gen is not None:
+            return torch.randn(n, generator=self.torch_gen, dtype=torch.float64).numpy()
+        return self.np_gen.standard_normal(n)
+
+    def uniform(self, n: int) -> np.ndarray:
+        """Uniform in [-1, 1)."""
+        if self.torch_gen is not None:
+            return torch.rand(n, generator=self.torch_gen, dtype=torch.float64).numpy() * 2 - 1
+        return self.np_gen.uniform(-1.0, 1.0, n)
+
+    def direction(self) -> np.ndarray:
+        """Uniform direction on the unit sphere (normalised Gaussian)."""
+        while True:
+            v = self.normal(3)
+            n = np.linalg.norm(v)
+            if n > 1e-9:
+                return v / n
+
+
+def random_rotation_about_axis(
+    angle_deg: float, generator: GeneratorLike = None, axis=None
+) -> np.ndarray:
+    """Rotation by exactly ``angle_deg`` degrees about a uniformly random axis (or ``axis``).
+
+    Args:
+        angle_deg: rotation angle in degrees.
+        generator: None, an int seed, ``np.random.Generator`` or ``torch.Generator`` (CPU).
+        axis: optional fixed axis ``[3]``; then no random number is drawn.
+
+    Returns:
+        ``[3, 3]`` float64 numpy rotation.
+    """
+    if axis is None:
+        axis = _Rng(generator).direction()
+    return rotation_about_axis(axis, angle_deg)
+
+
+def _rotation_part(T, name: str) -> np.ndarray:
+    _check_mat(T, name, ((3, 3), (3, 4), (4, 4)))
+    return _to_np64(T)[..., :3, :3]
+
+
+def _wrap_metric(value: np.ndarray, like):
+    if isinstance(like, torch.Tensor):
+        return torch.as_tensor(value, dtype=torch.float64, device=like.device)
+    return value
+
+
+def rotation_error_deg(est: ArrayLike, gt: ArrayLike):
+    """iComMa rotation error in degrees: ``arccos((trace(R_est R_gt^T) - 1) / 2)``, trace clamped
+    to [-1, 3] (``utils/calculate_error_utils.py``).
+
+    Pass both as c2w (as iComMa does) or both as w2c: the angle is the same. Computed in float64
+    numpy; not meant for gradients. arccos resolves angles near 0 to about 1e-6 degrees.
+
+    Args:
+        est: ``[..., 3, 3]``, ``[..., 3, 4]`` or ``[..., 4, 4]`` (only the rotation block is used).
+        gt: same, broadcastable against ``est``.
+
+    Returns:
+        Angle(s) in [0, 180] with the batch shape: numpy float64 array (0-d for one pose; use
+        ``float()``) for numpy input, float64 tensor on ``est``'s device for torch input.
+    """
+    Re, Rg = _rotation_part(est, "est"), _rotation_part(gt, "gt")
+    tr = np.einsum("...ij,...ij->...", Re, Rg)  # trace(Re @ Rg^T)
+    tr = np.clip(tr, -1.0, 3.0)
+    return _wrap_metric(np.degrees(np.arccos(0.5 * (tr - 1.0))), est)
+
+
+def translation_error(c2w_est: ArrayLike, c2w_gt: ArrayLike):
+    """iComMa translation error: distance between camera centres ``||c2w_est[:3,3] - c2w_gt[:3,3]||``
+    in scene units. Both arguments must be c2w (a w2c translation is not the camera centre).
+
+    Args:
+        c2w_est, c2w_gt: ``[..., 3, 4]`` or ``[..., 4, 4]``.
+
+    Returns:
+        As :func:`rotation_error_deg`.
+    """
+    _check_mat(c2w_est, "c2w_est", ((3, 4), (4, 4)))
+    _check_mat(c2w_gt, "c2w_gt", ((3, 4), (4, 4)))
+    d = _to_np64(c2w_est)[..., :3, 3] - _to_np64(c2w_gt)[..., :3, 3]
+    return _wrap_metric(np.linalg.norm(d, axis=-1), c2w_est)
+
+
+def perturb_pose(c2w: ArrayLike, rot_deg: float, trans, generator: GeneratorLike = None):
+    """Perturb camera pose(s) by an exact rotation angle and a translation, for initialisation.
+
+    The rotation is by exactly ``rot_deg`` degrees about a uniformly random axis through the
+    camera centre, expressed in the world frame (``R' = R_delta @ R``, centre unchanged), so
+    :func:`rotation_error_deg` of the result against ``c2w`` is ``rot_deg`` (for
+    ``rot_deg <= 180``). The camera centre is then moved by a world-frame offset:
+
+    - ``trans`` a scalar: offset of norm exactly ``trans`` in a uniformly random direction
+      (:func:`translation_error` is ``trans``);
+    - ``trans`` a 3-vector ``(tx, ty, tz)``: each component drawn uniformly in ``[-t_i, t_i]``
+      (max magnitudes per world axis).
+
+    Unlike iComMa's ``--delta`` (rotations about the world origin, which also move the centre),
+    rotation and translation errors are controlled independently here.
+
+    Args:
+        c2w: ``[4, 4]`` or ``[B, 4, 4]`` OpenCV c2w (numpy or torch); batched poses get independent
+            draws.
+        rot_deg: rotation angle in degrees.
+        trans: scalar norm, or per-axis maxima ``[3]`` (world units).
+        generator: None, int seed, ``np.random.Generator`` or CPU ``torch.Generator``.
+
+    Returns:
+        Perturbed c2w with the input's kind, shape, dtype and device (drawn in float64).
+
+    Raises:
+        ValueError: on bad shapes, a negative or non-finite ``trans``/``rot_deg``.
+    """
+    _check_mat(c2w, "c2w")
+    if not math.isfinite(float(rot_deg)):
+        raise ValueError(f"rot_deg must be finite, got {rot_deg!r}")
+    t = _to_np64(trans)
+    if t.shape not in ((), (1,), (3,)) or not np.all(np.isfinite(t)) or np.any(t < 0):
+        raise ValueError(
+            f"trans must be a non-negative scalar (norm) or 3-vector (per-axis max), got {trans!r}"
+        )
+    rng = _Rng(generator)
+    T = _to_np64(c2w)
+    flat = T.reshape(-1, 4, 4).copy()
+    for i in range(flat.shape[0]):
+        Rd = rotation_about_axis(rng.direction(), rot_deg)
+        if t.shape == (3,):
+            offset = rng.uniform(3) * t
+        else:
+            offset = rng.direction() * float(t.reshape(()))
+        flat[i, :3, :3] = Rd @ flat[i, :3, :3]
+        flat[i, :3, 3] = flat[i, :3, 3] + offset
+    out = flat.reshape(T.shape)
+    if isinstance(c2w, torch.Tensor):
+        return torch.as_tensor(out, dtype=c2w.dtype, device=c2w.device)
+    return out.astype(c2w.dtype if np.issubdtype(c2w.dtype, np.floating) else np.float64)

@@ -1,0 +1,396 @@
+"""Tests of icomma_plugin.fit: densification unit tests, a tiny end-to-end fit, model folder I/O."""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from icomma_plugin.camera import Intrinsics
+from icomma_plugin.fit import (
+    FitConfig,
+    FitView,
+    GaussianTrainState,
+    Trainer,
+    expon_lr,
+    mean_knn_sq_dist,
+    model_from_points,
+    photometric_loss,
+    psnr,
+    random_cube_points,
+    render_state,
+    resolution_scale,
+    ssim,
+)
+from icomma_plugin.fit.state import PARAM_NAMES
+from icomma_plugin.gaussians import GaussianModel, rgb_to_sh
+
+BACKEND = "auto"  # native CPU kernel when built, else the reference
+
+
+# ---------------------------------------------------------------------------------------- helpers
+def _tiny_model(P=4, scale=0.01, opacity=0.5, sh_degree=1) -> GaussianModel:
+    g = torch.Generator().manual_seed(1)
+    K = (sh_degree + 1) ** 2 - 1
+    logit = math.log(opacity / (1 - opacity))
+    quat = torch.randn(P, 4, generator=g)
+    return GaussianModel(
+        means=torch.randn(P, 3, generator=g),
+        sh_dc=torch.randn(P, 1, 3, generator=g),
+        sh_rest=torch.randn(P, K, 3, generator=g) * 0.1,
+        opacity_logit=torch.full((P, 1), logit),
+        scale_log=torch.full((P, 3), math.log(scale)),
+        quat=quat,
+        sh_degree=sh_degree,
+    )
+
+
+def _state_with_moments(model, extent=1.0) -> GaussianTrainState:
+    """A train state after one Adam step (so every parameter has non-zero Adam moments)."""
+    st = GaussianTrainState(model, extent)
+    loss = sum(st.get(n).sum() for n in PARAM_NAMES)
+    loss.backward()
+    st.step()
+    st.zero_grad()
+    return st
+
+
+def _check_consistent(st: GaussianTrainState):
+    P = st.num_gaussians
+    for n in PARAM_NAMES:
+        p = st.get(n)
+        assert p.shape[0] == P
+        assert st.optimizer.param_groups[PARAM_NAMES.index(n)]["params"][0] is p
+        s = st.optimizer.state.get(p)
+        if s:
+            assert s["exp_avg"].shape == p.shape and s["exp_avg_sq"].shape == p.shape
+    assert st.grad_accum.shape == (P,) and st.denom.shape == (P,) and st.max_radii2D.shape == (P,)
+
+
+def _look_at_w2c(campos, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """World-to-camera of a camera at `campos` looking at `target` (OpenCV axes)."""
+    c = np.asarray(campos, float)
+    z = np.asarray(target, float) - c
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = x, y, z, c
+    return np.linalg.inv(c2w)
+
+
+def _ring_poses(n, radius=3.0, height=1.0):
+    return [
+        _look_at_w2c((radius * math.cos(2 * math.pi * k / n), radius * math.sin(2 * math.pi * k / n),
+                      height * (1 if k % 2 else -0.5)))
+        for k in range(n)
+    ]
+
+
+def _gt_model() -> GaussianModel:
+    """A small known scene: 40 coloured Gaussians in a ball of radius 0.6."""
+    g = torch.Generator().manual_seed(7)
+    P = 40
+    d = torch.randn(P, 3, generator=g)
+    means = d / d.norm(dim=1, keepdim=True) * torch.rand(P, 1, generator=g) * 0.6
+    rgb = torch.rand(P, 3, generator=g)
+    return GaussianModel(
+        means=means,
+        sh_dc=rgb_to_sh(rgb).view(P, 1, 3),
+        sh_rest=torch.zeros(P, 3, 3),
+        opacity_logit=torch.full((P, 1), 2.0),
+        scale_log=torch.log(torch.rand(P, 3, generator=g) * 0.12 + 0.04),
+        quat=torch.randn(P, 4, generator=g),
+        sh_degree=1,
+    )
+
+
+def _render_views(model, poses, size=32, bg=(0.0, 0.0, 0.0)):
+    from icomma_plugin.fit.state import GaussianTrainState as _S
+
+    st = _S(model, 1.0)
+    st.active_sh_degree = model.sh_degree
+    intr = Intrinsics(size, size, size * 1.1, size * 1.1)
+    views = []
+    with torch.no_grad():
+        for k, w2c in enumerate(poses):
+            v = FitView(f"v{k}", torch.zeros(3, size, size), intr, torch.as_tensor(w2c, dtype=torch.float32))
+            out = render_state(st, v, torch.tensor(bg), BACKEND)
+            views.append((v.name, out.color.clamp(0, 1), out.alpha.clamp(0, 1), intr, w2c))
+    return views
+
+
+def _fit_views(rendered):
+    return [FitView(n, img, intr, torch.as_tensor(w2c, dtype=torch.float32)) for n, img, _, intr, w2c in rendered]
+
+
+# ------------------------------------------------------------------------------ small functions
+def test_ssim_identical_and_loss():
+    a = torch.rand(3, 20, 24)
+    assert ssim(a, a).item() == pytest.approx(1.0, abs=1e-5)
+    assert photometric_loss(a, a).item() == pytest.approx(0.0, abs=1e-5)
+    b = (a + 0.2 * torch.randn_like(a)).clamp(0, 1)
+    assert 0.0 < ssim(a, b).item() < 0.95
+    assert psnr(a, a) == float("inf")
+    assert psnr(torch.zeros(3, 4, 4), torch.full((3, 4, 4), 0.1)) == pytest.approx(20.0, abs=1e-4)
+
+
+def test_expon_lr_endpoints():
+    assert expon_lr(0, 1e-2, 1e-4, 100) == pytest.approx(1e-2)
+    assert expon_lr(100, 1e-2, 1e-4, 100) == pytest.approx(1e-4)
+    assert expon_lr(50, 1e-2, 1e-4, 100) == pytest.approx(1e-3)
+    assert expon_lr(500, 1e-2, 1e-4, 100) == pytest.approx(1e-4)
+
+
+def test_knn_scales_and_init():
+    grid = np.stack(np.meshgrid(*[np.arange(5.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    d2 = mean_knn_sq_dist(grid)
+    assert np.allclose(d2[62], 1.0)  # an inner point: 3 nearest at distance 1
+    m = model_from_points(grid, np.full_like(grid, 0.5), sh_degree=3, init_opacity=0.1)
+    assert m.num_gaussians == 125 and m.sh_rest.shape == (125, 15, 3)
+    assert torch.allclose(m.scale_log[62], torch.zeros(3), atol=1e-6)
+    assert torch.allclose(m.opacities(), torch.full((125, 1), 0.1))
+    assert torch.allclose(m.rotations(), torch.tensor([1.0, 0, 0, 0]).expand(125, 4))
+    assert torch.allclose(m.sh_dc, torch.zeros(125, 1, 3), atol=1e-6)  # grey 0.5
+    xyz, rgb = random_cube_points(1000, 1.3, seed=3)
+    assert xyz.shape == (1000, 3) and np.abs(xyz).max() <= 1.3 and 0 <= rgb.min() and rgb.max() <= 1
+    with pytest.raises(ValueError, match="xyz"):
+        model_from_points(np.zeros((0, 3)), np.zeros((0, 3)))
+
+
+# --------------------------------------------------------------------------- densification units
+def test_densification_stats_only_visible():
+    st = GaussianTrainState(_tiny_model(3), 1.0)
+    g = torch.tensor([[3.0, 4.0, 100.0], [1.0, 0.0, 0.0], [0.0, 2.0, 0.0]])
+    st.add_densification_stats(g, torch.tensor([2, 0, 5], dtype=torch.int32))
+    st.add_densification_stats(g, torch.tensor([4, 0, 1], dtype=torch.int32))
+    assert torch.allclose(st.grad_accum, torch.tensor([10.0, 0.0, 4.0]))  # norm of [:, :2] only
+    assert torch.allclose(st.denom, torch.tensor([2.0, 0.0, 2.0]))
+    assert torch.allclose(st.max_radii2D, torch.tensor([4.0, 0.0, 5.0]))
+    assert torch.allclose(st.mean_grads(), torch.tensor([5.0, 0.0, 2.0]))  # 0/0 -> 0
+
+
+def test_clone_small_gaussians():
+    model = _tiny_model(4, scale=0.001)
+    st = _state_with_moments(model, extent=1.0)  # percent_dense * extent = 0.01 > 0.001: all "small"
+    before = {n: st.get(n).detach().clone() for n in PARAM_NAMES}
+    grads = torch.tensor([1e-3, 0.0, 5e-4, 1e-5])
+    n = st.densify_and_clone(grads, 2e-4, 1.0)
+    assert n == 2 and st.num_gaussians == 6
+    _check_consistent(st)
+    for name in PARAM_NAMES:
+        p = st.get(name).detach()
+        assert torch.equal(p[:4], before[name])
+        assert torch.equal(p[4:], before[name][[0, 2]])  # identical copies
+        s = st.optimizer.state[st.get(name)]
+        assert torch.count_nonzero(s["exp_avg"][4:]) == 0 and torch.count_nonzero(s["exp_avg"][:4]) > 0
+    # large Gaussians are not cloned
+    st2 = _state_with_moments(_tiny_model(4, scale=0.5), extent=1.0)
+    assert st2.densify_and_clone(grads, 2e-4, 1.0) == 0 and st2.num_gaussians == 4
+
+
+def test_split_large_gaussians():
+    model = _tiny_model(3, scale=0.5)
+    st = _state_with_moments(model, extent=1.0)
+    means0 = st.get("means").detach().clone()
+    scales0 = st.scales().detach().clone()
+    dc0 = st.get("sh_dc").detach().clone()
+    grads = torch.tensor([1e-3, 1e-5, 1e-3])
+    n = st.densify_and_split(grads, 2e-4, 1.0, N=2)
+    assert n == 2 and st.num_gaussians == 3 - 2 + 4
+    _check_consistent(st)
+    assert torch.equal(st.get("means").detach()[0], means0[1])  # survivor first
+    new_means = st.get("means").detach()[1:]
+    # each new Gaussian is within a few (rotated) std of its parent, scale / (0.8 * N)
+    parents = means0[[0, 2, 0, 2]]
+    assert ((new_means - parents).norm(dim=1) < 4 * 0.5 * math.sqrt(3)).all()
+    assert torch.allclose(st.scales().detach()[1:], scales0[[0, 2, 0, 2]] / 1.6, atol=1e-6)
+    assert torch.allclose(st.get("sh_dc").detach()[1:], dc0[[0, 2, 0, 2]])
+    new_state = st.optimizer.state[st.get("means")]
+    assert torch.count_nonzero(new_state["exp_avg"][1:]) == 0
+    # the optimizer still steps with the new tensors
+    (st.get("means") ** 2).sum().backward()
+    st.step()
+
+
+def test_prune_and_full_densify_and_prune():
+    model = _tiny_model(5, scale=0.05)
+    model.opacity_logit[1] = -8.0  # opacity ~ 3e-4 < 0.005
+    st = _state_with_moments(model, extent=1.0)
+    keep_means = st.get("means").detach()[[0, 2, 3, 4]].clone()
+    st.prune(torch.tensor([False, True, False, False, False]))
+    assert st.num_gaussians == 4 and torch.equal(st.get("means").detach(), keep_means)
+    _check_consistent(st)
+
+    model = _tiny_model(5, scale=0.05)
+    model.opacity_logit[1] = -8.0
+    model.scale_log[3] = math.log(0.5)  # > 0.1 * extent: pruned when the size test is on
+    st = _state_with_moments(model, extent=1.0)
+    st.max_radii2D[4] = 50.0  # > max_screen_size
+    d = st.densify_and_prune(2e-4, 0.005, 1.0, max_screen_size=20)
+    assert d == {"cloned": 0, "split": 0, "pruned": 3, "total": 2}
+    _check_consistent(st)
+    assert torch.count_nonzero(st.grad_accum) == 0  # statistics reset
+
+
+def test_densify_budget_caps_growth():
+    st = _state_with_moments(_tiny_model(6, scale=0.001), extent=1.0)
+    st.grad_accum = torch.tensor([1.0, 5.0, 3.0, 4.0, 2.0, 0.0]) * 1e-3
+    st.denom = torch.ones(6)
+    d = st.densify_and_prune(2e-4, 0.0, 1.0, None, max_gaussians=8)
+    assert d["cloned"] == 2 and st.num_gaussians == 8
+    # the two largest gradients (indices 1 and 3) were cloned
+    assert torch.equal(st.get("means").detach()[6:], st.get("means").detach()[[1, 3]])
+
+
+def test_reset_opacity():
+    model = _tiny_model(3)
+    model.opacity_logit[:, 0] = torch.tensor([3.0, -6.0, 0.0])
+    st = _state_with_moments(model)
+    op0 = st.opacities().detach().squeeze(1).clone()
+    st.reset_opacity()
+    op = st.opacities().detach().squeeze(1)
+    assert torch.allclose(op, torch.stack([torch.tensor(0.01), op0[1], torch.tensor(0.01)]), atol=1e-6)
+    assert op0[1] < 0.01
+    s = st.optimizer.state[st.get("opacity_logit")]
+    assert torch.count_nonzero(s["exp_avg"]) == 0 and torch.count_nonzero(s["exp_avg_sq"]) == 0
+    _check_consistent(st)
+
+
+# ------------------------------------------------------------------------------- end-to-end fit
+def test_tiny_end_to_end_fit():
+    gt = _gt_model()
+    rendered = _render_views(gt, _ring_poses(8), size=32)
+    views = _fit_views(rendered)
+    train, test = views[:7], views[7:]
+    xyz, rgb = random_cube_points(300, 0.8, seed=0)
+    init = model_from_points(xyz, rgb, sh_degree=1)
+    cfg = FitConfig.scaled_schedule(300, sh_degree=1, num_random_points=300, densify_grad_threshold=1e-4,
+                                    max_gaussians=2000, backend=BACKEND)
+    trainer = Trainer(init, train, scene_extent=3.3, config=cfg, background=(0, 0, 0), test=test)
+    p0 = trainer.evaluate(train)
+    seen = []
+    trainer.progress = lambda it, n, info: seen.append((it, info))
+    res = trainer.run()
+    p1 = trainer.evaluate(train)
+    assert res.iterations == 300 and len(seen) == 30 and seen[-1][0] == 300
+    assert {"loss", "psnr", "num_gaussians"} <= set(seen[-1][1])
+    assert p1 > p0 + 8.0, (p0, p1)
+    assert p1 > 24.0, p1
+    assert res.test_psnr is not None and res.test_psnr > 18.0
+    assert res.num_gaussians != 300  # densification / pruning happened
+    assert set(res.timings) >= {"render", "backward", "adam", "densify"}
+
+
+# --------------------------------------------------------------------------- dataset -> folder
+def _write_blender_dataset(root: Path, rendered_train, rendered_test):
+    from PIL import Image
+
+    root.mkdir(parents=True, exist_ok=True)
+    for split, items in (("train", rendered_train), ("test", rendered_test)):
+        (root / split).mkdir(exist_ok=True)
+        frames = []
+        for name, img, alpha, intr, w2c in items:
+            rgba = torch.cat([img, alpha], 0).permute(1, 2, 0).numpy()
+            # straight (un-premultiplied) colour so that compositing over black reproduces `img`
+            a = np.clip(rgba[..., 3:], 1e-6, 1)
+            rgba[..., :3] = np.clip(rgba[..., :3] / a, 0, 1) * (rgba[..., 3:] > 0)
+            Image.fromarray((rgba * 255 + 0.5).astype(np.uint8), "RGBA").save(root / split / f"{name}.png")
+            c2w = np.linalg.inv(w2c)
+            c2w[:3, 1:3] *= -1  # OpenCV -> Blender axes
+            frames.append({"file_path": f"./{split}/{name}", "transform_matrix": c2w.tolist()})
+        fov = 2 * math.atan(intr.width / (2 * intr.fx))
+        (root / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": fov, "frames": frames}))
+
+
+@pytest.fixture(scope="module")
+def tiny_dataset(tmp_path_factory):
+    rendered = _render_views(_gt_model(), _ring_poses(8), size=32)
+    root = tmp_path_factory.mktemp("tiny_blender")
+    _write_blender_dataset(root, rendered[:6], rendered[6:])
+    return root
+
+
+def test_fit_scene_writes_loadable_model_folder(tiny_dataset, tmp_path):
+    from icomma_plugin.fit import fit_scene
+    from icomma_plugin.io.model_folder import load_model_folder
+    from icomma_plugin.render import render
+
+    out = tmp_path / "model"
+    cfg = FitConfig.scaled_schedule(60, sh_degree=1, num_random_points=200, save_iterations=(30,),
+                                    backend=BACKEND)
+    calls = []
+    res = fit_scene(tiny_dataset, out, cfg, white_background=False, progress=lambda *a: calls.append(a))
+    assert res.model_path == out.resolve() and calls
+    for f in ("cfg_args", "cameras.json", "input.ply", "metrics.json",
+              "point_cloud/iteration_30/point_cloud.ply", "point_cloud/iteration_60/point_cloud.ply"):
+        assert (out / f).is_file(), f
+    assert not any(p.name.startswith(".model") for p in tmp_path.iterdir())  # no staging left
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["iterations"] == 60 and metrics["resolution"] == [32, 32]
+    assert metrics["num_gaussians"] == res.fit.num_gaussians and metrics["test_views"] == 2
+    assert math.isfinite(metrics["test_psnr"]) and metrics["seconds_train"] > 0
+
+    folder = load_model_folder(out)
+    assert folder.iteration == 60
+    assert folder.cfg["source_path"] == str(tiny_dataset.resolve())
+    assert folder.cfg["eval"] is True and folder.cfg["sh_degree"] == 1
+    assert folder.cfg["white_background"] is False
+    names = [c.img_name for c in folder.cameras]
+    assert names == ["v6", "v7", "v0", "v1", "v2", "v3", "v4", "v5"]  # test first, then train
+    m = folder.model
+    assert m.num_gaussians == res.fit.num_gaussians
+    cam = folder.cameras[0]
+    intr = Intrinsics(cam.width, cam.height, cam.fx, cam.fy)
+    w2c = torch.as_tensor(cam.w2c, dtype=torch.float32)
+    bg = torch.zeros(3)
+    a = render(m, intr, w2c, bg, backend=BACKEND).color
+    b = render(res.fit.model, intr, w2c, bg, backend=BACKEND).color
+    assert torch.allclose(a, b, atol=1e-5)
+
+    # never overwrites unless asked
+    with pytest.raises(ValueError, match="already exists"):
+        fit_scene(tiny_dataset, out, cfg)
+    cfg2 = FitConfig.scaled_schedule(5, sh_degree=1, num_random_points=50, backend=BACKEND)
+    fit_scene(tiny_dataset, out, cfg2, overwrite=True)
+    assert load_model_folder(out).iteration == 5
+    assert not (out / "point_cloud" / "iteration_60").exists()
+
+
+def test_bad_inputs(tmp_path, tiny_dataset):
+    from icomma_plugin.fit import fit_scene
+
+    with pytest.raises(ValueError, match="source_path"):
+        fit_scene(tmp_path / "nope", tmp_path / "m", FitConfig(iterations=1))
+    with pytest.raises(ValueError, match="resolution"):
+        fit_scene(tiny_dataset, tmp_path / "m", FitConfig(iterations=1), resolution=0)
+    with pytest.raises(ValueError, match="downscale"):
+        fit_scene(tiny_dataset, tmp_path / "m", FitConfig(iterations=1), resolution=-1, downscale=-2.0)
+    assert not (tmp_path / "m").exists()
+    with pytest.raises(ValueError, match="iterations"):
+        FitConfig(iterations=0)
+    with pytest.raises(ValueError, match="sh_degree"):
+        FitConfig(sh_degree=4)
+    assert resolution_scale(-1, None, 400) == 1.0
+    assert resolution_scale(2, None, 400) == 0.5
+    assert resolution_scale(200, None, 400) == 0.5
+    assert resolution_scale(None, 2.0, 400) == 0.5
+    assert resolution_scale(-1, None, 3200) == 0.5
+    with pytest.raises(ValueError, match="either"):
+        resolution_scale(2, 2.0, 400)
+
+
+def test_lego_split_and_resolution_smoke(lego_root):
+    """The shared lego scene loads at 200x200 for fitting (no fit: that is tools/fit_scene.py)."""
+    from icomma_plugin.fit.scene import views_to_fit
+    from icomma_plugin.io.datasets import read_dataset
+
+    scene = read_dataset(lego_root, white_background=True)
+    views = views_to_fit(scene.train[:2], 2, None, (1.0, 1.0, 1.0))
+    assert views[0].image.shape == (3, 200, 200)
+    assert views[0].intrinsics.fx == pytest.approx(0.5 * 555.555, rel=1e-3)
+    assert views[0].image.max() <= 1.0 and views[0].image[:, 0, 0].min() > 0.99  # white corner

@@ -1,0 +1,151 @@
+"""Bad input raises ValueError (RasterizerInputError) naming the argument, expected and actual value."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from gaussian_renderer_pose import rasterize_gaussians
+from gaussian_renderer_pose._validate import RasterizerInputError
+from tests.renderer.scenes import make_scene
+
+
+@pytest.fixture
+def scene():
+    return make_scene(12, height=16, width=20)
+
+
+def call(scene, settings=None, **overrides):
+    kw = {**scene.inputs(), **overrides}
+    return rasterize_gaussians(settings=settings or scene.settings("reference"), **kw)
+
+
+def test_valid_scene_renders(scene):
+    out = call(scene)
+    assert out.color.shape == (3, 16, 20)
+
+
+@pytest.mark.parametrize(
+    "name,bad,pattern",
+    [
+        ("means3D", torch.zeros(12, 2), r"means3D must have shape \[\*, 3\], got \[12, 2\]"),
+        ("opacities", torch.zeros(11, 1), r"opacities must have shape \[12, 1\], got \[11, 1\]"),
+        ("means2D", torch.zeros(12, 3, 1), r"means2D must have shape \[12, 3\]"),
+        ("shs", torch.zeros(12, 16), r"shs must have shape \[12, \*, 3\]"),
+        ("shs", torch.zeros(12, 9, 3), r"shs must have at least .* 16 coefficients .* got shape \[12, 9, 3\]"),
+        ("scales", torch.zeros(12, 4), r"scales must have shape \[12, 3\]"),
+        ("rotations", torch.zeros(12, 3), r"rotations must have shape \[12, 4\]"),
+        ("means3D", "not a tensor", r"means3D must be a torch.Tensor, got str"),
+    ],
+)
+def test_wrong_shape(scene, name, bad, pattern):
+    with pytest.raises(RasterizerInputError, match=pattern):
+        call(scene, **{name: bad})
+
+
+def test_wrong_shape_precomp():
+    s = make_scene(5, height=16, width=20, colors="precomp", covariance="precomp")
+    with pytest.raises(ValueError, match=r"colors_precomp must have shape \[5, 3\], got \[5, 4\]"):
+        call(s, colors_precomp=torch.zeros(5, 4))
+    with pytest.raises(ValueError, match=r"cov3D_precomp must have shape \[5, 6\], got \[5, 3, 3\]"):
+        call(s, cov3D_precomp=torch.zeros(5, 3, 3))
+
+
+def test_settings_tensor_shapes(scene):
+    st = scene.settings("reference")
+    for field, bad, pat in [
+        ("bg", torch.zeros(4), r"bg must have shape \[3\], got \[4\]"),
+        ("viewmatrix", torch.eye(3), r"viewmatrix must have shape \[4, 4\], got \[3, 3\]"),
+        ("projmatrix", torch.eye(4)[None], r"projmatrix must have shape \[4, 4\]"),
+        ("campos", torch.zeros(1, 3), r"campos must have shape \[3\], got \[1, 3\]"),
+    ]:
+        with pytest.raises(ValueError, match=pat):
+            call(scene, st._replace(**{field: bad}))
+
+
+def test_dtype(scene):
+    with pytest.raises(ValueError, match=r"means3D must have dtype float32 or float64, got torch.int64"):
+        call(scene, means3D=torch.zeros(12, 3, dtype=torch.long))
+    with pytest.raises(ValueError, match=r"opacities must have the same dtype as means3D \(torch.float32\), got torch.float64"):
+        call(scene, opacities=scene.opacities.double())
+    with pytest.raises(ValueError, match=r"bg must have the same dtype"):
+        call(scene, scene.settings("reference")._replace(bg=scene.bg.double()))
+
+
+def test_native_backend_requires_float32():
+    from gaussian_renderer_pose._backend import native_status
+
+    if not native_status("cpu")[0]:
+        pytest.skip("native cpu backend not built")
+    s = make_scene(4, height=16, width=20, dtype=torch.float64)
+    with pytest.raises(ValueError, match="float32"):
+        call(s, s.settings("cpu"))
+
+
+def test_device_mismatch(scene):
+    with pytest.raises(ValueError, match=r"opacities must be on the same device as means3D \(cpu\), got meta"):
+        call(scene, opacities=scene.opacities.to("meta"))
+    with pytest.raises(ValueError, match=r"viewmatrix must be on the same device"):
+        call(scene, scene.settings("reference")._replace(viewmatrix=torch.eye(4, device="meta")))
+
+
+TENSOR_INPUTS = ["means3D", "means2D", "opacities", "shs", "scales", "rotations"]
+
+
+@pytest.mark.parametrize("name", TENSOR_INPUTS)
+@pytest.mark.parametrize("value", [float("nan"), float("inf")])
+def test_non_finite_inputs(scene, name, value):
+    bad = getattr(scene, name).clone()
+    bad.view(-1)[3] = value
+    with pytest.raises(ValueError, match=rf"{name} must contain only finite values, got 1 NaN/Inf entry"):
+        call(scene, **{name: bad})
+
+
+@pytest.mark.parametrize("name", ["colors_precomp", "cov3D_precomp"])
+def test_non_finite_precomp(name):
+    s = make_scene(5, height=16, width=20, colors="precomp", covariance="precomp")
+    bad = getattr(s, name).clone()
+    bad[0, 0] = float("nan")
+    with pytest.raises(ValueError, match=rf"{name} must contain only finite values"):
+        call(s, **{name: bad})
+
+
+@pytest.mark.parametrize("field", ["bg", "viewmatrix", "projmatrix", "campos"])
+def test_non_finite_settings_tensors(scene, field):
+    st = scene.settings("reference")
+    bad = getattr(st, field).clone(memory_format=torch.contiguous_format)
+    bad.view(-1)[0] = float("inf")
+    with pytest.raises(ValueError, match=rf"{field} must contain only finite values"):
+        call(scene, st._replace(**{field: bad}))
+
+
+@pytest.mark.parametrize(
+    "field,value,pattern",
+    [
+        ("image_height", 0, r"image_height must be a positive int, got 0"),
+        ("image_width", -3, r"image_width must be a positive int, got -3"),
+        ("image_width", 20.0, r"image_width must be a positive int, got 20.0"),
+        ("image_height", True, r"image_height must be a positive int, got True"),
+        ("tanfovx", 0.0, r"tanfovx must be a positive finite number, got 0.0"),
+        ("tanfovy", float("nan"), r"tanfovy must be a positive finite number, got nan"),
+        ("tanfovx", -1.0, r"tanfovx must be a positive finite number"),
+        ("scale_modifier", 0.0, r"scale_modifier must be a positive finite number"),
+        ("scale_modifier", float("inf"), r"scale_modifier must be a positive finite number"),
+        ("sh_degree", 4, r"sh_degree must be an int in 0..3, got 4"),
+        ("sh_degree", -1, r"sh_degree must be an int in 0..3, got -1"),
+        ("sh_degree", 1.5, r"sh_degree must be an int in 0..3, got 1.5"),
+        ("antialiasing", "yes", r"antialiasing must be a bool"),
+        ("backend", "gpu", r"settings.backend must be one of"),
+    ],
+)
+def test_bad_scalar_settings(scene, field, value, pattern):
+    with pytest.raises(ValueError, match=pattern):
+        call(scene, scene.settings("reference")._replace(**{field: value}))
+
+
+def test_errors_are_value_errors():
+    assert issubclass(RasterizerInputError, ValueError)
+
+
+def test_bad_settings_type(scene):
+    with pytest.raises(ValueError, match="settings must be a GaussianRasterizationSettings"):
+        rasterize_gaussians(scene.means3D, scene.opacities, settings=dict(image_height=3))

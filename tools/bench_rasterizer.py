@@ -1,0 +1,234 @@
+"""Time the rasterizer backends on synthetic scenes; prints a markdown table.
+
+For each backend x scene (Gaussians x resolution) it measures, in ms (median of --repeats after a
+warm-up run): the forward, the forward + backward (gradients for the Gaussians), and the forward +
+backward with the pose gradient (viewmatrix / projmatrix / campos require grad), plus the
+native/reference speed ratio measured in the same run. The reference (pure PyTorch) is only run up to
+--reference-max-gaussians and --reference-max-pixels ("—" elsewhere).
+
+Examples:
+    python tools/bench_rasterizer.py                       # full table
+    python tools/bench_rasterizer.py --quick               # small, fast
+    python tools/bench_rasterizer.py --backends cpu --threads 2 --json bench_out/raster.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Callable, Dict, List, Optional, Tuple
+
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+MODES = ("fwd", "fwd+bwd", "fwd+bwd+pose")
+DEFAULT_SIZES = (10_000, 50_000, 200_000)
+DEFAULT_RES = (200, 400, 800)
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+# ----------------------------------------------------------------------------------------------
+# Synthetic scene: P Gaussians in front of the camera, each a few pixels on screen.
+# ----------------------------------------------------------------------------------------------
+def make_bench_scene(num_gaussians: int, resolution: int, seed: int = 0) -> Dict[str, object]:
+    g = torch.Generator().manual_seed(seed)
+    P, H, W = num_gaussians, resolution, resolution
+    tanfov = 0.5
+    focal = W / (2 * tanfov)
+
+    def U(*shape, lo=0.0, hi=1.0):
+        return torch.rand(*shape, generator=g) * (hi - lo) + lo
+
+    z = U(P, lo=2.0, hi=8.0)
+    x = U(P, lo=-1.1, hi=1.1) * tanfov * z  # a few just off screen
+    y = U(P, lo=-1.1, hi=1.1) * tanfov * z
+    means_cam = torch.stack([x, y, z], -1)
+    # camera: a mild rotation + translation (w2c), means moved to the world
+    angle = 0.2
+    c, s = math.cos(angle), math.sin(angle)
+    w2c = torch.tensor([[c, 0, s, 0.1], [0, 1, 0, -0.2], [-s, 0, c, 0.3], [0, 0, 0, 1]], dtype=torch.float32)
+    c2w = torch.linalg.inv(w2c)
+    means3D = means_cam @ c2w[:3, :3].T + c2w[:3, 3]
+    # footprint: sigma of 0.5..4 pixels, anisotropic
+    sigma_px = torch.exp(U(P, 3, lo=math.log(0.5), hi=math.log(4.0)))
+    scales = sigma_px * z[:, None] / focal
+    rotations = torch.randn(P, 4, generator=g)
+    rotations = rotations / rotations.norm(dim=-1, keepdim=True)
+    opacities = U(P, 1, lo=0.05, hi=0.99)
+    shs = torch.randn(P, 16, 3, generator=g) * 0.2
+    shs[:, 0] = torch.randn(P, 3, generator=g) * 0.8
+    znear, zfar = 0.01, 100.0
+    proj = torch.zeros(4, 4)
+    proj[0, 0] = 1 / tanfov
+    proj[1, 1] = 1 / tanfov
+    proj[3, 2] = 1.0
+    proj[2, 2] = zfar / (zfar - znear)
+    proj[2, 3] = -(zfar * znear) / (zfar - znear)
+    return dict(
+        means3D=means3D.contiguous(),
+        means2D=torch.zeros(P, 3),
+        opacities=opacities,
+        shs=shs,
+        colors_precomp=None,
+        scales=scales.contiguous(),
+        rotations=rotations,
+        cov3D_precomp=None,
+        bg=torch.tensor([0.1, 0.2, 0.3]),
+        viewmatrix=w2c.T.contiguous(),
+        projmatrix=(proj @ w2c).T.contiguous(),
+        campos=c2w[:3, 3].contiguous(),
+        settings=dict(image_height=H, image_width=W, tanfovx=tanfov, tanfovy=tanfov, scale_modifier=1.0,
+                      sh_degree=3, prefiltered=False, antialiasing=False),
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# Backends: name -> (callable with the contract signature, None) or (None, reason unavailable).
+# A "cuda" column can be added by registering a function that moves the scene to the GPU.
+# ----------------------------------------------------------------------------------------------
+def get_backend(name: str) -> Tuple[Optional[Callable], Optional[str]]:
+    if name == "reference":
+        from gaussian_renderer_pose.reference import rasterize_gaussians_reference
+
+        return rasterize_gaussians_reference, None
+    if name == "cpu":
+        from gaussian_renderer_pose import _backend
+
+        ok, why = _backend.native_status("cpu")
+        if not ok:
+            return None, why
+        from gaussian_renderer_pose._native import rasterize_gaussians_native
+
+        return rasterize_gaussians_native, None
+    return None, f"unknown backend {name!r} (known: reference, cpu)"
+
+
+GRAD_INPUTS = ("means3D", "means2D", "opacities", "shs", "scales", "rotations")
+POSE_INPUTS = ("viewmatrix", "projmatrix", "campos")
+
+
+def run_once(fn: Callable, scene: Dict[str, object], mode: str) -> float:
+    tensors = {k: v for k, v in scene.items() if k != "settings"}
+    if mode != "fwd":
+        names = GRAD_INPUTS + (POSE_INPUTS if mode == "fwd+bwd+pose" else ())
+        tensors = {k: (v.detach().clone().requires_grad_(True) if (k in names and v is not None) else v)
+                   for k, v in tensors.items()}
+    t0 = time.perf_counter()
+    if mode == "fwd":
+        with torch.no_grad():
+            fn(**tensors, **scene["settings"])
+    else:
+        color, _radii, invdepth, _dacc, _alpha = fn(**tensors, **scene["settings"])
+        loss = color.square().sum() + invdepth.sum()
+        loss.backward()
+    return (time.perf_counter() - t0) * 1e3
+
+
+def time_mode(fn: Callable, scene: Dict[str, object], mode: str, repeats: int) -> float:
+    run_once(fn, scene, mode)  # warm-up
+    return statistics.median(run_once(fn, scene, mode) for _ in range(repeats))
+
+
+def atomic_write_json(path: Path, data: object) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(data, f, indent=2)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--backends", default="cpu,reference", help="comma list (reference, cpu)")
+    ap.add_argument("--sizes", default=",".join(map(str, DEFAULT_SIZES)), help="numbers of Gaussians")
+    ap.add_argument("--resolutions", default=",".join(map(str, DEFAULT_RES)), help="square image sizes")
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's)")
+    ap.add_argument("--reference-max-gaussians", type=int, default=20_000)
+    ap.add_argument("--reference-max-pixels", type=int, default=200 * 200)
+    ap.add_argument("--json", type=Path, default=None, help="also write the results here (atomic)")
+    ap.add_argument("--quick", action="store_true", help="small scenes, 2 repeats")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args(argv)
+
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+    sizes = [int(s) for s in args.sizes.split(",") if s]
+    resolutions = [int(s) for s in args.resolutions.split(",") if s]
+    repeats = args.repeats
+    if args.quick:
+        sizes, resolutions, repeats = [2_000, 10_000], [200], 2
+        args.reference_max_gaussians = min(args.reference_max_gaussians, 2_000)
+    # the target comparison: 20k Gaussians at 200x200 for the reference
+    extra = [(args.reference_max_gaussians, 200)] if not args.quick else []
+    scenes = sorted({(p, r) for p in sizes for r in resolutions} | set(extra))
+    backends = [b.strip() for b in args.backends.split(",") if b.strip()]
+    fns = {}
+    for b in backends:
+        fn, why = get_backend(b)
+        if fn is None:
+            log(f"backend {b} unavailable: {why}")
+        fns[b] = fn
+
+    results = []
+    for P, R in scenes:
+        scene = make_bench_scene(P, R, seed=args.seed)
+        row = {"gaussians": P, "resolution": R, "ms": {}}
+        for b in backends:
+            fn = fns[b]
+            skip = fn is None or (b == "reference" and (P > args.reference_max_gaussians
+                                                        or R * R > args.reference_max_pixels))
+            for mode in MODES:
+                if skip:
+                    row["ms"][f"{b}/{mode}"] = None
+                    continue
+                log(f"[{P} x {R}^2] {b} {mode} ...")
+                reps = 1 if b == "reference" else repeats
+                row["ms"][f"{b}/{mode}"] = time_mode(fn, scene, mode, reps)
+        results.append(row)
+
+    # markdown table
+    cols = [f"{b}/{m}" for b in backends for m in MODES]
+    ratio_cols = []
+    if "reference" in backends:
+        ratio_cols = [(b, m) for b in backends if b != "reference" for m in MODES]
+    header = ["Gaussians", "image"] + [f"{c} (ms)" for c in cols] + [f"ref/{b} {m}" for b, m in ratio_cols]
+    print(f"threads: {torch.get_num_threads()}, repeats: {repeats} (median), reference: 1 timed run")
+    print("| " + " | ".join(header) + " |")
+    print("|" + "---|" * len(header))
+    for row in results:
+        cells = [f"{row['gaussians']:,}", f"{row['resolution']}x{row['resolution']}"]
+        for c in cols:
+            v = row["ms"][c]
+            cells.append("—" if v is None else f"{v:.1f}")
+        for b, m in ratio_cols:
+            r, n = row["ms"].get(f"reference/{m}"), row["ms"].get(f"{b}/{m}")
+            ratio = None if (r is None or n is None or n <= 0) else r / n
+            row.setdefault("ratio", {})[f"reference/{b}/{m}"] = ratio
+            cells.append("—" if ratio is None else f"{ratio:.0f}x")
+        print("| " + " | ".join(cells) + " |")
+    if args.json is not None:
+        atomic_write_json(args.json, {"threads": torch.get_num_threads(), "repeats": repeats, "results": results})
+        log(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
