@@ -341,6 +341,22 @@ def _build_gaussians(seed: int, spacing: float, ground_half: float) -> Tuple[Gau
     return model, info
 
 
+def textured_plane_model(n: int = 40, size: float = 2.0, seed: int = 0, style: str = "ground") -> GaussianModel:
+    """A small test model: an ``n x n`` grid of disc Gaussians tiling the square
+    ``[-size/2, size/2]^2`` of the plane z = 0 (normal +z), coloured by :func:`paint_texture`."""
+    rng = np.random.default_rng(seed)
+    pts, rgb, quat, scales = _face_gaussians(
+        np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), size / 2, size / 2, size / n,
+        lambda r, h, w: paint_texture(r, h, w, style), 1.0, rng)
+    f32 = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
+    P = pts.shape[0]
+    return GaussianModel(
+        means=f32(pts), sh_dc=rgb_to_sh(f32(rgb))[:, None, :], sh_rest=torch.zeros(P, 0, 3),
+        opacity_logit=torch.full((P, 1), math.log(0.98 / 0.02)), scale_log=torch.log(f32(scales)),
+        quat=f32(quat), sh_degree=0,
+    )
+
+
 # ----------------------------------------------------------------------------------------------
 # the scene folder
 # ----------------------------------------------------------------------------------------------

@@ -406,6 +406,10 @@ def localize(
             f"{getattr(query_alpha, 'shape', type(query_alpha).__name__)}"
         )
     device, dtype = model.device, model.dtype
+    model = model.detach()
+    if cfg.sh_degree is None and model.sh_degree > 0 and not bool(model.sh_rest.any()):
+        # Higher SH bands all zero: degree 0 renders the same image (and gradients), faster.
+        model = model.with_sh_degree(0)
     w2c0 = _as_pose(init_w2c, "init_w2c")
     gt = _as_pose(gt_w2c, "gt_w2c") if gt_w2c is not None else None
     gt_c2w_np = _invert(gt).numpy() if gt is not None else None

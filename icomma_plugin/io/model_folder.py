@@ -89,7 +89,8 @@ def parse_cfg_args(text: str, path: Optional[PathLike] = None) -> Dict[str, Any]
     call = tree.body
     if not (isinstance(call, ast.Call) and isinstance(call.func, ast.Name)
             and call.func.id == "Namespace"):
-        raise ValueError(f"{where}: expected 'Namespace(key=value, ...)', got {text.strip()[:80]!r}")
+        raise ValueError(f"{where}: expected 'Namespace(key=value, ...)', "
+                         f"got {text.strip()[:80]!r}")
     if call.args:
         raise ValueError(f"{where}: Namespace(...) must only have keyword arguments")
     out: Dict[str, Any] = {}
@@ -102,7 +103,9 @@ def parse_cfg_args(text: str, path: Optional[PathLike] = None) -> Dict[str, Any]
             out[kw.arg] = ast.literal_eval(kw.value)
         except (ValueError, TypeError, SyntaxError, MemoryError, RecursionError) as e:
             seg = ast.get_source_segment(text.strip(), kw.value) or "?"
-            raise ValueError(f"{where}: value of {kw.arg!r} is not a Python literal: {seg[:80]!r}") from e
+            raise ValueError(
+                f"{where}: value of {kw.arg!r} is not a Python literal: {seg[:80]!r}"
+            ) from e
     return out
 
 

@@ -51,7 +51,8 @@ def _read_ply(path: Path, what: str) -> PlyData:
     with open(path, "rb") as f:
         magic = f.read(4)
     if magic[:3] != b"ply":
-        raise ValueError(f"{what} {path}: not a PLY file (it does not start with 'ply', got {magic!r})")
+        raise ValueError(f"{what} {path}: not a PLY file (it does not start with 'ply', "
+                         f"got {magic!r})")
     try:
         return PlyData.read(str(path), mmap=False)
     except (PlyParseError, ValueError, EOFError, IndexError, TypeError) as e:
@@ -114,7 +115,8 @@ def read_gaussian_ply(path: PathLike) -> GaussianModel:
     degree = _REST_TO_DEGREE[len(rest)]
 
     used = _FIXED + rest
-    wrong = {n: types[n] for n in used if types[n] != np.dtype("<f4") and types[n] != np.dtype(">f4")}
+    f4 = (np.dtype("<f4"), np.dtype(">f4"))
+    wrong = {n: types[n] for n in used if types[n] not in f4}
     if wrong:
         desc = ", ".join(f"{n}: {t.name}" for n, t in wrong.items())
         raise ValueError(f"{what} {path}: properties must be float32 ('float'/'f4') as 3DGS writes "

@@ -45,13 +45,14 @@ class LoFTRMatcher(Matcher):
         resize: optional (H, W) at which LoFTR runs (iComMa: (480, 640)); None: native size.
         temp_bug_fix: positional-encoding flag; False for outdoor_ds.ckpt (as iComMa), True for
             indoor_ds_new.ckpt.
+        coarse_threshold: dual-softmax threshold of the coarse matches (LoFTR and iComMa: 0.2).
         min_confidence, max_matches, refine: see `Matcher` (iComMa keeps confidence > 0.5).
     """
 
     name = "loftr"
 
     def __init__(self, checkpoint: Optional[str] = None, resize: Optional[Sequence[int]] = None,
-                 temp_bug_fix: bool = False, **kwargs):
+                 temp_bug_fix: bool = False, coarse_threshold: float = 0.2, **kwargs):
         super().__init__(**kwargs)
         if checkpoint is None or (isinstance(checkpoint, str) and not checkpoint.strip()):
             raise ValueError(f"checkpoint is required. {CHECKPOINT_HELP}")
@@ -71,6 +72,9 @@ class LoFTRMatcher(Matcher):
 
         cfg = copy.deepcopy(default_cfg)
         cfg["coarse"]["temp_bug_fix"] = bool(temp_bug_fix)
+        if not isinstance(coarse_threshold, (int, float)) or not 0.0 <= coarse_threshold < 1.0:
+            raise ValueError(f"coarse_threshold must be in [0, 1), got {coarse_threshold!r}")
+        cfg["match_coarse"]["thr"] = float(coarse_threshold)
         self.model = LoFTR(pretrained=None, config=cfg)
         try:
             ckpt = torch.load(str(path), map_location="cpu", weights_only=True)

@@ -9,7 +9,7 @@ input's kind, dtype and device; metrics are computed in float64.
 from __future__ import annotations
 
 import math
-from typing import Optional, Union
+from typing import Union
 
 import numpy as np
 import torch
@@ -226,8 +226,8 @@ def rotation_error_deg(est: ArrayLike, gt: ArrayLike):
 
 
 def translation_error(c2w_est: ArrayLike, c2w_gt: ArrayLike):
-    """iComMa translation error: distance between camera centres ``||c2w_est[:3,3] - c2w_gt[:3,3]||``
-    in scene units. Both arguments must be c2w (a w2c translation is not the camera centre).
+    """iComMa translation error: distance between camera centres,
+    ``||c2w_est[:3, 3] - c2w_gt[:3, 3]||`` in scene units. Both arguments must be c2w (a w2c translation is not the camera centre).
 
     Args:
         c2w_est, c2w_gt: ``[..., 3, 4]`` or ``[..., 4, 4]``.
@@ -241,7 +241,9 @@ def translation_error(c2w_est: ArrayLike, c2w_gt: ArrayLike):
     return _wrap_metric(np.linalg.norm(d, axis=-1), c2w_est)
 
 
-def perturb_pose(c2w: ArrayLike, rot_deg: float, trans, generator: GeneratorLike = None):
+def perturb_pose(
+    c2w: ArrayLike, rot_deg: float, trans, generator: GeneratorLike = None, pivot="camera"
+):
     """Perturb camera pose(s) by an exact rotation angle and a translation, for initialisation.
 
     The rotation is by exactly ``rot_deg`` degrees about a uniformly random axis through the
@@ -254,8 +256,10 @@ def perturb_pose(c2w: ArrayLike, rot_deg: float, trans, generator: GeneratorLike
     - ``trans`` a 3-vector ``(tx, ty, tz)``: each component drawn uniformly in ``[-t_i, t_i]``
       (max magnitudes per world axis).
 
-    Unlike iComMa's ``--delta`` (rotations about the world origin, which also move the centre),
-    rotation and translation errors are controlled independently here.
+    ``pivot`` chooses the point the rotation turns about: ``"camera"`` (default; rotation and
+    translation errors are controlled independently) or ``"origin"`` / a world point ``[3]``
+    (iComMa/iNeRF: ``c2w' = T(offset) @ R_delta @ c2w``, the camera orbits the pivot, so an
+    object at the pivot stays in view; the centre then also moves by the rotation).
 
     Args:
         c2w: ``[4, 4]`` or ``[B, 4, 4]`` OpenCV c2w (numpy or torch); batched poses get independent
@@ -263,6 +267,7 @@ def perturb_pose(c2w: ArrayLike, rot_deg: float, trans, generator: GeneratorLike
         rot_deg: rotation angle in degrees.
         trans: scalar norm, or per-axis maxima ``[3]`` (world units).
         generator: None, int seed, ``np.random.Generator`` or CPU ``torch.Generator``.
+        pivot: ``"camera"``, ``"origin"`` or a world point ``[3]`` to rotate about.
 
     Returns:
         Perturbed c2w with the input's kind, shape, dtype and device (drawn in float64).
@@ -278,6 +283,14 @@ def perturb_pose(c2w: ArrayLike, rot_deg: float, trans, generator: GeneratorLike
         raise ValueError(
             f"trans must be a non-negative scalar (norm) or 3-vector (per-axis max), got {trans!r}"
         )
+    if isinstance(pivot, str):
+        if pivot not in ("camera", "origin"):
+            raise ValueError(f"pivot must be 'camera', 'origin' or a 3-vector, got {pivot!r}")
+        pivot_point = None if pivot == "camera" else np.zeros(3)
+    else:
+        pivot_point = _to_np64(pivot).reshape(-1)
+        if pivot_point.shape != (3,) or not np.all(np.isfinite(pivot_point)):
+            raise ValueError(f"pivot must be 'camera', 'origin' or a finite 3-vector, got {pivot!r}")
     rng = _Rng(generator)
     T = _to_np64(c2w)
     flat = T.reshape(-1, 4, 4).copy()
@@ -287,8 +300,11 @@ def perturb_pose(c2w: ArrayLike, rot_deg: float, trans, generator: GeneratorLike
             offset = rng.uniform(3) * t
         else:
             offset = rng.direction() * float(t.reshape(()))
+        centre = flat[i, :3, 3]
+        if pivot_point is not None:  # orbit: rotate the centre about the pivot as well
+            centre = pivot_point + Rd @ (centre - pivot_point)
         flat[i, :3, :3] = Rd @ flat[i, :3, :3]
-        flat[i, :3, 3] = flat[i, :3, 3] + offset
+        flat[i, :3, 3] = centre + offset
     out = flat.reshape(T.shape)
     if isinstance(c2w, torch.Tensor):
         return torch.as_tensor(out, dtype=c2w.dtype, device=c2w.device)

@@ -5,7 +5,8 @@ Conventions (stated once here; see docs/CONTRACTS.md):
 - Matrices act on column vectors: ``x' = T @ [x, 1]``.
 - A twist is ``xi = (rho, phi)`` of shape ``[..., 6]``: translation part ``rho`` first, rotation
   part ``phi`` (axis-angle, radians) second, as in pytorch3d ``se3_exp_map`` and kornia ``Se3``.
-- ``se3_exp(xi) = [[R, V rho], [0, 1]]`` with ``R = so3_exp(phi)`` and ``V = so3_left_jacobian(phi)``.
+- ``se3_exp(xi) = [[R, V rho], [0, 1]]`` with ``R = so3_exp(phi)`` and
+  ``V = so3_left_jacobian(phi)``.
 - The localizer's pose update is the LEFT perturbation of world-to-camera,
   ``w2c_t = se3_exp(xi) @ w2c_0``: ``xi`` is an increment expressed in the camera frame, so its
   rotation turns the camera about its own centre.
@@ -110,7 +111,8 @@ def so3_exp(phi: torch.Tensor) -> torch.Tensor:
         phi: ``[..., 3]`` float tensor.
 
     Returns:
-        ``R [..., 3, 3]`` = ``I + A K + B K^2`` with ``K = hat(phi)``; exact at 0, smooth everywhere.
+        ``R [..., 3, 3]`` = ``I + A K + B K^2`` with ``K = hat(phi)``; exact at 0, smooth
+        everywhere.
     """
     _check_last(phi, "phi", (3,))
     A, B, _ = _coeffs((phi * phi).sum(-1))
@@ -157,8 +159,8 @@ def so3_log(R: torch.Tensor) -> torch.Tensor:
 
     Three branches, chosen per element with ``torch.where``:
 
-    - near identity (``sin^2 t < 1e-4``, ``cos t > 0``): ``phi = s * asin(|s|)/|s|`` by its series in
-      ``|s|^2``, where ``s = vee(R)`` = ``sin(t) * axis`` (smooth, exact at ``R = I``);
+    - near identity (``sin^2 t < 1e-4``, ``cos t > 0``): ``phi = s * asin(|s|)/|s|`` by its
+      series in ``|s|^2``, where ``s = vee(R)`` = ``sin(t) * axis`` (smooth, exact at ``R = I``);
     - generic: ``t = atan2(|s|, cos t)``, ``phi = s * t / |s|``;
     - near pi (``cos t < -0.7``): the axis is read from the symmetric part
       ``(R + R^T)/2 - cos(t) I = (1 - cos t) a a^T`` (well conditioned there, unlike ``s``), its

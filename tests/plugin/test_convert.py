@@ -96,7 +96,8 @@ def test_rotation_error_known():
     assert np.isclose(float(rotation_error_deg(T2, T1)), 7.5, atol=1e-9)
     # Same angle whether both are c2w or both w2c.
     assert np.isclose(float(rotation_error_deg(invert_rigid(T2), invert_rigid(T1))), 7.5, atol=1e-9)
-    assert np.isclose(float(rotation_error_deg(rotation_about_axis([0, 1, 0], 180), np.eye(3))), 180)
+    R180 = rotation_about_axis([0, 1, 0], 180)
+    assert np.isclose(float(rotation_error_deg(R180, np.eye(3))), 180)
     assert float(rotation_error_deg(T1, T1)) < 1e-5
     batch = np.stack([rotation_about_axis([0, 0, 1], a) for a in (0, 10, 90)])
     assert np.allclose(rotation_error_deg(batch, np.eye(3)), [0, 10, 90], atol=1e-6)
@@ -140,7 +141,8 @@ def test_perturb_pose_per_axis_and_generators():
     c2w = _random_rigid(5)
     outs = np.stack([perturb_pose(c2w, 1.0, [0.1, 0.0, 0.3], s) for s in range(200)])
     d = outs[:, :3, 3] - c2w[:3, 3]
-    assert np.all(np.abs(d[:, 0]) <= 0.1) and np.all(d[:, 1] == 0) and np.all(np.abs(d[:, 2]) <= 0.3)
+    assert np.all(np.abs(d[:, 0]) <= 0.1) and np.all(np.abs(d[:, 2]) <= 0.3)
+    assert np.all(d[:, 1] == 0)
     assert np.abs(d[:, 0]).max() > 0.05  # actually spread over the range
     # Same seed -> same pose; torch in -> torch out with the same dtype.
     assert np.array_equal(perturb_pose(c2w, 10, 0.1, 7), perturb_pose(c2w, 10, 0.1, 7))
@@ -178,3 +180,27 @@ def test_bad_inputs():
         perturb_pose(np.eye(4), 5, 0.1, "seed")
     with pytest.raises(ValueError, match="axis"):
         rotation_about_axis([0, 0, 0], 10)
+
+
+def test_perturb_pose_origin_pivot_orbits_and_keeps_angle():
+    import numpy as np
+
+    from icomma_plugin.pose.convert import look_at_c2w, perturb_pose, rotation_error_deg
+
+    c2w = look_at_c2w(np.array([0.0, -4.0, 1.0]), np.zeros(3))
+    out = perturb_pose(c2w, 30.0, 0.0, generator=3, pivot="origin")
+    assert abs(rotation_error_deg(out, c2w) - 30.0) < 1e-6
+    # Orbiting about the origin keeps the distance to it and the origin stays on the optical axis.
+    assert abs(np.linalg.norm(out[:3, 3]) - np.linalg.norm(c2w[:3, 3])) < 1e-9
+    origin_cam = np.linalg.inv(out) @ np.array([0.0, 0.0, 0.0, 1.0])
+    assert abs(origin_cam[0]) < 1e-9 and abs(origin_cam[1]) < 1e-9 and origin_cam[2] > 0
+
+
+def test_perturb_pose_rejects_bad_pivot():
+    import numpy as np
+    import pytest
+
+    from icomma_plugin.pose.convert import perturb_pose
+
+    with pytest.raises(ValueError, match="pivot"):
+        perturb_pose(np.eye(4), 10.0, 0.0, pivot="centre")

@@ -220,7 +220,8 @@ def test_requested_iteration_missing_lists_available(tmp_path):
     _write(root)
     with pytest.raises(ValueError) as ei:
         load_model_folder(root, iteration=5000)
-    assert "5000" in str(ei.value) and "[7000, 30000]" in str(ei.value) and str(root) in str(ei.value)
+    msg = str(ei.value)
+    assert "5000" in msg and "[7000, 30000]" in msg and str(root) in msg
 
 
 def test_missing_cameras_json_gives_empty_list(tmp_path, caplog):

@@ -65,7 +65,8 @@ def test_pose_gradient_flows_and_matches_finite_differences():
     base = se3_exp(torch.tensor([0.03, -0.02, 0.05, 0.02, -0.03, 0.01], dtype=torch.float64))
 
     def loss_of(xi):
-        return ((render(m, K, se3_exp(xi) @ base @ _w2c(), bg, backend=BACKEND).color - target) ** 2).mean()
+        out = render(m, K, se3_exp(xi) @ base @ _w2c(), bg, backend=BACKEND)
+        return ((out.color - target) ** 2).mean()
 
     xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
     loss = loss_of(xi)

@@ -25,6 +25,7 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
+#include <memory>
 #include <vector>
 
 #include "../common/config.h"
@@ -44,14 +45,7 @@ constexpr int kNumFeat = 5;                  // r, g, b, 1/z, z
 constexpr int kSlot = 2 + 3 + 1 + kNumFeat;  // dL/dxy (pixels), dL/dconic, dL/dopacity_eff, dL/dfeat
 constexpr int kCamGrad = 16 + 16 + 3;        // viewmatrix, projmatrix, campos
 constexpr int64_t kGaussBlock = 1024;        // fixed block size of the per-Gaussian backward
-
-#if defined(_OPENMP)
-#define GRP_SIMD _Pragma("omp simd")
-#define GRP_SIMD_RED(x) _Pragma(x)
-#else
-#define GRP_SIMD
-#define GRP_SIMD_RED(x)
-#endif
+constexpr int kPrefetch = 8;                 // tile-list entries prefetched ahead
 
 // Runs fn(i) for i in [0, n) on the ATen pool with dynamic scheduling (results never depend on
 // which thread ran which i).
@@ -299,6 +293,59 @@ std::vector<int32_t> sort_by_depth(const float* geom, const int32_t* radii, int6
 }
 
 // ------------------------------------------------------------------------------------------------
+// 16-lane vectors = one tile row (GCC/Clang vector extensions). The compiler lowers them to
+// AVX-512, AVX2 or SSE depending on the target flags; every lane does the same IEEE maths.
+// ------------------------------------------------------------------------------------------------
+typedef float vf __attribute__((vector_size(4 * kBlockX)));
+typedef int32_t vi __attribute__((vector_size(4 * kBlockX)));
+static_assert(sizeof(vf) == sizeof(float) * kBlockX, "one vector per tile row");
+
+inline vf splat(float v) {
+  vf r;
+  for (int i = 0; i < kBlockX; ++i) r[i] = v;
+  return r;
+}
+inline vi splat_i(int32_t v) {
+  vi r;
+  for (int i = 0; i < kBlockX; ++i) r[i] = v;
+  return r;
+}
+
+// Vector twin of exp_nonpos (common/math.h): same reduction and polynomial, lane-wise.
+inline vf vexp_nonpos(vf x) {
+  x = x < splat(-87.f) ? splat(-87.f) : x;
+  x = x > splat(0.f) ? splat(0.f) : x;
+  const vf v = x * 1.44269504088896341f;
+  const vi n = __builtin_convertvector(v - 0.5f, vi);  // round to nearest for v <= 0
+  const vf fn = __builtin_convertvector(n, vf);
+  vf r = x - fn * 0.693359375f;
+  r = r - fn * -2.12194440e-4f;
+  vf p = splat(1.9875691500e-4f);
+  p = p * r + 1.3981999507e-3f;
+  p = p * r + 8.3334519073e-3f;
+  p = p * r + 4.1665795894e-2f;
+  p = p * r + 1.6666665459e-1f;
+  p = p * r + 5.0000001201e-1f;
+  const vf y = p * r * r + r + 1.0f;
+  const vi bits = (n + 127) << 23;
+  return y * (vf)bits;
+}
+
+// Rows [r0, r1] of the tile that Gaussian gd can reach (alpha >= 1/255); false when none.
+inline bool row_range(const float* gd, int y0, int nrows, int& r0, int& r1) {
+  const float by = gd[kGBoxY];
+  if (!(by >= 0.f)) return false;
+  const float py = gd[kGPy];
+  float flo = py - by, fhi = py + by;
+  if (flo < (float)y0) flo = (float)y0;
+  if (fhi > (float)(y0 + nrows - 1)) fhi = (float)(y0 + nrows - 1);
+  if (!(flo <= fhi)) return false;
+  r0 = (int)std::ceil(flo) - y0;
+  r1 = (int)std::floor(fhi) - y0;
+  return r0 <= r1;
+}
+
+// ------------------------------------------------------------------------------------------------
 // 3. Forward render of one tile
 // ------------------------------------------------------------------------------------------------
 struct RenderOut {
@@ -315,86 +362,78 @@ void render_tile(const Inputs& in, int64_t tile, const float* geom, const int32_
   const int tx = (int)(tile % in.grid_x), ty = (int)(tile / in.grid_x);
   const int x0 = tx * kBlockX, y0 = ty * kBlockY;
   const int ncols = std::min(kBlockX, in.W - x0), nrows = std::min(kBlockY, in.H - y0);
-  alignas(64) float T[kBlockSize], C0[kBlockSize], C1[kBlockSize], C2[kBlockSize];
-  alignas(64) float ID[kBlockSize], DA[kBlockSize], act[kBlockSize];
-  alignas(64) int32_t last[kBlockSize];
-  alignas(64) float pixx[kBlockX];
-  for (int i = 0; i < kBlockX; ++i) pixx[i] = (float)(x0 + i);
-  int nact = 0;
-  for (int p = 0; p < kBlockSize; ++p) {
-    const bool inside = (p % kBlockX) < ncols && (p / kBlockX) < nrows;
-    act[p] = inside ? 1.f : 0.f;
-    nact += inside;
-    T[p] = 1.f;
-    C0[p] = C1[p] = C2[p] = ID[p] = DA[p] = 0.f;
-    last[p] = -1;
+  // Pixel state, one record per tile row (keeps a row's vectors together in L1).
+  struct Row {
+    vf T, C0, C1, C2, ID, DA;
+    vi act, last;
+  };
+  Row rows[kBlockY];
+  vf pixx;
+  vi colmask;
+  for (int i = 0; i < kBlockX; ++i) {
+    pixx[i] = (float)(x0 + i);
+    colmask[i] = i < ncols ? -1 : 0;
   }
+  for (int r = 0; r < kBlockY; ++r) {
+    Row& R = rows[r];
+    R.act = r < nrows ? colmask : splat_i(0);
+    R.T = splat(1.f);
+    R.C0 = R.C1 = R.C2 = R.ID = R.DA = splat(0.f);
+    R.last = splat_i(-1);
+  }
+  int nact = ncols * nrows;
   const int32_t start = tile_ranges[tile], end = tile_ranges[tile + 1];
   for (int32_t j = start; j < end && nact > 0; ++j) {
+    if (j + kPrefetch < end) __builtin_prefetch(geom + kGStride * (int64_t)binning[2 * (j + kPrefetch)]);
     const float* gd = geom + kGStride * (int64_t)binning[2 * j];
-    const float by = gd[kGBoxY];
-    if (!(by >= 0.f)) continue;
-    const float py = gd[kGPy];
-    float flo = py - by, fhi = py + by;
-    if (flo < (float)y0) flo = (float)y0;
-    if (fhi > (float)(y0 + nrows - 1)) fhi = (float)(y0 + nrows - 1);
-    if (!(flo <= fhi)) continue;
-    const int r0 = (int)std::ceil(flo) - y0, r1 = (int)std::floor(fhi) - y0;
-    const float px = gd[kGPx], cA = gd[kGConA], cB = gd[kGConB], cC = gd[kGConC];
-    const float o = gd[kGOpacity];
+    int r0, r1;
+    if (!row_range(gd, y0, nrows, r0, r1)) continue;
+    const float px = gd[kGPx], py = gd[kGPy];
+    const float cA = gd[kGConA], cB = gd[kGConB], cC = gd[kGConC], o = gd[kGOpacity];
     const float f0 = gd[kGR], f1 = gd[kGG], f2 = gd[kGB], fiz = gd[kGInvZ], fz = gd[kGZ];
-    const int32_t jl = j - start;
-    int nstop = 0;
+    const vi jl = splat_i(j - start);
+    const vf dx = px - pixx;
+    const vf qx = cA * dx * dx;
+    vi nstop = splat_i(0);
     for (int r = r0; r <= r1; ++r) {
+      Row& R = rows[r];
       const float dy = py - (float)(y0 + r);
-      const int base = r * kBlockX;
-      float* Tr = T + base;
-      float* C0r = C0 + base;
-      float* C1r = C1 + base;
-      float* C2r = C2 + base;
-      float* IDr = ID + base;
-      float* DAr = DA + base;
-      float* actr = act + base;
-      int32_t* lastr = last + base;
-      GRP_SIMD_RED("omp simd reduction(+ : nstop)")
-      for (int i = 0; i < kBlockX; ++i) {
-        const float dx = px - pixx[i];
-        const float power = -0.5f * (cA * dx * dx + cC * dy * dy) - cB * dx * dy;
-        const float G = exp_nonpos(power);
-        const float oG = o * G;
-        const float alpha = oG < kAlphaMax ? oG : kAlphaMax;
-        const bool valid = actr[i] != 0.f && !(power > 0.f) && !(alpha < kAlphaMin);
-        const float Tc = Tr[i];
-        const float testT = Tc * (1.f - alpha);
-        const bool stop = valid && testT < kTransmittanceMin;
-        const bool contrib = valid && !stop;
-        const float w = contrib ? alpha * Tc : 0.f;
-        C0r[i] += f0 * w;
-        C1r[i] += f1 * w;
-        C2r[i] += f2 * w;
-        IDr[i] += fiz * w;
-        DAr[i] += fz * w;
-        Tr[i] = contrib ? testT : Tc;
-        lastr[i] = contrib ? jl : lastr[i];
-        actr[i] = stop ? 0.f : actr[i];
-        nstop += stop ? 1 : 0;
-      }
+      const vf power = -0.5f * (qx + cC * dy * dy) - cB * dx * dy;
+      const vf G = vexp_nonpos(power);
+      const vf oG = o * G;
+      const vf alpha = oG < splat(kAlphaMax) ? oG : splat(kAlphaMax);
+      const vi valid = R.act & ~(power > splat(0.f)) & ~(alpha < splat(kAlphaMin));
+      const vf Tc = R.T;
+      const vf testT = Tc * (1.f - alpha);
+      const vi stop = valid & (testT < splat(kTransmittanceMin));
+      const vi contrib = valid & ~stop;
+      const vf w = contrib ? alpha * Tc : splat(0.f);
+      R.C0 += f0 * w;
+      R.C1 += f1 * w;
+      R.C2 += f2 * w;
+      R.ID += fiz * w;
+      R.DA += fz * w;
+      R.T = contrib ? testT : Tc;
+      R.last = contrib ? jl : R.last;
+      R.act &= ~stop;
+      nstop -= stop;
     }
-    nact -= nstop;
+    for (int i = 0; i < kBlockX; ++i) nact -= nstop[i];
   }
   const int64_t HW = (int64_t)in.H * in.W;
   for (int r = 0; r < nrows; ++r) {
+    const Row& R = rows[r];
     for (int c = 0; c < ncols; ++c) {
-      const int p = r * kBlockX + c;
       const int64_t pix = (int64_t)(y0 + r) * in.W + (x0 + c);
-      out.color[pix] = C0[p] + T[p] * in.bg[0];
-      out.color[HW + pix] = C1[p] + T[p] * in.bg[1];
-      out.color[2 * HW + pix] = C2[p] + T[p] * in.bg[2];
-      out.invdepth[pix] = ID[p];
-      out.depth_acc[pix] = DA[p];
-      out.alpha[pix] = 1.f - T[p];
-      out.final_T[pix] = T[p];
-      out.last[pix] = last[p];
+      const float Tp = R.T[c];
+      out.color[pix] = R.C0[c] + Tp * in.bg[0];
+      out.color[HW + pix] = R.C1[c] + Tp * in.bg[1];
+      out.color[2 * HW + pix] = R.C2[c] + Tp * in.bg[2];
+      out.invdepth[pix] = R.ID[c];
+      out.depth_acc[pix] = R.DA[c];
+      out.alpha[pix] = 1.f - Tp;
+      out.final_T[pix] = Tp;
+      out.last[pix] = R.last[c];
     }
   }
 }
@@ -416,35 +455,45 @@ void backward_tile(const Inputs& in, int64_t tile, const float* geom, const int3
   const int x0 = tx * kBlockX, y0 = ty * kBlockY;
   const int ncols = std::min(kBlockX, in.W - x0), nrows = std::min(kBlockY, in.H - y0);
   const int64_t HW = (int64_t)in.H * in.W;
-  alignas(64) float T[kBlockSize], lastA[kBlockSize], kbg[kBlockSize];
-  alignas(64) float acc[kNumFeat][kBlockSize], lf[kNumFeat][kBlockSize], dp[kNumFeat][kBlockSize];
-  alignas(64) int32_t last[kBlockSize];
-  alignas(64) float pixx[kBlockX];
+  // Per pixel (upstream renderCUDA backward, features = r, g, b, 1/z, z):
+  //   T: transmittance, recovered back to front; lastA: alpha of the Gaussian behind;
+  //   accdot = dL/dpixel . (features blended behind, accum_rec upstream);
+  //   lfdot = dL/dpixel . (features of the Gaussian behind); dp = dL/dpixel per feature;
+  //   kbg = T_final (dL/dalpha_out - bg . dL/dcolor), enters dL/dalpha_i as kbg / (1 - alpha_i).
+  struct Row {
+    vf T, lastA, kbg, accdot, lfdot;
+    vf dp[kNumFeat];
+    vi last;
+  };
+  Row rows[kBlockY];
+  vf pixx;
   for (int i = 0; i < kBlockX; ++i) pixx[i] = (float)(x0 + i);
   int32_t maxlast = -1;
   double dbg[3] = {0, 0, 0};
-  for (int p = 0; p < kBlockSize; ++p) {
-    const int r = p / kBlockX, c = p % kBlockX;
-    T[p] = 0.f;
-    lastA[p] = 0.f;
-    kbg[p] = 0.f;
-    last[p] = -1;
-    for (int k = 0; k < kNumFeat; ++k) acc[k][p] = lf[k][p] = dp[k][p] = 0.f;
-    if (r >= nrows || c >= ncols) continue;
-    const int64_t pix = (int64_t)(y0 + r) * in.W + (x0 + c);
-    const float Tf = final_T[pix];
-    T[p] = Tf;
-    last[p] = last_contrib[pix];
-    maxlast = std::max(maxlast, last[p]);
-    dp[0][p] = gin.color[pix];
-    dp[1][p] = gin.color[HW + pix];
-    dp[2][p] = gin.color[2 * HW + pix];
-    dp[3][p] = gin.invdepth[pix];
-    dp[4][p] = gin.depth_acc[pix];
-    const float bgdot = in.bg[0] * dp[0][p] + in.bg[1] * dp[1][p] + in.bg[2] * dp[2][p];
-    // dL/dalpha_i gets T_final / (1 - alpha_i) * (dL/dalpha_out - bg . dL/dpixel)
-    kbg[p] = Tf * (gin.alpha[pix] - bgdot);
-    for (int k = 0; k < 3; ++k) dbg[k] += (double)Tf * (double)dp[k][p];
+  for (int r = 0; r < kBlockY; ++r) {
+    Row& R = rows[r];
+    R.T = R.lastA = R.kbg = R.accdot = R.lfdot = splat(0.f);
+    R.last = splat_i(-1);
+    for (int k = 0; k < kNumFeat; ++k) R.dp[k] = splat(0.f);
+    if (r >= nrows) continue;
+    for (int c = 0; c < ncols; ++c) {
+      const int64_t pix = (int64_t)(y0 + r) * in.W + (x0 + c);
+      const float Tf = final_T[pix];
+      R.T[c] = Tf;
+      R.last[c] = last_contrib[pix];
+      maxlast = std::max(maxlast, last_contrib[pix]);
+      const float g0 = gin.color[pix], g1 = gin.color[HW + pix], g2 = gin.color[2 * HW + pix];
+      R.dp[0][c] = g0;
+      R.dp[1][c] = g1;
+      R.dp[2][c] = g2;
+      R.dp[3][c] = gin.invdepth[pix];
+      R.dp[4][c] = gin.depth_acc[pix];
+      const float bgdot = in.bg[0] * g0 + in.bg[1] * g1 + in.bg[2] * g2;
+      R.kbg[c] = Tf * (gin.alpha[pix] - bgdot);
+      dbg[0] += (double)Tf * (double)g0;
+      dbg[1] += (double)Tf * (double)g1;
+      dbg[2] += (double)Tf * (double)g2;
+    }
   }
   for (int k = 0; k < 3; ++k) dbg_tile[k] = dbg[k];
   const int32_t start = tile_ranges[tile], end = tile_ranges[tile + 1];
@@ -454,89 +503,61 @@ void backward_tile(const Inputs& in, int64_t tile, const float* geom, const int3
     for (int k = 0; k < kSlot; ++k) s[k] = 0.f;
   }
   for (int32_t j = start + maxlast; j >= start; --j) {
-    float* slot = slots + (int64_t)binning[2 * j + 1] * kSlot;
-    for (int k = 0; k < kSlot; ++k) slot[k] = 0.f;
-    const float* gd = geom + kGStride * (int64_t)binning[2 * j];
-    const float by = gd[kGBoxY];
-    if (!(by >= 0.f)) continue;
-    const float py = gd[kGPy];
-    float flo = py - by, fhi = py + by;
-    if (flo < (float)y0) flo = (float)y0;
-    if (fhi > (float)(y0 + nrows - 1)) fhi = (float)(y0 + nrows - 1);
-    if (!(flo <= fhi)) continue;
-    const int r0 = (int)std::ceil(flo) - y0, r1 = (int)std::floor(fhi) - y0;
-    const float px = gd[kGPx], cA = gd[kGConA], cB = gd[kGConB], cC = gd[kGConC];
-    const float o = gd[kGOpacity];
-    const float f[kNumFeat] = {gd[kGR], gd[kGG], gd[kGB], gd[kGInvZ], gd[kGZ]};
-    const int32_t jl = j - start;
-    alignas(64) float s_dx[kBlockX], s_dy[kBlockX], s_cA[kBlockX], s_cB[kBlockX], s_cC[kBlockX];
-    alignas(64) float s_o[kBlockX], s_f[kNumFeat][kBlockX];
-    for (int i = 0; i < kBlockX; ++i) {
-      s_dx[i] = s_dy[i] = s_cA[i] = s_cB[i] = s_cC[i] = s_o[i] = 0.f;
-      for (int k = 0; k < kNumFeat; ++k) s_f[k][i] = 0.f;
+    if (j - kPrefetch >= start) {
+      __builtin_prefetch(geom + kGStride * (int64_t)binning[2 * (j - kPrefetch)]);
+      __builtin_prefetch(slots + (int64_t)binning[2 * (j - kPrefetch) + 1] * kSlot, 1);
     }
+    float* slot = slots + (int64_t)binning[2 * j + 1] * kSlot;
+    const float* gd = geom + kGStride * (int64_t)binning[2 * j];
+    int r0, r1;
+    if (!row_range(gd, y0, nrows, r0, r1)) {
+      for (int k = 0; k < kSlot; ++k) slot[k] = 0.f;
+      continue;
+    }
+    const float px = gd[kGPx], py = gd[kGPy];
+    const float cA = gd[kGConA], cB = gd[kGConB], cC = gd[kGConC], o = gd[kGOpacity];
+    const float f[kNumFeat] = {gd[kGR], gd[kGG], gd[kGB], gd[kGInvZ], gd[kGZ]};
+    const vi jl = splat_i(j - start);
+    const vf dx = px - pixx;
+    const vf qx = cA * dx * dx;
+    vf s_dx = splat(0.f), s_dy = s_dx, s_cA = s_dx, s_cB = s_dx, s_cC = s_dx, s_o = s_dx;
+    vf s_f[kNumFeat];
+    for (int k = 0; k < kNumFeat; ++k) s_f[k] = splat(0.f);
     for (int r = r0; r <= r1; ++r) {
+      Row& R = rows[r];
       const float dy = py - (float)(y0 + r);
-      const int base = r * kBlockX;
-      float* Tr = T + base;
-      float* lAr = lastA + base;
-      const float* kbgr = kbg + base;
-      const int32_t* lastr = last + base;
-      float* a0 = acc[0] + base; float* a1 = acc[1] + base; float* a2 = acc[2] + base;
-      float* a3 = acc[3] + base; float* a4 = acc[4] + base;
-      float* l0 = lf[0] + base; float* l1 = lf[1] + base; float* l2 = lf[2] + base;
-      float* l3 = lf[3] + base; float* l4 = lf[4] + base;
-      const float* d0 = dp[0] + base; const float* d1 = dp[1] + base; const float* d2 = dp[2] + base;
-      const float* d3 = dp[3] + base; const float* d4 = dp[4] + base;
-      GRP_SIMD
-      for (int i = 0; i < kBlockX; ++i) {
-        const float dx = px - pixx[i];
-        const float power = -0.5f * (cA * dx * dx + cC * dy * dy) - cB * dx * dy;
-        const float G = exp_nonpos(power);
-        const float oG = o * G;
-        const float alpha = oG < kAlphaMax ? oG : kAlphaMax;
-        const bool valid = jl <= lastr[i] && !(power > 0.f) && !(alpha < kAlphaMin);
-        const float a = valid ? alpha : 0.f;
-        const float one_m_a = 1.f - a;
-        const float Tn = Tr[i] / one_m_a;  // unchanged when invalid (a = 0)
-        const float w = a * Tn;
-        const float la = lAr[i];
-        const float n0 = la * l0[i] + (1.f - la) * a0[i];
-        const float n1 = la * l1[i] + (1.f - la) * a1[i];
-        const float n2 = la * l2[i] + (1.f - la) * a2[i];
-        const float n3 = la * l3[i] + (1.f - la) * a3[i];
-        const float n4 = la * l4[i] + (1.f - la) * a4[i];
-        float dLda = (f[0] - n0) * d0[i] + (f[1] - n1) * d1[i] + (f[2] - n2) * d2[i] +
-                     (f[3] - n3) * d3[i] + (f[4] - n4) * d4[i];
-        dLda = dLda * Tn + kbgr[i] / one_m_a;
-        Tr[i] = Tn;
-        a0[i] = valid ? n0 : a0[i];
-        a1[i] = valid ? n1 : a1[i];
-        a2[i] = valid ? n2 : a2[i];
-        a3[i] = valid ? n3 : a3[i];
-        a4[i] = valid ? n4 : a4[i];
-        l0[i] = valid ? f[0] : l0[i];
-        l1[i] = valid ? f[1] : l1[i];
-        l2[i] = valid ? f[2] : l2[i];
-        l3[i] = valid ? f[3] : l3[i];
-        l4[i] = valid ? f[4] : l4[i];
-        lAr[i] = valid ? alpha : la;
-        s_f[0][i] += w * d0[i];
-        s_f[1][i] += w * d1[i];
-        s_f[2][i] += w * d2[i];
-        s_f[3][i] += w * d3[i];
-        s_f[4][i] += w * d4[i];
-        // alpha = min(0.99, o G): no gradient to o G where the clamp is active
-        const bool pass = valid && !(oG > kAlphaMax);
-        const float dLdG = pass ? o * dLda : 0.f;
-        s_o[i] += pass ? G * dLda : 0.f;
-        const float gdx = G * dx, gdy = G * dy;
-        s_dx[i] += dLdG * (-gdx * cA - gdy * cB);
-        s_dy[i] += dLdG * (-gdy * cC - gdx * cB);
-        s_cA[i] += -0.5f * gdx * dx * dLdG;
-        s_cB[i] += -gdx * dy * dLdG;
-        s_cC[i] += -0.5f * gdy * dy * dLdG;
+      const vf power = -0.5f * (qx + cC * dy * dy) - cB * dx * dy;
+      const vf G = vexp_nonpos(power);
+      const vf oG = o * G;
+      const vf alpha = oG < splat(kAlphaMax) ? oG : splat(kAlphaMax);
+      const vi valid = (jl <= R.last) & ~(power > splat(0.f)) & ~(alpha < splat(kAlphaMin));
+      const vf a = valid ? alpha : splat(0.f);
+      const vf inv_1ma = 1.f / (1.f - a);
+      const vf Tn = R.T * inv_1ma;  // unchanged where invalid (a = 0)
+      const vf w = a * Tn;
+      vf fdot = f[0] * R.dp[0];
+      s_f[0] += w * R.dp[0];
+      for (int k = 1; k < kNumFeat; ++k) {
+        fdot += f[k] * R.dp[k];
+        s_f[k] += w * R.dp[k];
       }
+      const vf la = R.lastA;
+      const vf ndot = la * R.lfdot + (1.f - la) * R.accdot;
+      const vf dLda = (fdot - ndot) * Tn + R.kbg * inv_1ma;
+      R.T = Tn;
+      R.accdot = valid ? ndot : R.accdot;
+      R.lfdot = valid ? fdot : R.lfdot;
+      R.lastA = valid ? alpha : la;
+      // alpha = min(0.99, o G): no gradient to o G where the clamp is active
+      const vi pass = valid & ~(oG > splat(kAlphaMax));
+      const vf dLdG = pass ? o * dLda : splat(0.f);
+      s_o += pass ? G * dLda : splat(0.f);
+      const vf gdx = G * dx, gdy = G * dy;
+      s_dx += dLdG * (-gdx * cA - gdy * cB);
+      s_dy += dLdG * (-gdy * cC - gdx * cB);
+      s_cA += -0.5f * gdx * dx * dLdG;
+      s_cB += -gdx * dy * dLdG;
+      s_cC += -0.5f * gdy * dy * dLdG;
     }
     float red[kSlot] = {0};
     for (int i = 0; i < kBlockX; ++i) {
@@ -693,7 +714,8 @@ std::vector<at::Tensor> rasterize_backward_cpu(
     dL_drots = at::zeros({P, 4}, fopt);
   }
   // 4. Per-tile backward into per-entry slots.
-  std::vector<float> slots((size_t)num_rendered * kSlot);
+  // Every slot is written by exactly one tile (no zero-fill needed).
+  std::unique_ptr<float[]> slots(new float[(size_t)std::max<int64_t>(num_rendered, 1) * kSlot]);
   std::vector<double> dbg_tiles((size_t)num_tiles * 3);
   const float* gm = geom.data_ptr<float>();
   const int32_t* bin = binning.data_ptr<int32_t>();
@@ -703,7 +725,7 @@ std::vector<at::Tensor> rasterize_backward_cpu(
   const float* fT = final_T.data_ptr<float>();
   const int32_t* lc = last_contrib.data_ptr<int32_t>();
   parallel_dynamic(num_tiles, [&](int64_t t) {
-    backward_tile(in, t, gm, bin, tr, fT, lc, gin, slots.data(), dbg_tiles.data() + 3 * t);
+    backward_tile(in, t, gm, bin, tr, fT, lc, gin, slots.get(), dbg_tiles.data() + 3 * t);
   });
   at::Tensor dL_dbg = at::empty({3}, fopt);
   {
@@ -738,7 +760,7 @@ std::vector<at::Tensor> rasterize_backward_cpu(
         if (rad[g] <= 0) continue;
         float s[kSlot] = {0};
         for (int64_t e = off[g]; e < off[g + 1]; ++e) {
-          const float* sl = slots.data() + e * kSlot;
+          const float* sl = slots.get() + e * kSlot;
           for (int k = 0; k < kSlot; ++k) s[k] += sl[k];
         }
         const Vec3 m = load3(in.means + 3 * g);

@@ -1,0 +1,165 @@
+"""Benchmark protocols (what is sampled, which methods run, which metrics are reported) and the
+methods compared.
+
+Protocol kinds (conf/benchmark_protocol/*.yaml):
+
+- ``curves``: iNeRF-style study. Q queries x K initial poses per interval; the fraction of runs
+  under each (rotation deg, translation) threshold pair is reported after every iteration.
+- ``time``: success rate (< 5 deg and < 0.05) of the final pose and the mean seconds to first
+  reach it, per method.
+- ``relative_pose``: AUC@5/10/20 of the rotation error; iComMa against the matching-only baseline
+  (matcher + essential matrix between the render at the initial pose and the query).
+- ``ablation``: failure rate and the mean errors of the successes for full / w/o comparing /
+  w/o matching.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+from ..localize import LocalizerConfig
+from .sampling import PIVOTS, TRANSLATION_MODES
+
+__all__ = ["KINDS", "METHODS", "Interval", "ProtocolSpec", "method_config", "is_localizer_method"]
+
+KINDS = ("curves", "time", "relative_pose", "ablation")
+
+#: method name -> what it is (the paper's naming in brackets)
+METHODS: Dict[str, str] = {
+    "icomma": "full iComMa: matching + comparing, then comparing alone (the optimizer config as given)",
+    "compare_only": "w/o matching: photometric comparing loss only (use_matching=false)",
+    "match_only": "w/o comparing: matching loss only (lambda_match=1, never switches: switch_threshold=0)",
+    "essential": "matching only: matcher + essential matrix (RANSAC) between the image rendered at the "
+                 "initial pose and the query (the paper's LightGlue / LoFTR + E rows)",
+}
+
+
+def is_localizer_method(name: str) -> bool:
+    return name in ("icomma", "compare_only", "match_only")
+
+
+def method_config(name: str, base: LocalizerConfig, max_iterations: Optional[int] = None) -> LocalizerConfig:
+    """The LocalizerConfig of a localizer method, derived from ``base`` (the optimizer group)."""
+    if not is_localizer_method(name):
+        raise ValueError(f"method must be one of icomma, compare_only, match_only, got {name!r}")
+    d = base.to_dict()
+    if max_iterations is not None:
+        d["max_iterations"] = int(max_iterations)
+    if name == "icomma":
+        d["use_matching"] = True
+    elif name == "compare_only":
+        d["use_matching"] = False
+    elif name == "match_only":
+        d["use_matching"] = True
+        d["lambda_match"] = 1.0
+        d["switch_threshold"] = 0.0
+        d["max_stage1_iterations"] = None
+    return LocalizerConfig.from_dict(d)
+
+
+def _pair(v, name: str) -> Tuple[float, float]:
+    try:
+        a, b = (float(x) for x in v)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a pair [lo, hi], got {v!r}") from None
+    if a > b or a < 0:
+        raise ValueError(f"{name} must satisfy 0 <= lo <= hi, got {v!r}")
+    return a, b
+
+
+@dataclass(frozen=True)
+class Interval:
+    label: str
+    rot_deg: Tuple[float, float]
+    trans: Tuple[float, float]
+
+    def to_json(self) -> dict:
+        return {"label": self.label, "rot_deg": list(self.rot_deg), "trans": list(self.trans)}
+
+
+@dataclass
+class ProtocolSpec:
+    """One protocol, as composed from conf/benchmark_protocol/<name>.yaml."""
+
+    name: str
+    kind: str
+    intervals: List[Interval]
+    methods: List[str]
+    num_queries: int = 5
+    poses_per_query: int = 10
+    max_iterations: int = 500
+    thresholds: List[Tuple[float, float]] = field(default_factory=lambda: [(5.0, 0.05)])
+    auc_thresholds: List[float] = field(default_factory=lambda: [5.0, 10.0, 20.0])
+    translation_mode: str = "per_axis"
+    pivot: str = "origin"
+    seed: int = 0
+    description: str = ""
+    paper_source: str = ""
+    quick: bool = False
+    essential_thresh_px: float = 1.0
+
+    def __post_init__(self):
+        if self.kind not in KINDS:
+            raise ValueError(f"benchmark_protocol.kind must be one of {KINDS}, got {self.kind!r}")
+        if not self.intervals:
+            raise ValueError("benchmark_protocol.intervals must not be empty")
+        unknown = [m for m in self.methods if m not in METHODS]
+        if unknown or not self.methods:
+            raise ValueError(f"benchmark_protocol.methods must be a non-empty list of {sorted(METHODS)}, "
+                             f"got {self.methods!r}")
+        for name in ("num_queries", "poses_per_query", "max_iterations"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+                raise ValueError(f"benchmark_protocol.{name} must be a positive int, got {v!r}")
+        if self.translation_mode not in TRANSLATION_MODES:
+            raise ValueError(f"benchmark_protocol.translation_mode must be one of {TRANSLATION_MODES}, "
+                             f"got {self.translation_mode!r}")
+        if self.pivot not in PIVOTS:
+            raise ValueError(f"benchmark_protocol.pivot must be one of {PIVOTS}, got {self.pivot!r}")
+        labels = [iv.label for iv in self.intervals]
+        if len(set(labels)) != len(labels):
+            raise ValueError(f"benchmark_protocol.intervals labels must be unique, got {labels}")
+
+    @classmethod
+    def from_dict(cls, d: Dict[str, Any], quick: bool = False) -> "ProtocolSpec":
+        """From a plain mapping (the Hydra group as a container). With ``quick``, the mapping's
+        ``quick`` block overrides the sizes (num_queries, poses_per_query, max_iterations, ...)."""
+        d = dict(d)
+        q = d.pop("quick", None) or {}
+        if quick:
+            unknown_q = sorted(set(q) - {"num_queries", "poses_per_query", "max_iterations", "intervals"})
+            if unknown_q:
+                raise ValueError(f"benchmark_protocol.quick may override num_queries, poses_per_query, "
+                                 f"max_iterations, intervals; got {unknown_q}")
+            d.update(q)
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise ValueError(f"unknown benchmark_protocol keys {unknown}; known: {sorted(names)}")
+        ivs = []
+        for i, iv in enumerate(d.get("intervals") or []):
+            if not isinstance(iv, dict) or "rot_deg" not in iv or "trans" not in iv:
+                raise ValueError(f"benchmark_protocol.intervals[{i}] must have rot_deg and trans, got {iv!r}")
+            rot = _pair(iv["rot_deg"], f"intervals[{i}].rot_deg")
+            tr = _pair(iv["trans"], f"intervals[{i}].trans")
+            label = iv.get("label") or f"r{rot[0]:g}-{rot[1]:g}"
+            ivs.append(Interval(str(label), rot, tr))
+        d["intervals"] = ivs
+        if "thresholds" in d:
+            d["thresholds"] = [tuple(float(x) for x in t) for t in d["thresholds"]]
+        if "auc_thresholds" in d:
+            d["auc_thresholds"] = [float(x) for x in d["auc_thresholds"]]
+        d["methods"] = [str(m) for m in d.get("methods", [])]
+        d["quick"] = bool(quick)
+        return cls(**d)
+
+    def to_json(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["intervals"] = [iv.to_json() for iv in self.intervals]
+        d["thresholds"] = [list(t) for t in self.thresholds]
+        return d
+
+    @property
+    def num_runs(self) -> int:
+        return len(self.intervals) * self.num_queries * self.poses_per_query * len(self.methods)

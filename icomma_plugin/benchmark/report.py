@@ -1,0 +1,259 @@
+"""Summaries, markdown tables beside the paper's numbers, and plots.
+
+``summarize(spec, records)`` reduces the per-run records of one protocol to per-(interval,
+method) numbers; ``markdown(...)`` writes them next to the paper's cells (:mod:`.paper`) with the
+paper's source and a Δ column (ours - paper, only where the paper's value is known);
+``save_plots(...)`` draws the success-vs-iteration curves and the AUC / success / failure bars.
+"""
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence
+
+import numpy as np
+
+from .metrics import failure_stats, mean_or_none, pose_auc, success_curve, success_mask
+from .paper import NOT_FOUND, PaperValue, paper_value
+from .protocols import METHODS, ProtocolSpec
+from .runner import threshold_key
+
+__all__ = ["summarize", "table_rows", "markdown", "save_plots", "paper_method"]
+
+PERCENT_METRICS = ("success_rate", "failure_rate")
+
+
+def _groups(spec: ProtocolSpec, records: Sequence[Dict[str, Any]]):
+    g: "OrderedDict[tuple, list]" = OrderedDict()
+    for iv in spec.intervals:
+        for m in spec.methods:
+            g[(iv.label, m)] = []
+    for r in records:
+        k = (r["interval"], r["method"])
+        if k in g:
+            g[k].append(r)
+    return g
+
+
+def summarize(spec: ProtocolSpec, records: Sequence[Dict[str, Any]]) -> Dict[str, Any]:
+    """Per-(interval, method) numbers of one protocol (JSON-ready)."""
+    out: Dict[str, Any] = {"protocol": spec.name, "kind": spec.kind, "cells": []}
+    L = spec.max_iterations + 1
+    for (iv, m), rs in _groups(spec, records).items():
+        cell: Dict[str, Any] = {"interval": iv, "method": m, "n": len(rs)}
+        rot = [r.get("final_rot_deg") for r in rs]
+        trans = [r.get("final_trans") for r in rs]
+        cell["mean_init_rot_deg"] = mean_or_none(r.get("init_rot_deg") for r in rs)
+        cell["mean_init_trans"] = mean_or_none(r.get("init_trans") for r in rs)
+        if m == "essential":
+            cell["num_failed_estimates"] = sum(1 for x in rot if x is None)
+            cell["mean_num_matches"] = mean_or_none(r.get("num_matches") for r in rs)
+        else:
+            cell["mean_seconds"] = mean_or_none(r.get("seconds") for r in rs)
+            cell["mean_iterations"] = mean_or_none(r.get("iterations") for r in rs)
+        if spec.kind == "relative_pose":
+            aucs = pose_auc(rot, spec.auc_thresholds) if rs else [None] * len(spec.auc_thresholds)
+            for t, a in zip(spec.auc_thresholds, aucs):
+                cell[f"auc{t:g}"] = a
+            cell["median_rot_deg"] = (float(np.median([x if x is not None else np.inf for x in rot]))
+                                      if rs else None)
+        if m != "essential":
+            for a, b in spec.thresholds:
+                ok = success_mask(rot, trans, a, b) if rs else np.zeros(0, bool)
+                cell["success_" + threshold_key(a, b)] = float(ok.mean()) if rs else None
+                if rs and all(r.get("final_trans_world", None) is not None or r.get("final_rot_deg") is None
+                              for r in rs):
+                    # the same threshold read in WORLD units (for papers that do not normalise)
+                    okw = success_mask(rot, [r.get("final_trans_world") for r in rs], a, b)
+                    cell["success_" + threshold_key(a, b) + "_world_units"] = float(okw.mean())
+            if spec.kind in ("curves", "time") and rs and all("curve_rot_deg" in r for r in rs):
+                cell["curves"] = {
+                    threshold_key(a, b): [round(float(v), 5) for v in success_curve(
+                        [r["curve_rot_deg"] for r in rs], [r["curve_trans"] for r in rs], a, b, L)]
+                    for a, b in spec.thresholds}
+            if spec.kind == "time":
+                a, b = spec.thresholds[0]
+                tk = threshold_key(a, b)
+                ok = success_mask(rot, trans, a, b) if rs else np.zeros(0, bool)
+                cell["success_rate"] = float(ok.mean()) if rs else None
+                cell["seconds_to_success"] = mean_or_none(
+                    r.get("time_to_success", {}).get(tk) for r, s in zip(rs, ok) if s)
+                cell["seconds_total_success"] = mean_or_none(r.get("seconds") for r, s in zip(rs, ok) if s)
+            if spec.kind == "ablation":
+                a, b = spec.thresholds[0]
+                cell.update({k: v for k, v in failure_stats(rot, trans, a, b).items() if k != "n"})
+        out["cells"].append(cell)
+    return out
+
+
+def paper_method(method: str, matcher: Optional[str]) -> str:
+    """Our method name -> the paper's row for it (the essential baseline by matcher family)."""
+    if method != "essential":
+        return method
+    name = (matcher or "").lower()
+    if "loftr" in name:
+        return "essential_loftr"
+    if "lightglue" in name or "xfeat" in name or "glue" in name:
+        return "essential_lightglue"
+    return "essential_" + (name or "unknown")
+
+
+def _metrics_of(spec: ProtocolSpec, method: str) -> List[str]:
+    if spec.kind == "curves":
+        return ["success_" + threshold_key(a, b) for a, b in spec.thresholds]
+    if spec.kind == "time":
+        return ["success_rate", "seconds_to_success", "seconds"]
+    if spec.kind == "relative_pose":
+        return [f"auc{t:g}" for t in spec.auc_thresholds]
+    if spec.kind == "ablation":
+        return ["failure_rate", "mean_rot_deg", "mean_trans"]
+    return []
+
+
+def _our_value(cell: Dict[str, Any], metric: str):
+    if metric == "seconds":
+        return cell.get("mean_seconds")
+    return cell.get(metric)
+
+
+def table_rows(spec: ProtocolSpec, summary: Dict[str, Any], matcher: Optional[str]) -> List[Dict[str, Any]]:
+    """Rows (interval, method, metric, ours, paper, source, delta) for the markdown / JSON."""
+    rows = []
+    for cell in summary["cells"]:
+        pm = paper_method(cell["method"], matcher)
+        for metric in _metrics_of(spec, cell["method"]):
+            if cell["method"] == "essential" and not metric.startswith("auc"):
+                continue
+            pmetric = "success_rate" if metric == "success_rate" else metric
+            pv: PaperValue = paper_value(spec.name, cell["interval"], pm, pmetric)
+            ours = _our_value(cell, metric)
+            delta = (ours - pv.value) if (ours is not None and pv.value is not None) else None
+            rows.append({"interval": cell["interval"], "method": cell["method"], "paper_method": pm,
+                         "metric": metric, "n": cell["n"], "ours": ours, "paper": pv.value,
+                         "paper_note": pv.note, "source": pv.source, "delta": delta})
+    return rows
+
+
+def _fmt(v, metric: str) -> str:
+    if v is None:
+        return "–"
+    if isinstance(v, float) and not math.isfinite(v):
+        return "inf"
+    if metric.startswith("success") or metric in PERCENT_METRICS:
+        return f"{100.0 * v:.1f}%"
+    if metric.startswith("auc"):
+        return f"{100.0 * v:.1f}"
+    if "seconds" in metric:
+        return f"{v:.1f} s"
+    return f"{v:.4g}"
+
+
+def markdown(spec: ProtocolSpec, summary: Dict[str, Any], matcher: Optional[str],
+             header: Optional[Dict[str, Any]] = None) -> str:
+    """One protocol's markdown section: the setup line and the side-by-side table."""
+    lines = [f"## {spec.name} ({spec.kind})", ""]
+    if spec.description:
+        lines += [spec.description, ""]
+    h = header or {}
+    size = (f"{spec.num_queries} queries x {spec.poses_per_query} poses x {len(spec.intervals)} intervals, "
+            f"max {spec.max_iterations} iterations" + (" (quick)" if spec.quick else " (full size)"))
+    lines.append(f"- size: {size}")
+    for k, v in h.items():
+        lines.append(f"- {k}: {v}")
+    lines.append(f"- thresholds: " + ", ".join(f"< {a:g} deg and < {b:g}" for a, b in spec.thresholds))
+    lines.append(f"- methods: " + "; ".join(f"`{m}` = {METHODS[m]}" for m in spec.methods))
+    lines.append("")
+    rows = table_rows(spec, summary, matcher)
+    lines.append("| interval | method | metric | n | ours | paper | Δ (ours − paper) | paper source |")
+    lines.append("|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        paper_txt = _fmt(r["paper"], r["metric"]) if r["paper"] is not None else NOT_FOUND
+        delta = _fmt(r["delta"], r["metric"]) if r["delta"] is not None else "–"
+        lines.append(f"| {r['interval']} | {r['method']} | {r['metric']} | {r['n']} | "
+                     f"{_fmt(r['ours'], r['metric'])} | {paper_txt} | {delta} | {r['source']} |")
+    lines.append("")
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------------------------
+# plots (matplotlib, Agg)
+# ----------------------------------------------------------------------------------------------
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: Path) -> Path:
+    from ..io.atomic import atomic_path
+
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
+    return path
+
+
+def save_plots(spec: ProtocolSpec, summary: Dict[str, Any], out_dir, matcher: Optional[str] = None) -> List[str]:
+    """Write the protocol's PNGs into ``out_dir``; returns their file names."""
+    plt = _plt()
+    out_dir = Path(out_dir)
+    files: List[str] = []
+    cells = summary["cells"]
+    ivs = [iv.label for iv in spec.intervals]
+    meths = list(spec.methods)
+
+    if spec.kind in ("curves", "time") and any("curves" in c for c in cells):
+        fig, axes = plt.subplots(1, len(ivs), figsize=(4.2 * len(ivs), 3.4), squeeze=False, sharey=True)
+        styles = ["-", "--", ":", "-."]
+        for j, iv in enumerate(ivs):
+            ax = axes[0, j]
+            for c in cells:
+                if c["interval"] != iv or "curves" not in c:
+                    continue
+                for s, (tk, ys) in enumerate(c["curves"].items()):
+                    ax.plot(np.arange(len(ys)), ys, styles[s % len(styles)],
+                            label=f"{c['method']} ({tk.replace('deg_', '°, ')})")
+            ax.set_title(f"{spec.name}: {iv}")
+            ax.set_xlabel("iteration")
+            ax.set_ylim(-0.02, 1.02)
+            ax.grid(alpha=0.3)
+        axes[0, 0].set_ylabel("fraction of poses under threshold")
+        axes[0, -1].legend(fontsize=7, loc="lower right")
+        name = f"success_vs_iteration_{spec.name}.png"
+        _save(fig, out_dir / name)
+        plt.close(fig)
+        files.append(name)
+
+    def bars(metric_keys: List[str], title: str, name: str, ylabel: str, scale: float = 1.0):
+        fig, axes = plt.subplots(1, len(ivs), figsize=(4.2 * len(ivs), 3.2), squeeze=False, sharey=True)
+        width = 0.8 / max(1, len(meths))
+        for j, iv in enumerate(ivs):
+            ax = axes[0, j]
+            x = np.arange(len(metric_keys))
+            for i, m in enumerate(meths):
+                c = next((c for c in cells if c["interval"] == iv and c["method"] == m), None)
+                vals = [scale * (c.get(k) or 0.0) if c else 0.0 for k in metric_keys]
+                ax.bar(x + (i - (len(meths) - 1) / 2) * width, vals, width, label=m)
+            ax.set_xticks(x)
+            ax.set_xticklabels(metric_keys)
+            ax.set_title(f"{title}: {iv}")
+            ax.grid(axis="y", alpha=0.3)
+        axes[0, 0].set_ylabel(ylabel)
+        axes[0, -1].legend(fontsize=7)
+        _save(fig, out_dir / name)
+        plt.close(fig)
+        files.append(name)
+
+    if spec.kind == "relative_pose":
+        bars([f"auc{t:g}" for t in spec.auc_thresholds], "rotation AUC", f"auc_{spec.name}.png", "AUC (%)", 100.0)
+    if spec.kind == "time":
+        bars(["success_rate"], "success", f"success_rate_{spec.name}.png", "success rate (%)", 100.0)
+    if spec.kind == "ablation":
+        bars(["failure_rate"], "failure", f"failure_rate_{spec.name}.png", "failure rate (%)", 100.0)
+    return files

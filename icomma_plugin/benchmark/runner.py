@@ -1,0 +1,174 @@
+"""Run one protocol: sample the initial poses, localise (or run the baseline), record each run.
+
+Every finished run is handed to ``on_record`` at once (the tool writes results.json after each
+one, so a partial run keeps what it computed). Runs already present in ``done`` (keyed by
+:func:`record_key`) are skipped, which resumes an interrupted run with identical poses (poses
+come from per-run seeds, see ``sampling.pose_seed``).
+"""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from typing import Any, Callable, Dict, Iterable, List, Optional
+
+import numpy as np
+import torch
+
+from ..localize import LocalizerConfig, localize
+from .baselines import essential_matrix_baseline
+from .metrics import time_to_success
+from .protocols import ProtocolSpec, is_localizer_method, method_config
+from .sampling import pose_seed, sample_initial_pose
+from .scene import BenchScene
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["record_key", "run_protocol", "threshold_key"]
+
+Progress = Callable[[Dict[str, Any]], Any]
+
+
+def record_key(protocol: str, interval: str, query_index: int, pose_index: int, method: str) -> str:
+    return f"{protocol}|{interval}|{int(query_index)}|{int(pose_index)}|{method}"
+
+
+def threshold_key(rot: float, trans: Optional[float]) -> str:
+    return f"{rot:g}deg_{trans:g}" if trans is not None else f"{rot:g}deg"
+
+
+def _round(values: Iterable, digits: int = 6) -> List[Optional[float]]:
+    out = []
+    for v in values:
+        if v is None or not math.isfinite(float(v)):
+            out.append(None)
+        else:
+            out.append(float(f"{float(v):.{digits}g}"))
+    return out
+
+
+def _localizer_record(res, scale: float, spec: ProtocolSpec) -> Dict[str, Any]:
+    """Curves (errors after k iterations, k = 0..n) and summary of one LocalizationResult."""
+    rot = [r["rot_err_deg"] for r in res.trace] + [res.final_rotation_error_deg]
+    trans_w = [r["trans_err"] for r in res.trace] + [res.final_translation_error]
+    trans = [None if t is None else t / scale for t in trans_w]
+    cum = [0.0]
+    for r in res.trace:
+        cum.append(cum[-1] + float(r["seconds"]))
+    tts = {threshold_key(a, b): time_to_success(rot, trans, cum, a, b) for a, b in spec.thresholds}
+    return {
+        "final_rot_deg": res.final_rotation_error_deg,
+        "final_trans": None if res.final_translation_error is None else res.final_translation_error / scale,
+        "final_trans_world": res.final_translation_error,
+        "iterations": res.iterations,
+        "stop_reason": res.stop_reason,
+        "switch_iteration": res.switch_iteration,
+        "seconds": res.seconds,
+        "time_to_success": tts,
+        "match_counts": res.match_counts,
+        "final_c2w": res.c2w.tolist(),
+        "curve_rot_deg": _round(rot),
+        "curve_trans": _round(trans),
+        "curve_seconds": _round(cum, 5),
+    }
+
+
+def run_protocol(
+    scene: BenchScene,
+    spec: ProtocolSpec,
+    base_config: LocalizerConfig,
+    matcher=None,
+    *,
+    backend: str = "auto",
+    on_record: Optional[Callable[[Dict[str, Any]], Any]] = None,
+    done: Optional[Dict[str, Dict[str, Any]]] = None,
+    progress: Optional[Progress] = None,
+    store_curves: bool = True,
+) -> List[Dict[str, Any]]:
+    """Run every (interval, query, pose, method) of ``spec`` on ``scene``.
+
+    Args:
+        scene: model + queries (its first ``spec.num_queries`` queries are used).
+        spec: the protocol.
+        base_config: the optimizer group's LocalizerConfig (methods derive theirs from it).
+        matcher: the matcher (needed by icomma, match_only and essential).
+        on_record: called with each new record (dict) as soon as it is finished.
+        done: records already computed, keyed by :func:`record_key`; reused, not recomputed.
+        progress: called with events ``{"event": "run_start"|"iteration"|"run_end", ...}``.
+        store_curves: keep per-iteration curves in the records (needed by ``curves``/``time``).
+
+    Returns:
+        All records of the protocol (reused and new), in run order.
+    """
+    done = dict(done or {})
+    needs_matcher = [m for m in spec.methods if m != "compare_only"]
+    if needs_matcher and matcher is None:
+        raise ValueError(f"methods {needs_matcher} need a matcher; got matcher=None (choose e.g. matcher=xfeat)")
+    queries = scene.queries[: spec.num_queries]
+    scale = float(scene.translation_scale)
+    configs = {m: method_config(m, base_config, spec.max_iterations)
+               for m in spec.methods if is_localizer_method(m)}
+    records: List[Dict[str, Any]] = []
+    total = spec.num_runs if len(queries) == spec.num_queries else (
+        len(spec.intervals) * len(queries) * spec.poses_per_query * len(spec.methods))
+    count = 0
+    for ii, iv in enumerate(spec.intervals):
+        for q in queries:
+            gt_w2c = np.linalg.inv(q.gt_c2w)
+            for k in range(spec.poses_per_query):
+                seed = pose_seed(spec.seed, ii, q.index, k)
+                init = sample_initial_pose(q.gt_c2w, iv.rot_deg, iv.trans, seed, translation_scale=scale,
+                                           translation_mode=spec.translation_mode, pivot=spec.pivot)
+                init_trans_w = float(np.linalg.norm(init.c2w[:3, 3] - q.gt_c2w[:3, 3]))
+                for method in spec.methods:
+                    key = record_key(spec.name, iv.label, q.index, k, method)
+                    count += 1
+                    if key in done:
+                        records.append(done[key])
+                        if progress:
+                            progress({"event": "run_end", "key": key, "count": count, "total": total,
+                                      "reused": True})
+                        continue
+                    if progress:
+                        progress({"event": "run_start", "key": key, "count": count, "total": total,
+                                  "method": method, "interval": iv.label, "query": q.name, "pose": k})
+                    rec: Dict[str, Any] = {
+                        "key": key, "protocol": spec.name, "interval": iv.label, "interval_index": ii,
+                        "query": q.name, "query_index": q.index, "pose_index": k, "method": method,
+                        "seed": list(seed), "init": init.to_json(),
+                        "init_rot_deg": init.rot_deg, "init_trans": init_trans_w / scale,
+                        "init_trans_world": init_trans_w,
+                    }
+                    t0 = time.perf_counter()
+                    if is_localizer_method(method):
+                        def hook(r, _key=key):
+                            if progress:
+                                progress({"event": "iteration", "key": _key, "record": r})
+
+                        torch.manual_seed(int(np.random.SeedSequence(list(seed)).generate_state(1)[0]))
+                        res = localize(scene.model, q.rgb, q.intrinsics, np.linalg.inv(init.c2w),
+                                       matcher if method != "compare_only" else None, configs[method],
+                                       gt_w2c=gt_w2c, query_alpha=q.alpha, backend=backend, bg=scene.bg,
+                                       progress=hook)
+                        rec.update(_localizer_record(res, scale, spec))
+                    else:
+                        out = essential_matrix_baseline(scene.model, q.rgb, q.intrinsics, init.c2w, q.gt_c2w,
+                                                        matcher, bg=scene.bg, backend=backend,
+                                                        thresh_px=spec.essential_thresh_px,
+                                                        seed=int(seed[-1]))
+                        rec.update(out)
+                        rec["final_rot_deg"] = out["rel_rot_err_deg"]
+                        rec["final_trans"] = None
+                        rec["seconds"] = out["seconds"]
+                    rec["wall_seconds"] = time.perf_counter() - t0
+                    if not store_curves:
+                        for c in ("curve_rot_deg", "curve_trans", "curve_seconds"):
+                            rec.pop(c, None)
+                    records.append(rec)
+                    done[key] = rec
+                    if on_record:
+                        on_record(rec)
+                    if progress:
+                        progress({"event": "run_end", "key": key, "count": count, "total": total,
+                                  "reused": False, "record": rec})
+    return records

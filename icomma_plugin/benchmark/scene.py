@@ -1,0 +1,218 @@
+"""What a benchmark runs on: a model, query images with ground-truth poses, and the scale that
+normalises translations.
+
+- :func:`load_model_folder_scene`: a trained 3DGS model folder (e.g. lego fitted on its train
+  split) plus a dataset whose split (``test``) provides the queries and their poses.
+- :func:`synthetic_scene`: a small procedural model whose queries are rendered by the model itself
+  (no data needed; tests and smoke runs).
+
+Translation normalisation (docs/BENCHMARK.md): ``translation_unit="scene_radius"`` divides world
+distances by the 3DGS scene radius (``getNerfppNorm``: 1.1 x the largest distance of a TRAIN
+camera centre from their mean; ``SceneData.scene_radius()``); ``"world"`` keeps world units.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence
+
+import numpy as np
+import torch
+
+from ..camera import Intrinsics
+from ..gaussians import GaussianModel
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["Query", "BenchScene", "TRANSLATION_UNITS", "shared_data_root", "default_lego_dataset",
+           "select_indices", "load_model_folder_scene", "synthetic_scene", "camera_radius"]
+
+TRANSLATION_UNITS = ("scene_radius", "world")
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+@dataclass
+class Query:
+    name: str
+    rgb: torch.Tensor  # [3, H, W] in [0, 1], composited over the background
+    alpha: Optional[torch.Tensor]  # [1, H, W] or None
+    intrinsics: Intrinsics
+    gt_c2w: np.ndarray  # [4, 4] float64, OpenCV axes
+    index: int  # index of the view in its split
+
+
+@dataclass
+class BenchScene:
+    model: GaussianModel
+    queries: List[Query]
+    bg: torch.Tensor  # [3]
+    translation_scale: float  # world units per normalised unit
+    translation_unit: str
+    scene_radius: float
+    info: Dict[str, Any] = field(default_factory=dict)
+
+    def describe(self) -> Dict[str, Any]:
+        q = self.queries[0].intrinsics if self.queries else None
+        return {
+            **self.info,
+            "num_gaussians": int(self.model.num_gaussians),
+            "queries": [{"name": x.name, "index": x.index} for x in self.queries],
+            "image_size": None if q is None else [q.width, q.height],
+            "translation_unit": self.translation_unit,
+            "translation_scale": self.translation_scale,
+            "scene_radius": self.scene_radius,
+            "background": [float(v) for v in self.bg],
+        }
+
+
+def shared_data_root() -> Path:
+    """``ICOMMA_SHARED_DATA`` or ``<repo>/../shared/data``."""
+    return Path(os.environ.get("ICOMMA_SHARED_DATA", REPO_ROOT.parent / "shared" / "data"))
+
+
+def default_lego_dataset() -> Path:
+    return shared_data_root() / "nerf_synthetic" / "lego_400"
+
+
+def camera_radius(c2ws: Sequence[np.ndarray]) -> float:
+    """3DGS ``getNerfppNorm`` radius of camera centres: 1.1 x max distance from their mean."""
+    c = np.stack([np.asarray(T, np.float64)[:3, 3] for T in c2ws])
+    return float(1.1 * np.linalg.norm(c - c.mean(0), axis=1).max())
+
+
+def select_indices(n: int, num: int, indices: Optional[Sequence[int]] = None) -> List[int]:
+    """Explicit ``indices`` (checked) or ``num`` evenly spaced indices over ``range(n)``."""
+    if indices is not None:
+        out = [int(i) for i in indices]
+        bad = [i for i in out if not 0 <= i < n]
+        if bad:
+            raise ValueError(f"query indices {bad} out of range: the split has {n} views")
+        return out
+    if not isinstance(num, int) or num < 1:
+        raise ValueError(f"num_queries must be a positive int, got {num!r}")
+    if num > n:
+        raise ValueError(f"num_queries={num} exceeds the {n} views of the split")
+    return sorted({int(round(x)) for x in np.linspace(0, n - 1, num)})
+
+
+def _scale_of(unit: str, radius: float) -> float:
+    if unit not in TRANSLATION_UNITS:
+        raise ValueError(f"translation_unit must be one of {TRANSLATION_UNITS}, got {unit!r}")
+    return float(radius) if unit == "scene_radius" else 1.0
+
+
+def load_model_folder_scene(
+    model_path, dataset=None, num_queries: int = 5, split: str = "test",
+    query_indices: Optional[Sequence[int]] = None, image_scale: Optional[float] = None,
+    white_background: Optional[bool] = None, iteration: Optional[int] = None,
+    translation_unit: str = "scene_radius",
+) -> BenchScene:
+    """Model folder + the dataset's ``split`` views as queries.
+
+    Args:
+        model_path: trained 3DGS output folder (cfg_args, point_cloud/iteration_N/).
+        dataset: dataset folder; None = cfg_args ``source_path`` when it exists here, else the
+            shared lego_400 (``ICOMMA_SHARED_DATA``).
+        image_scale: query scale; None = the model's training width (cameras.json) over the
+            dataset's image width (1 when unknown).
+        white_background: None = cfg_args ``white_background``.
+    """
+    from ..io.datasets import read_dataset
+    from ..io.model_folder import load_model_folder
+
+    mp = Path(str(model_path)).expanduser()
+    if not mp.is_dir():
+        raise FileNotFoundError(f"model folder not found: {mp}")
+    mf = load_model_folder(mp, iteration=iteration)
+    white = mf.white_background if white_background is None else bool(white_background)
+    if dataset is None:
+        src = mf.cfg.get("source_path")
+        dataset = src if src and Path(str(src)).is_dir() else default_lego_dataset()
+    root = Path(str(dataset)).expanduser()
+    if not root.is_dir():
+        raise FileNotFoundError(f"dataset folder not found: {root} (set scene.dataset or ICOMMA_SHARED_DATA)")
+    try:
+        sd = read_dataset(root, white_background=white)
+    except ValueError as e:
+        if "does not take" not in str(e):
+            raise
+        sd = read_dataset(root)
+    if split not in ("train", "test"):
+        raise ValueError(f"split must be train or test, got {split!r}")
+    views = getattr(sd, split)
+    if not views:
+        raise ValueError(f"the {split!r} split of {root} is empty")
+    idx = select_indices(len(views), num_queries, query_indices)
+    if image_scale is None:
+        image_scale = 1.0
+        if mf.cameras:
+            image_scale = mf.cameras[0].width / views[0].intrinsics.width
+    bg = torch.ones(3) if white else torch.zeros(3)
+    queries = []
+    for i in idx:
+        v = views[i]
+        rgb, alpha = v.load(scale=float(image_scale), background=bg)
+        queries.append(Query(name=v.name, rgb=rgb, alpha=alpha,
+                             intrinsics=v.intrinsics.scaled(float(image_scale)) if image_scale != 1.0
+                             else v.intrinsics, gt_c2w=np.asarray(v.c2w, np.float64), index=i))
+    radius = sd.scene_radius() if sd.train else camera_radius([v.c2w for v in views])
+    return BenchScene(
+        model=mf.model, queries=queries, bg=bg, translation_scale=_scale_of(translation_unit, radius),
+        translation_unit=translation_unit, scene_radius=radius,
+        info={"kind": "model_folder", "model_path": str(mp), "iteration": mf.iteration,
+              "dataset": str(root), "split": split, "image_scale": float(image_scale),
+              "white_background": white},
+    )
+
+
+def synthetic_model(num_gaussians: int = 300, seed: int = 0, extent: float = 1.0) -> GaussianModel:
+    """Colourful anisotropic blobs in ``[-extent, extent]^3`` (SH degree 0, float32)."""
+    from ..gaussians import rgb_to_sh
+
+    g = torch.Generator().manual_seed(int(seed))
+    P = int(num_gaussians)
+    means = (torch.rand(P, 3, generator=g) * 2 - 1) * extent
+    rgb = torch.rand(P, 3, generator=g) * 0.9 + 0.05
+    scales = torch.exp(torch.randn(P, 3, generator=g) * 0.3) * (0.12 * extent)
+    quat = torch.randn(P, 4, generator=g)
+    return GaussianModel(
+        means=means, sh_dc=rgb_to_sh(rgb)[:, None, :], sh_rest=torch.zeros(P, 0, 3),
+        opacity_logit=torch.full((P, 1), 2.0), scale_log=scales.log(), quat=quat, sh_degree=0,
+    )
+
+
+def synthetic_scene(
+    num_gaussians: int = 300, width: int = 64, height: int = 64, num_queries: int = 2,
+    seed: int = 0, radius: float = 4.0, fov_deg: float = 40.0, translation_unit: str = "scene_radius",
+    backend: str = "auto",
+) -> BenchScene:
+    """A procedural model around the origin, 12 "train" cameras on a ring (for the scene radius)
+    and ``num_queries`` query cameras between them; queries are rendered by the model."""
+    from ..pose.convert import look_at_c2w
+    from ..render import render
+
+    model = synthetic_model(num_gaussians, seed)
+    intr = Intrinsics.from_fov(int(width), int(height), math.radians(float(fov_deg)))
+
+    def cam(az_deg, el_deg):
+        az, el = math.radians(az_deg), math.radians(el_deg)
+        eye = radius * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+        return look_at_c2w(eye, np.zeros(3), up=(0.0, 0.0, 1.0))
+
+    train = [cam(a, 30.0) for a in range(0, 360, 30)]
+    r = camera_radius(train)
+    bg = torch.zeros(3)
+    queries = []
+    for i in range(int(num_queries)):
+        c2w = cam(15.0 + 360.0 * i / max(1, num_queries), 25.0 + 10.0 * (i % 2))
+        with torch.no_grad():
+            img = render(model, intr, torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32), bg,
+                         backend=backend).color.clamp(0, 1)
+        queries.append(Query(name=f"synthetic_{i}", rgb=img.contiguous(), alpha=None, intrinsics=intr,
+                             gt_c2w=c2w, index=i))
+    return BenchScene(model=model, queries=queries, bg=bg, translation_scale=_scale_of(translation_unit, r),
+                      translation_unit=translation_unit, scene_radius=r,
+                      info={"kind": "synthetic", "seed": int(seed), "num_gaussians": int(num_gaussians)})

@@ -1,0 +1,337 @@
+"""Tests of icomma_plugin.benchmark and tools/benchmark.py (fast; no shared data needed except the
+one skip-if-absent lego check)."""
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from icomma_plugin.benchmark import (
+    Interval, ProtocolSpec, failure_stats, markdown, pad_curves, pose_auc, pose_seed, run_protocol,
+    sample_initial_pose, success_curve, summarize, synthetic_scene, table_rows, time_to_success,
+)
+from icomma_plugin.benchmark import paper as paper_mod
+from icomma_plugin.benchmark.baselines import estimate_relative_pose, relative_pose_gt, rotation_angle_deg
+from icomma_plugin.benchmark.protocols import method_config
+from icomma_plugin.benchmark.sampling import rotation_matrix
+from icomma_plugin.localize import LocalizerConfig
+from icomma_plugin.pose.convert import look_at_c2w, rotation_error_deg
+
+REPO = Path(__file__).resolve().parents[2]
+CONF = REPO / "conf"
+PROTOCOLS = ["curves_rotation", "curves_translation", "time_table", "relative_pose", "ablation"]
+
+
+def _gt():
+    return look_at_c2w([4.0, 0.5, 1.5], [0, 0, 0], up=(0, 0, 1))
+
+
+# ------------------------------------------------------------------------------------ sampling
+
+
+@pytest.mark.parametrize("rot", [(0.0, 20.0), (20.0, 40.0), (40.0, 60.0), (30.0, 50.0)])
+@pytest.mark.parametrize("trans", [(0.0, 0.05), (0.05, 0.1), (0.0, 0.6)])
+def test_sampling_angles_and_translations_within_intervals(rot, trans):
+    gt = _gt()
+    scale = 4.4
+    for k in range(25):
+        p = sample_initial_pose(gt, rot, trans, pose_seed(3, 1, 7, k), translation_scale=scale)
+        assert rot[0] <= p.rot_deg <= rot[1]
+        assert float(rotation_error_deg(p.c2w, gt)) == pytest.approx(p.rot_deg, abs=1e-6)
+        mags = np.abs(p.offset)
+        assert np.all(mags >= trans[0] - 1e-12) and np.all(mags <= trans[1] + 1e-12)
+        np.testing.assert_allclose(p.offset_world, p.offset * scale)
+        # origin pivot: the centre is rotated about the world origin, then offset
+        R = rotation_matrix(p.axis, p.rot_deg)
+        np.testing.assert_allclose(p.c2w[:3, 3], R @ gt[:3, 3] + p.offset_world, atol=1e-9)
+        np.testing.assert_allclose(p.c2w[:3, :3], R @ gt[:3, :3], atol=1e-9)
+        np.testing.assert_allclose(p.pivot, 0.0)
+
+
+def test_sampling_norm_mode_and_camera_pivot():
+    gt = _gt()
+    for k in range(20):
+        p = sample_initial_pose(gt, (10, 20), (0.1, 0.2), pose_seed(0, 0, 0, k), translation_mode="norm",
+                                pivot="camera")
+        assert 0.1 - 1e-12 <= np.linalg.norm(p.offset) <= 0.2 + 1e-12
+        np.testing.assert_allclose(p.c2w[:3, 3], gt[:3, 3] + p.offset_world, atol=1e-12)
+
+
+def test_sampling_is_seeded_and_reproducible():
+    gt = _gt()
+    a = sample_initial_pose(gt, (20, 40), (0, 0.2), pose_seed(0, 1, 2, 3))
+    b = sample_initial_pose(gt, (20, 40), (0, 0.2), pose_seed(0, 1, 2, 3))
+    c = sample_initial_pose(gt, (20, 40), (0, 0.2), pose_seed(0, 1, 2, 4))
+    d = sample_initial_pose(gt, (20, 40), (0, 0.2), pose_seed(1, 1, 2, 3))
+    np.testing.assert_array_equal(a.c2w, b.c2w)
+    assert a.seed == (0, 1, 2, 3) and a.to_json()["seed"] == [0, 1, 2, 3]
+    assert not np.allclose(a.c2w, c.c2w) and not np.allclose(a.c2w, d.c2w)
+    gen = np.random.default_rng(5)
+    e = sample_initial_pose(gt, (5, 5), (0.1, 0.1), gen)
+    assert e.rot_deg == 5 and np.allclose(np.abs(e.offset), 0.1)
+
+
+def test_sampling_rejects_bad_input():
+    gt = _gt()
+    with pytest.raises(ValueError, match="rot_range_deg"):
+        sample_initial_pose(gt, (20, 10), (0, 0.1), np.random.default_rng(0))
+    with pytest.raises(ValueError, match="trans_range"):
+        sample_initial_pose(gt, (0, 10), (-1, 0.1), np.random.default_rng(0))
+    with pytest.raises(ValueError, match="pivot"):
+        sample_initial_pose(gt, (0, 10), (0, 0.1), np.random.default_rng(0), pivot="centre")
+    with pytest.raises(ValueError, match="seed"):
+        pose_seed(-1, 0, 0, 0)
+
+
+# ------------------------------------------------------------------------------------- metrics
+
+
+def test_success_curve_carries_final_value_forward():
+    rot = [[10.0, 4.0, 0.5], [10.0, 8.0, 6.0, 3.0, 0.9]]
+    trans = [[0.1, 0.04, 0.005], [0.1, 0.1, 0.1, 0.01, 0.001]]
+    c5 = success_curve(rot, trans, 5.0, 0.05)
+    np.testing.assert_allclose(c5, [0.0, 0.5, 0.5, 1.0, 1.0])
+    c1 = success_curve(rot, trans, 1.0, 0.01)
+    np.testing.assert_allclose(c1, [0.0, 0.0, 0.5, 0.5, 1.0])
+    np.testing.assert_allclose(success_curve(rot, trans, 5.0, 0.05, length=7)[-2:], [1.0, 1.0])
+    p = pad_curves([[1.0, None]], 3)
+    assert np.all(np.isinf(p[0, 1:]))
+
+
+def test_pose_auc_hand_computed():
+    # e = [1, 3]: recall steps 0.5 at 1 and 1.0 at 3.
+    # t=5: (0.5*1/2 + (0.5+1)/2*2 + 1*2) / 5 = (0.25 + 1.5 + 2) / 5 = 0.75
+    # t=2: (0.25 + 0.5*1) / 2 = 0.375
+    assert pose_auc([1.0, 3.0], [5.0, 2.0]) == pytest.approx([0.75, 0.375])
+    # a failure (None) is never recalled: (0.25 + 0.5*4) / 5 = 0.45
+    assert pose_auc([1.0, None], [5.0]) == pytest.approx([0.45])
+    assert pose_auc([0.0, 0.0], [5.0]) == pytest.approx([1.0])
+    assert pose_auc([30.0], [5.0, 10.0, 20.0]) == pytest.approx([0.0, 0.0, 0.0])
+    assert pose_auc([], [5.0]) == [0.0]
+
+
+def test_failure_stats_and_time_to_success():
+    s = failure_stats([1.0, 10.0, 2.0, None], [0.01, 0.01, 0.2, 0.0], 5.0, 0.05)
+    assert s["n"] == 4 and s["failures"] == 3
+    assert s["failure_rate"] == pytest.approx(0.75)
+    assert s["mean_rot_deg"] == pytest.approx(1.0) and s["mean_trans"] == pytest.approx(0.01)
+    none = failure_stats([10.0], [1.0], 5.0, 0.05)
+    assert none["failure_rate"] == 1.0 and none["mean_rot_deg"] is None
+    assert time_to_success([9, 6, 4, 1], [0.1, 0.1, 0.04, 0.01], [0, 1.0, 2.5, 3.0], 5, 0.05) == 2.5
+    assert time_to_success([9, 6], [0.1, 0.1], [0, 1.0], 5, 0.05) is None
+
+
+# -------------------------------------------------------------------- essential-matrix baseline
+
+
+def test_essential_matrix_recovers_known_relative_pose():
+    rng = np.random.default_rng(0)
+    K = np.array([[500.0, 0, 199.5], [0, 500.0, 199.5], [0, 0, 1]])
+    c2w_a = look_at_c2w([4.0, 0.0, 1.0], [0, 0, 0], up=(0, 0, 1))
+    c2w_b = look_at_c2w([3.0, 2.6, 1.4], [0.1, 0, 0], up=(0, 0, 1))
+    w2c_a, w2c_b = np.linalg.inv(c2w_a), np.linalg.inv(c2w_b)
+    X = rng.uniform(-1, 1, (300, 3))
+
+    def project(w2c):
+        xc = (w2c[:3, :3] @ X.T).T + w2c[:3, 3]
+        uv = (K @ xc.T).T
+        return uv[:, :2] / uv[:, 2:3]
+
+    pa, pb = project(w2c_a), project(w2c_b)
+    pb_noisy = pb + rng.normal(0, 0.2, pb.shape)
+    est = estimate_relative_pose(pa, pb_noisy, K, K, thresh_px=1.0)
+    R_gt, t_gt = relative_pose_gt(w2c_a, w2c_b)
+    assert rotation_angle_deg(R_gt, np.eye(3)) > 20
+    assert est is not None and est.num_inliers > 200
+    assert rotation_angle_deg(est.R, R_gt) < 0.5
+    assert float(np.degrees(np.arccos(np.clip(est.t @ (t_gt / np.linalg.norm(t_gt)), -1, 1)))) < 3.0
+    assert estimate_relative_pose(pa[:4], pb[:4], K, K) is None
+
+
+# ---------------------------------------------------------------------------------- protocols
+
+
+def _compose(overrides, return_hydra_config=False):
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose(config_name="benchmark", overrides=overrides, return_hydra_config=return_hydra_config)
+
+
+@pytest.mark.parametrize("name", PROTOCOLS)
+def test_every_protocol_composes(name):
+    from omegaconf import OmegaConf
+
+    cfg = _compose([f"benchmark_protocol={name}", "seed=7"])
+    d = OmegaConf.to_container(cfg.benchmark_protocol, resolve=True)
+    full = ProtocolSpec.from_dict(d, quick=False)
+    quick = ProtocolSpec.from_dict(d, quick=True)
+    assert full.name == name and full.seed == 7
+    assert (full.num_queries, full.poses_per_query, full.max_iterations) == (5, 10, 500)
+    assert quick.quick and not full.quick and quick.num_runs < full.num_runs
+    assert full.pivot == "origin"
+    LocalizerConfig.from_dict(OmegaConf.to_container(cfg.optimizer, resolve=True))
+    for m in full.methods:
+        if m != "essential":
+            method_config(m, LocalizerConfig(), full.max_iterations)
+    assert cfg.scene.translation_unit == "scene_radius"
+
+
+def test_protocol_intervals_match_the_brief():
+    from omegaconf import OmegaConf
+
+    def spec(n):
+        return ProtocolSpec.from_dict(OmegaConf.to_container(_compose([f"benchmark_protocol={n}"]).benchmark_protocol,
+                                                             resolve=True))
+
+    assert [iv.rot_deg for iv in spec("curves_rotation").intervals] == [(0, 20), (20, 40), (40, 60)]
+    assert [iv.rot_deg for iv in spec("time_table").intervals] == [(10, 20), (20, 40)]
+    assert all(iv.trans == (0.0, 0.2) for iv in spec("time_table").intervals)
+    ab = spec("ablation")
+    assert ab.intervals[0].rot_deg == (30, 50) and ab.intervals[0].trans == (0.0, 0.6)
+    assert ab.methods == ["icomma", "match_only", "compare_only"]
+    assert spec("relative_pose").methods == ["icomma", "essential"]
+
+
+@pytest.mark.parametrize("launcher,target", [("joblib_local", "JoblibLauncher"), ("slurm_cluster", "SlurmLauncher")])
+def test_launcher_configs_compose(launcher, target):
+    cfg = _compose([f"hydra/launcher={launcher}"], return_hydra_config=True)
+    assert cfg.hydra.launcher._target_.endswith(target)
+    if launcher == "slurm_cluster":
+        for k in ("partition", "timeout_min", "cpus_per_task", "gpus_per_node"):
+            assert k in cfg.hydra.launcher
+    else:
+        assert cfg.hydra.launcher.n_jobs == 2
+
+
+def test_method_configs():
+    base = LocalizerConfig(lambda_match=0.7)
+    assert method_config("compare_only", base).use_matching is False
+    mo = method_config("match_only", base, 12)
+    assert mo.lambda_match == 1.0 and mo.switch_threshold == 0.0 and mo.max_iterations == 12
+    assert method_config("icomma", base).lambda_match == 0.7
+    with pytest.raises(ValueError):
+        method_config("essential", base)
+    with pytest.raises(ValueError, match="methods"):
+        ProtocolSpec(name="x", kind="time", intervals=[Interval("a", (0, 1), (0, 0))], methods=["nope"])
+
+
+# ------------------------------------------------------------------------------------- report
+
+
+def _fake_records(spec):
+    recs = []
+    for iv in spec.intervals:
+        for k in range(2):
+            for m in spec.methods:
+                ok = k == 0
+                recs.append({"key": f"{iv.label}|{k}|{m}", "interval": iv.label, "method": m, "query_index": 0,
+                             "pose_index": k, "init_rot_deg": 15.0, "init_trans": 0.1,
+                             "final_rot_deg": 0.5 if ok else 30.0, "final_trans": 0.005 if ok else 0.5,
+                             "seconds": 2.0, "iterations": 3, "time_to_success": {"5deg_0.05": 1.0 if ok else None},
+                             "curve_rot_deg": [15.0, 4.0, 0.5] if ok else [15.0, 20.0, 30.0],
+                             "curve_trans": [0.1, 0.02, 0.005] if ok else [0.1, 0.3, 0.5],
+                             "curve_seconds": [0.0, 0.5, 1.0]})
+    return recs
+
+
+def test_report_markdown_has_paper_columns_and_delta(monkeypatch, tmp_path):
+    spec = ProtocolSpec(name="time_table", kind="time", methods=["icomma", "compare_only"], max_iterations=2,
+                        intervals=ProtocolSpec.from_dict({"name": "t", "kind": "time", "methods": ["icomma"],
+                                                          "intervals": [{"label": "r10-20", "rot_deg": [10, 20],
+                                                                         "trans": [0, 0.2]}]}).intervals)
+    summary = summarize(spec, _fake_records(spec))
+    cell = summary["cells"][0]
+    assert cell["success_rate"] == pytest.approx(0.5) and cell["seconds_to_success"] == pytest.approx(1.0)
+    assert cell["curves"]["5deg_0.05"] == pytest.approx([0.0, 0.5, 0.5])
+    md = markdown(spec, summary, "xfeat")
+    assert "| interval | method | metric | n | ours | paper | Δ (ours − paper) | paper source |" in md
+    assert paper_mod.NOT_FOUND in md and "50.0%" in md
+    # a known paper value gets a delta
+    monkeypatch.setitem(paper_mod.PAPER_NUMBERS, ("time_table", "r10-20", "icomma", "success_rate"),
+                        paper_mod.PaperValue(0.8, "Tab. X (test)"))
+    rows = table_rows(spec, summary, "xfeat")
+    r = next(r for r in rows if r["method"] == "icomma" and r["metric"] == "success_rate")
+    assert r["paper"] == 0.8 and r["delta"] == pytest.approx(-0.3) and r["source"] == "Tab. X (test)"
+    assert "-30.0%" in markdown(spec, summary, "xfeat")
+    from icomma_plugin.benchmark import save_plots
+
+    files = save_plots(spec, summary, tmp_path)
+    assert files and all((tmp_path / f).stat().st_size > 0 for f in files)
+
+
+def test_paper_module_never_invents_numbers():
+    for key, v in paper_mod.PAPER_NUMBERS.items():
+        assert (v.value is None) == (v.note == paper_mod.NOT_FOUND), key
+        assert v.source, key
+
+
+# ------------------------------------------------------------------------------ end to end
+
+
+def test_run_protocol_in_process_with_essential_baseline():
+    scene = synthetic_scene(num_gaussians=120, width=48, height=48, num_queries=1)
+    spec = ProtocolSpec.from_dict({"name": "relative_pose", "kind": "relative_pose", "methods": ["compare_only", "essential"],
+                                   "num_queries": 1, "poses_per_query": 1, "max_iterations": 3,
+                                   "intervals": [{"label": "r0-20", "rot_deg": [5, 10], "trans": [0, 0]}]})
+    from icomma_plugin.matchers import make_matcher
+
+    seen = []
+    recs = run_protocol(scene, spec, LocalizerConfig(), make_matcher("sift"), on_record=seen.append)
+    assert len(recs) == 2 and len(seen) == 2
+    co = recs[0]
+    assert co["method"] == "compare_only" and len(co["curve_rot_deg"]) == co["iterations"] + 1
+    assert 5 <= co["init_rot_deg"] <= 10
+    assert recs[1]["method"] == "essential" and "num_matches" in recs[1]
+    s = summarize(spec, recs)
+    assert {c["method"] for c in s["cells"]} == {"compare_only", "essential"}
+    # resuming reuses finished runs
+    again = run_protocol(scene, spec, LocalizerConfig(), make_matcher("sift"), done={r["key"]: r for r in recs},
+                         on_record=lambda r: pytest.fail("recomputed a finished run"))
+    assert [r["key"] for r in again] == [r["key"] for r in recs]
+
+
+def test_tool_smoke_run_on_synthetic_scene(tmp_path):
+    out = tmp_path / "run"
+    cmd = [sys.executable, str(REPO / "tools" / "benchmark.py"), "scene.kind=synthetic",
+           "scene.synthetic.num_gaussians=100", "scene.synthetic.width=40", "scene.synthetic.height=40",
+           "benchmark_protocol=ablation", "benchmark_protocol.methods=[icomma,compare_only]", "quick=true",
+           "benchmark_protocol.quick.num_queries=1", "benchmark_protocol.quick.poses_per_query=1",
+           "benchmark_protocol.quick.max_iterations=2", "matcher=sift", "output.progress=false",
+           f"hydra.run.dir={out}"]
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    p = subprocess.run(cmd, cwd=str(tmp_path), env=env, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr[-3000:]
+    doc = json.loads((out / "results.json").read_text())
+    assert doc["status"] == "complete" and doc["quick"] is True and doc["size"] == "quick"
+    assert doc["num_runs_done"] == 2 and doc["seed"] == 0
+    assert doc["scene"]["translation_unit"] == "scene_radius" and doc["scene"]["translation_scale"] > 0
+    assert doc["records"][0]["seed"] == [0, 0, 0, 0]
+    md = (out / "results.md").read_text()
+    assert "paper" in md and "failure_rate" in md
+    assert (out / "failure_rate_ablation.png").is_file()
+
+
+# ---------------------------------------------------------------------- shared data (optional)
+
+
+def test_lego_scene_radius_and_origin_pivot(lego_root):
+    from icomma_plugin.io.datasets import read_dataset
+
+    sd = read_dataset(lego_root, white_background=True)
+    r = sd.scene_radius()
+    assert 3.0 < r < 6.0  # lego cameras sit ~4 world units from the origin
+    gt = sd.test[0].c2w
+    p = sample_initial_pose(gt, (20, 40), (0, 0.2), pose_seed(0, 0, 0, 0), translation_scale=r)
+    # rotating about the origin keeps the distance to the origin before the offset
+    d0 = np.linalg.norm(gt[:3, 3])
+    assert np.linalg.norm(p.c2w[:3, 3] - p.offset_world) == pytest.approx(d0, rel=1e-9)

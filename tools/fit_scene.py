@@ -1,0 +1,147 @@
+#!/usr/bin/env python
+"""Fit a 3DGS model to a posed image set on CPU (gaussian_renderer_pose) and write a model folder.
+
+    python tools/fit_scene.py -s ../shared/data/nerf_synthetic/lego_400 -m /tmp/icomma_scenes/lego_200 -r 2
+    python tools/fit_scene.py -s DATA -m OUT --iterations 3000 --eval-views 25 --eval-interval 1000
+    python tools/fit_scene.py -s DATA -m OUT --set densify_grad_threshold=1e-4 --set max_gaussians=80000
+
+Output (upstream 3DGS layout, loadable by icomma_plugin.io.model_folder.load_model_folder and by
+upstream render.py): cfg_args, cameras.json, input.ply, point_cloud/iteration_N/point_cloud.ply,
+plus metrics.json (test PSNR, iterations, Gaussian count, seconds, resolution). An existing
+model folder is replaced only with --overwrite.
+
+Schedule: by default the densification / opacity-reset / SH schedule is scaled to --iterations
+(FitConfig.scaled_schedule): densify from 4 % to 50 % of the run every 2 %, opacity reset every
+30 %, SH degree +1 every 10 %; learning rates are upstream's. Any FitConfig field can be set with
+--set name=value.
+"""
+from __future__ import annotations
+
+import argparse
+import ast
+import json
+import logging
+import os
+import sys
+import time
+from pathlib import Path
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+if str(REPO_ROOT) not in sys.path:
+    sys.path.insert(0, str(REPO_ROOT))
+
+import torch  # noqa: E402
+
+from icomma_plugin.fit import FitConfig, fit_scene  # noqa: E402
+
+log = logging.getLogger("fit_scene")
+
+
+def default_data_root() -> Path:
+    return Path(os.environ.get("ICOMMA_SHARED_DATA", REPO_ROOT.parent / "shared" / "data"))
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("-s", "--source", default=None,
+                   help="dataset folder (COLMAP / Blender / LLFF); default: "
+                        "$ICOMMA_SHARED_DATA/nerf_synthetic/lego_400")
+    p.add_argument("-m", "--model", required=True, help="model folder to write")
+    p.add_argument("--iterations", type=int, default=5000)
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("-r", "--resolution", type=int, default=-1,
+                   help="upstream -r: 1/2/4/8 divide the size, other values are a target width, -1 native")
+    g.add_argument("--downscale", type=float, default=None, help="divide the image size by this factor")
+    b = p.add_mutually_exclusive_group()
+    b.add_argument("--white-background", dest="white_background", action="store_true", default=None)
+    b.add_argument("--black-background", dest="white_background", action="store_false")
+    p.add_argument("--eval-views", type=int, default=0, help="test views to evaluate (0: all, evenly spaced)")
+    p.add_argument("--eval-interval", type=int, default=0, help="evaluate test PSNR every N iterations (0: end only)")
+    p.add_argument("--save-iterations", type=int, nargs="*", default=[], help="also save these iterations")
+    p.add_argument("--num-random-points", type=int, default=None, help="random init points (no point cloud)")
+    p.add_argument("--max-gaussians", type=int, default=None, help="cap on the Gaussian count")
+    p.add_argument("--backend", default="auto", choices=["auto", "cpu", "reference", "cuda"])
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                   help="override any FitConfig field (python literal), repeatable")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing model folder")
+    p.add_argument("--no-progress", action="store_true", help="no tqdm progress bar")
+    p.add_argument("--log-level", default="INFO")
+    return p.parse_args(argv)
+
+
+def build_config(args: argparse.Namespace) -> FitConfig:
+    over = {"eval_views": args.eval_views, "eval_interval": args.eval_interval,
+            "save_iterations": tuple(args.save_iterations), "backend": args.backend, "seed": args.seed}
+    if args.num_random_points is not None:
+        over["num_random_points"] = args.num_random_points
+    if args.max_gaussians is not None:
+        over["max_gaussians"] = args.max_gaussians
+    names = set(FitConfig.field_names())
+    for item in args.set:
+        if "=" not in item:
+            raise ValueError(f"--set expects FIELD=VALUE, got {item!r}")
+        k, v = item.split("=", 1)
+        k = k.strip()
+        if k not in names:
+            raise ValueError(f"--set: unknown FitConfig field {k!r}; fields: {sorted(names)}")
+        try:
+            over[k] = ast.literal_eval(v)
+        except (ValueError, SyntaxError):
+            over[k] = v
+    return FitConfig.scaled_schedule(args.iterations, **over)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    logging.basicConfig(level=getattr(logging, args.log_level.upper(), logging.INFO),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    source = args.source or default_data_root() / "nerf_synthetic" / "lego_400"
+    try:
+        config = build_config(args)
+    except ValueError as e:
+        log.error("%s", e)
+        return 2
+
+    bar = None
+    progress = None
+    if not args.no_progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=config.iterations, dynamic_ncols=True, mininterval=1.0)
+
+        def progress(it, total, info):
+            bar.n = it
+            post = {"loss": f"{info.get('loss', float('nan')):.4f}", "N": int(info.get("num_gaussians", 0))}
+            if "psnr" in info:
+                post["psnr"] = f"{info['psnr']:.2f}"
+            bar.set_postfix(post, refresh=False)
+            bar.refresh()
+
+    t0 = time.perf_counter()
+    try:
+        res = fit_scene(source, args.model, config, resolution=None if args.downscale else args.resolution,
+                        downscale=args.downscale, white_background=args.white_background,
+                        overwrite=args.overwrite, progress=progress, device=args.device)
+    except ValueError as e:  # bad user input (dataset, resolution, existing folder...)
+        if bar is not None:
+            bar.close()
+        log.error("%s", e)
+        return 2
+    if bar is not None:
+        bar.close()
+    m = res.metrics
+    summary = {k: m[k] for k in ("test_psnr", "test_views", "iterations", "num_gaussians", "seconds_train",
+                                 "seconds_total", "resolution", "backend", "threads")}
+    summary["model_path"] = str(res.model_path)
+    summary["wall_seconds"] = round(time.perf_counter() - t0, 1)
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
