@@ -136,8 +136,9 @@ def run_once(fn: Callable, scene: Dict[str, object], mode: str) -> float:
     return (time.perf_counter() - t0) * 1e3
 
 
-def time_mode(fn: Callable, scene: Dict[str, object], mode: str, repeats: int) -> float:
-    run_once(fn, scene, mode)  # warm-up
+def time_mode(fn: Callable, scene: Dict[str, object], mode: str, repeats: int, warmup: bool = True) -> float:
+    if warmup:
+        run_once(fn, scene, mode)
     return statistics.median(run_once(fn, scene, mode) for _ in range(repeats))
 
 
@@ -200,8 +201,10 @@ def main(argv: Optional[List[str]] = None) -> int:
                     row["ms"][f"{b}/{mode}"] = None
                     continue
                 log(f"[{P} x {R}^2] {b} {mode} ...")
-                reps = 1 if b == "reference" else repeats
-                row["ms"][f"{b}/{mode}"] = time_mode(fn, scene, mode, reps)
+                # the reference is slow and has no JIT/caches to warm: one timed run
+                is_ref = b == "reference"
+                row["ms"][f"{b}/{mode}"] = time_mode(fn, scene, mode, 1 if is_ref else repeats,
+                                                     warmup=not is_ref)
         results.append(row)
 
     # markdown table
@@ -210,7 +213,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     if "reference" in backends:
         ratio_cols = [(b, m) for b in backends if b != "reference" for m in MODES]
     header = ["Gaussians", "image"] + [f"{c} (ms)" for c in cols] + [f"ref/{b} {m}" for b, m in ratio_cols]
-    print(f"threads: {torch.get_num_threads()}, repeats: {repeats} (median), reference: 1 timed run")
+    print(f"threads: {torch.get_num_threads()}, repeats: {repeats} (median, after a warm-up), reference: 1 timed run")
     print("| " + " | ".join(header) + " |")
     print("|" + "---|" * len(header))
     for row in results:

@@ -62,14 +62,28 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--max-gaussians", type=int, default=None, help="cap on the Gaussian count")
     p.add_argument("--backend", default="auto", choices=["auto", "cpu", "reference", "cuda"])
     p.add_argument("--device", default="cpu")
-    p.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's)")
+    p.add_argument("--threads", type=int, default=0,
+                   help="torch threads; 0 (default): all cores, or 1 when the machine is already busy "
+                        "(load average >= cores - 0.5: intra-op threads then contend and run ~10x slower)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                    help="override any FitConfig field (python literal), repeatable")
     p.add_argument("--overwrite", action="store_true", help="replace an existing model folder")
     p.add_argument("--no-progress", action="store_true", help="no tqdm progress bar")
+    p.add_argument("--log-every", type=int, default=0, help="also log loss / PSNR / count every N iterations")
     p.add_argument("--log-level", default="INFO")
     return p.parse_args(argv)
+
+
+def choose_threads(requested: int) -> int:
+    if requested and requested > 0:
+        return requested
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    try:
+        load = os.getloadavg()[0]
+    except OSError:
+        load = 0.0
+    return 1 if load >= cores - 0.5 else cores
 
 
 def build_config(args: argparse.Namespace) -> FitConfig:
@@ -98,8 +112,8 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=getattr(logging, args.log_level.upper(), logging.INFO),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    torch.set_num_threads(choose_threads(args.threads))
+    log.info("torch threads: %d", torch.get_num_threads())
     source = args.source or default_data_root() / "nerf_synthetic" / "lego_400"
     try:
         config = build_config(args)
@@ -108,19 +122,24 @@ def main(argv=None) -> int:
         return 2
 
     bar = None
-    progress = None
     if not args.no_progress:
         from tqdm import tqdm
 
         bar = tqdm(total=config.iterations, dynamic_ncols=True, mininterval=1.0)
+    t_start = time.perf_counter()
 
-        def progress(it, total, info):
+    def progress(it, total, info):
+        if bar is not None:
             bar.n = it
             post = {"loss": f"{info.get('loss', float('nan')):.4f}", "N": int(info.get("num_gaussians", 0))}
             if "psnr" in info:
                 post["psnr"] = f"{info['psnr']:.2f}"
             bar.set_postfix(post, refresh=False)
             bar.refresh()
+        if args.log_every and (it % args.log_every == 0 or it == total):
+            log.info("iteration %d/%d: loss %.4f, train-view PSNR %.2f dB, %d Gaussians, %.0f s", it, total,
+                     info.get("loss", float("nan")), info.get("psnr", float("nan")),
+                     int(info.get("num_gaussians", 0)), time.perf_counter() - t_start)
 
     t0 = time.perf_counter()
     try:

@@ -4,7 +4,8 @@
 // Forward numerics: docs/CONTRACTS.md "Forward numerics" (upstream diff-gaussian-rasterization,
 // 2024 main with antialiasing). Gradients are exact derivatives of that forward, except where a
 // clamp/threshold makes the forward piecewise constant (the gradient there is that of the branch
-// taken), and the per-pixel transmittance of the backward is recovered by division as upstream.
+// taken), and the per-pixel transmittance of the backward is recovered back to front by
+// T_i = T_{i+1} / (1 - alpha_i) as upstream (float32 rounding differs from a forward product).
 //
 // Args (all tensors float32, contiguous, on the CPU for the *_cpu functions):
 //   means3D        [P, 3]    world-space means

@@ -15,7 +15,7 @@ matching :class:`PaperValue` and remove the note; the report picks it up.
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Dict, List, Optional, Tuple
 
 PAPER = {

@@ -28,7 +28,7 @@ from ..gaussians import GaussianModel
 logger = logging.getLogger(__name__)
 
 __all__ = ["Query", "BenchScene", "TRANSLATION_UNITS", "shared_data_root", "default_lego_dataset",
-           "select_indices", "load_model_folder_scene", "synthetic_scene", "camera_radius"]
+           "select_indices", "training_scale", "load_model_folder_scene", "synthetic_scene", "camera_radius"]
 
 TRANSLATION_UNITS = ("scene_radius", "world")
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -104,6 +104,22 @@ def _scale_of(unit: str, radius: float) -> float:
     return float(radius) if unit == "scene_radius" else 1.0
 
 
+def training_scale(cfg: Dict[str, Any], cameras, width: int) -> float:
+    """The image scale the model was trained at, relative to the dataset images of ``width`` px:
+    cfg_args ``resolution`` 1/2/4/8 divides; a larger value is a target width; otherwise (-1 /
+    absent) upstream keeps images up to 1600 px wide, so the scale is ``min(1, 1600 / width)``."""
+    r = cfg.get("resolution") if cfg else None
+    try:
+        r = None if r is None else int(r)
+    except (TypeError, ValueError):
+        r = None
+    if r in (1, 2, 4, 8):
+        return 1.0 / r
+    if r is not None and r > 8:
+        return float(r) / float(width)
+    return min(1.0, 1600.0 / float(width))
+
+
 def load_model_folder_scene(
     model_path, dataset=None, num_queries: int = 5, split: str = "test",
     query_indices: Optional[Sequence[int]] = None, image_scale: Optional[float] = None,
@@ -116,8 +132,8 @@ def load_model_folder_scene(
         model_path: trained 3DGS output folder (cfg_args, point_cloud/iteration_N/).
         dataset: dataset folder; None = cfg_args ``source_path`` when it exists here, else the
             shared lego_400 (``ICOMMA_SHARED_DATA``).
-        image_scale: query scale; None = the model's training width (cameras.json) over the
-            dataset's image width (1 when unknown).
+        image_scale: query scale; None = the scale the model was trained at (cfg_args
+            ``resolution``, see :func:`training_scale`).
         white_background: None = cfg_args ``white_background``.
     """
     from ..io.datasets import read_dataset
@@ -147,9 +163,7 @@ def load_model_folder_scene(
         raise ValueError(f"the {split!r} split of {root} is empty")
     idx = select_indices(len(views), num_queries, query_indices)
     if image_scale is None:
-        image_scale = 1.0
-        if mf.cameras:
-            image_scale = mf.cameras[0].width / views[0].intrinsics.width
+        image_scale = training_scale(mf.cfg, mf.cameras, views[0].intrinsics.width)
     bg = torch.ones(3) if white else torch.zeros(3)
     queries = []
     for i in idx:

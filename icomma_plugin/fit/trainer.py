@@ -21,7 +21,7 @@ from gaussian_renderer_pose import GaussianRasterizationSettings, camera_matrice
 from ..camera import Intrinsics
 from ..gaussians import GaussianModel
 from .config import FitConfig
-from .losses import photometric_loss, psnr
+from .losses import photometric_loss_and_grad, psnr
 from .state import GaussianTrainState, expon_lr
 
 log = logging.getLogger(__name__)
@@ -169,9 +169,10 @@ class Trainer:
         gt = view.image
         if c.random_background and view.alpha is not None:
             gt = gt + (bg - self.background).view(3, 1, 1) * (1.0 - view.alpha)  # re-composite
-        loss = photometric_loss(out.color, gt, c.lambda_dssim)
+        # loss and its image gradient in closed form (no autograd graph for L1 / SSIM)
+        loss, dloss = photometric_loss_and_grad(out.color.detach(), gt, c.lambda_dssim)
         t2 = time.perf_counter()
-        loss.backward()
+        out.color.backward(dloss)
         t3 = time.perf_counter()
         info = {"loss": float(loss.item())}
         with torch.no_grad():

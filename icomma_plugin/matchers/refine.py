@@ -10,7 +10,8 @@ that property with a fine step of our own:
    bilinear `grid_sample`, integer pixel centres).
 2. An integer search over `(2 window + 1)^2` candidates recentres the keypoint (no gradient).
 3. A soft-argmax step (softmax of NCC / temperature over a `(2 radius + 1)^2` window, LoFTR-fine
-   style) gives a sub-pixel displacement `F(c)`. It is iterated as a fixed point `F(c*) = 0`.
+   style) gives a sub-pixel displacement `F(c)`. Newton iterations (J = dF/dc by autograd) find
+   its fixed point `F(c*) = 0` (no gradient).
 4. The returned position `c* - J^-1 F(c*, render)`, with `J = dF/dc` detached, has the value `c*`
    (plus a last Newton step) and the gradient of the implicit function theorem:
    `d c*/d render = -J^-1 dF/d render`. So a render translated by `delta` moves the keypoint by
@@ -153,7 +154,8 @@ def _step(render_g, query_g, centre, kpts_query, disp, offs, weights, eps, tempe
             sv_min = torch.linalg.svdvals(m)[:, -1]
             good = sv_min > 0.05
             eye = torch.eye(2, device=c.device, dtype=c.dtype).expand(n, 2, 2)
-            a_mat = torch.where(good.view(n, 1, 1), torch.linalg.inv(torch.where(good.view(n, 1, 1), m, eye)), eye)
+            inv = torch.linalg.inv(torch.where(good.view(n, 1, 1), m, eye))
+            a_mat = torch.where(good.view(n, 1, 1), inv, eye)
             newton = (a_mat @ step.detach().unsqueeze(-1)).squeeze(-1)
             # a Newton step against the soft-argmax step would leave the basin: plain step there
             good = good & ((newton * step.detach()).sum(-1) > 0)
@@ -239,6 +241,10 @@ def refine_render_keypoints(
     if not isinstance(temperature, (int, float)) or isinstance(temperature, bool) \
             or not math.isfinite(temperature) or temperature <= 0:
         raise ValueError(f"temperature must be a positive number, got {temperature!r}")
+    if not isinstance(blur, (int, float)) or isinstance(blur, bool) or not math.isfinite(blur) or blur < 0:
+        raise ValueError(f"blur must be a number >= 0, got {blur!r}")
+    if not isinstance(implicit, bool):
+        raise ValueError(f"implicit must be a bool, got {implicit!r}")
 
     device = render.device
     dtype = render.dtype if render.dtype in (torch.float32, torch.float64) else torch.float32

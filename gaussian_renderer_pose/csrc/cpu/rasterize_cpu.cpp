@@ -8,8 +8,9 @@
 //      the slot (offsets[g] + position in g's rect) is where the backward of that tile writes g's
 //      partial gradient, so no two threads ever write the same memory.
 //   3. render, parallel over tiles (dynamic): each tile walks its list front to back, and for each
-//      Gaussian updates the 16-wide pixel rows that its alpha >= 1/255 ellipse can reach
-//      (branch-free masked updates that vectorise); stops when every pixel of the tile is done.
+//      Gaussian updates the 16-wide pixel rows that its alpha >= 1/255 ellipse can reach (one
+//      16-lane vector per row, branch-free masked updates; exp by a vectorised polynomial);
+//      stops when every pixel of the tile is done.
 // Backward:
 //   4. per tile, walk the list back to front from the last contributor (upstream renderCUDA bwd,
 //      T recovered by division), reduce each Gaussian's per-pixel terms over the tile in a fixed
