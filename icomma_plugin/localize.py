@@ -512,7 +512,7 @@ def localize(
             else:
                 lam = cfg.lambda_match
                 loss = (1.0 - lam) * l_compare + lam * l_match.to(l_compare.dtype)
-                if float(l_match) < cfg.switch_threshold:
+                if float(l_match.detach()) < cfg.switch_threshold:
                     switch_now = True
             if cfg.max_stage1_iterations is not None and stage1_iters >= cfg.max_stage1_iterations:
                 switch_now = True
