@@ -6,8 +6,9 @@
   `torch.utils.cpp_extension.CUDA_HOME` is set AND `_build.cuda_sources` is non-empty. The presence
   of nvcc on PATH is never used as a signal.
 Environment: GRP_NO_EXTENSION=1 -> pure-Python install (reference backend only);
-GRP_PORTABLE=1 -> no -march=native. torch is not a build requirement (no build isolation:
-`pip install --no-build-isolation -e .`).
+GRP_NO_CUDA=1 -> CPU extension only even where torch has CUDA (e.g. when the local nvcc does not
+match torch's CUDA version); GRP_PORTABLE=1 -> no -march=native. torch is not a build requirement
+(no build isolation: `pip install --no-build-isolation -e .`).
 """
 from __future__ import annotations
 
@@ -35,7 +36,10 @@ def get_extensions():
 
     params = _load_build_params()
     with_cuda = (
-        torch.version.cuda is not None and CUDA_HOME is not None and len(params.cuda_sources) > 0
+        torch.version.cuda is not None
+        and CUDA_HOME is not None
+        and len(params.cuda_sources) > 0
+        and os.environ.get("GRP_NO_CUDA") != "1"
     )
     sources = list(params.cpu_sources) + (list(params.cuda_sources) if with_cuda else [])
     kwargs = dict(

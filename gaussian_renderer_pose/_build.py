@@ -15,9 +15,13 @@ cpu_sources = [
     f"{_CSRC}/cpu/rasterize_cpu.cpp",
 ]
 
-# Compiled only when torch has CUDA and CUDA_HOME is set (CUDAExtension, -DGRP_WITH_CUDA).
-# Empty until the CUDA kernels exist: a CUDA engineer adds csrc/cuda/rasterize_cuda.cu here.
-cuda_sources: list[str] = []
+# Compiled only when torch has CUDA and CUDA_HOME is set (CUDAExtension, -DGRP_WITH_CUDA):
+# the pure-CUDA kernels (nvcc) and their torch-facing wrapper (host compiler).
+# tests/renderer/test_cuda_compile.py compiles them with nvcc on machines without a GPU.
+cuda_sources: list[str] = [
+    f"{_CSRC}/cuda/kernels.cu",
+    f"{_CSRC}/cuda/rasterize_cuda.cpp",
+]
 
 include_dirs = [_CSRC]
 

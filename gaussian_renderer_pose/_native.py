@@ -3,9 +3,10 @@
 `rasterize_gaussians_native` follows the internal backend contract of docs/CONTRACTS.md and has the
 same signature as `gaussian_renderer_pose.reference.rasterize_gaussians_reference`. The forward and
 the complete backward (every tensor input, including viewmatrix / projmatrix / campos) run in C++
-(csrc/cpu/rasterize_cpu.cpp); the camera gradient is only computed when one of the camera tensors
-requires grad. Arguments are assumed validated (`_validate.py`); C++ TORCH_CHECKs are a second line
-of defence and raise RuntimeError.
+(csrc/cpu/rasterize_cpu.cpp) for CPU tensors, or in CUDA (csrc/cuda/, same functions with a `_cuda`
+suffix, present when `_C.WITH_CUDA`) for CUDA tensors; the camera gradient is only computed when one
+of the camera tensors requires grad. Arguments are assumed validated (`_validate.py`); C++
+TORCH_CHECKs are a second line of defence and raise RuntimeError.
 """
 from __future__ import annotations
 
@@ -22,6 +23,13 @@ _NUM_TENSOR_INPUTS = 12  # means3D .. campos
 
 def _f32c(t: Optional[torch.Tensor]) -> Optional[torch.Tensor]:
     return None if t is None else t.contiguous()
+
+
+def _kernels(C, device: torch.device):
+    """(forward, backward) entry points of `_C` for tensors on `device` (cpu or cuda)."""
+    if device.type == "cuda":
+        return C.forward_cuda, C.backward_cuda
+    return C.forward, C.backward
 
 
 class _RasterizeGaussians(torch.autograd.Function):
@@ -57,7 +65,7 @@ class _RasterizeGaussians(torch.autograd.Function):
             _f32c(projmatrix),
             _f32c(campos),
         ]
-        outs = C.forward(
+        outs = _kernels(C, means3D.device)[0](
             *args, int(H), int(W), float(tanfovx), float(tanfovy), float(scale_modifier),
             int(sh_degree), bool(prefiltered), bool(antialiasing),
         )
@@ -77,13 +85,14 @@ class _RasterizeGaussians(torch.autograd.Function):
         args = [saved.pop(0) if present else None for present in ctx.has]
         radii = saved.pop(0)
         geom, binning, tile_ranges, offsets, final_T, last_contrib = saved
+        device = args[0].device  # means3D: every saved tensor lives there
         need = ctx.needs_input_grad
         want_camera = bool(need[9] or need[10] or need[11])
 
         def g(t, shape):
-            return torch.zeros(shape, dtype=torch.float32) if t is None else t.contiguous()
+            return torch.zeros(shape, dtype=torch.float32, device=device) if t is None else t.contiguous()
 
-        grads = C.backward(
+        grads = _kernels(C, device)[1](
             *args, int(H), int(W), float(tanfovx), float(tanfovy), float(scale_modifier),
             int(sh_degree), bool(antialiasing),
             radii, geom, binning, tile_ranges, offsets, final_T, last_contrib,
@@ -125,10 +134,13 @@ def rasterize_gaussians_native(
 
     -> (color [3,H,W], radii [P] int32, invdepth [1,H,W], depth_acc [1,H,W], alpha [1,H,W]).
     """
-    if means3D.device.type != "cpu":
-        raise _backend.NativeUnavailable(
-            f"the native backend for device {means3D.device.type!r} is not built (CPU only)"
-        )
+    kind = means3D.device.type
+    if kind not in ("cpu", "cuda"):
+        raise _backend.NativeUnavailable(f"there is no native backend for device {kind!r}")
+    if kind == "cuda":
+        ok, why = _backend.native_status("cuda")
+        if not ok:
+            raise _backend.NativeUnavailable(why)
     settings = (
         int(image_height), int(image_width), float(tanfovx), float(tanfovy), float(scale_modifier),
         int(sh_degree), bool(prefiltered), bool(antialiasing),
@@ -142,8 +154,13 @@ def rasterize_gaussians_native(
 def mark_visible(means3D: torch.Tensor, viewmatrix: torch.Tensor, projmatrix: torch.Tensor) -> torch.Tensor:
     """bool [P]: view-space z > 0.2 (upstream markVisible)."""
     C = _backend.load_native()
+    if means3D.device.type == "cuda":
+        ok, why = _backend.native_status("cuda")
+        if not ok:
+            raise _backend.NativeUnavailable(why)
+    fn = C.mark_visible_cuda if means3D.device.type == "cuda" else C.mark_visible
     with torch.no_grad():
-        return C.mark_visible(
+        return fn(
             means3D.detach().contiguous(), viewmatrix.detach().contiguous(),
             projmatrix.detach().contiguous(),
         )

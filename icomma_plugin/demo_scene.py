@@ -46,7 +46,7 @@ logger = logging.getLogger(__name__)
 PathLike = Union[str, os.PathLike]
 
 #: Bump when the generated content changes, so that stale caches are rebuilt.
-DEMO_VERSION = 1
+DEMO_VERSION = 2
 #: The point_cloud/iteration_<N> the demo model is written as.
 DEMO_ITERATION = 30000
 
@@ -468,7 +468,7 @@ def build_demo_scene(
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".building", dir=path.parent))
     try:
-        _build_into(tmp, params, num_ring_cameras, backend)
+        _build_into(tmp, path, params, num_ring_cameras, backend)
         if path.exists():
             # A stale cache (other parameters) or a concurrent builder: replace it.
             old = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=path.parent))
@@ -525,7 +525,7 @@ def _try_load(path: Path, params: dict) -> Optional[DemoScene]:
     )
 
 
-def _build_into(folder: Path, params: dict, num_ring_cameras: int, backend: str) -> None:
+def _build_into(folder: Path, final_path: Path, params: dict, num_ring_cameras: int, backend: str) -> None:
     from PIL import Image
 
     from .io.atomic import write_json_atomic, write_text_atomic
@@ -570,7 +570,7 @@ def _build_into(folder: Path, params: dict, num_ring_cameras: int, backend: str)
         "depths": "",
         "eval": True,
         "images": "images",
-        "model_path": str(folder),
+        "model_path": str(final_path.resolve()),
         "resolution": -1,
         "sh_degree": model.sh_degree,
         "source_path": "",

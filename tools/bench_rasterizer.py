@@ -6,10 +6,15 @@ backward with the pose gradient (viewmatrix / projmatrix / campos require grad),
 native/reference speed ratio measured in the same run. The reference (pure PyTorch) is only run up to
 --reference-max-gaussians and --reference-max-pixels ("—" elsewhere).
 
+The "cuda" backend (native CUDA kernel; scene copied to the GPU once, timings bracketed by
+torch.cuda.synchronize) is added to the default backends when it is usable here; the table then also
+gives the cpu/cuda speed ratio of the same run.
+
 Examples:
     python tools/bench_rasterizer.py                       # full table
     python tools/bench_rasterizer.py --quick               # small, fast
     python tools/bench_rasterizer.py --backends cpu --threads 2 --json bench_out/raster.json
+    python tools/bench_rasterizer.py --backends cuda,cpu --sizes 300000 --resolutions 800  # GPU target
 """
 from __future__ import annotations
 
@@ -96,23 +101,40 @@ def make_bench_scene(num_gaussians: int, resolution: int, seed: int = 0) -> Dict
 
 # ----------------------------------------------------------------------------------------------
 # Backends: name -> (callable with the contract signature, None) or (None, reason unavailable).
-# A "cuda" column can be added by registering a function that moves the scene to the GPU.
+# "cuda" runs the same native function on a copy of the scene on the GPU (BACKEND_DEVICE).
 # ----------------------------------------------------------------------------------------------
+BACKEND_DEVICE = {"reference": "cpu", "cpu": "cpu", "cuda": "cuda"}
+
+
 def get_backend(name: str) -> Tuple[Optional[Callable], Optional[str]]:
     if name == "reference":
         from gaussian_renderer_pose.reference import rasterize_gaussians_reference
 
         return rasterize_gaussians_reference, None
-    if name == "cpu":
+    if name in ("cpu", "cuda"):
         from gaussian_renderer_pose import _backend
 
-        ok, why = _backend.native_status("cpu")
+        ok, why = _backend.native_status(name)
         if not ok:
             return None, why
         from gaussian_renderer_pose._native import rasterize_gaussians_native
 
         return rasterize_gaussians_native, None
-    return None, f"unknown backend {name!r} (known: reference, cpu)"
+    return None, f"unknown backend {name!r} (known: reference, cpu, cuda)"
+
+
+def default_backends() -> str:
+    """cpu,reference, plus cuda first when the CUDA backend is usable here."""
+    return "cuda,cpu,reference" if get_backend("cuda")[0] is not None else "cpu,reference"
+
+
+def scene_to(scene: Dict[str, object], device: str) -> Dict[str, object]:
+    return {k: (v.to(device) if isinstance(v, torch.Tensor) else v) for k, v in scene.items()}
+
+
+def _sync(scene: Dict[str, object]) -> None:
+    if scene["means3D"].device.type == "cuda":
+        torch.cuda.synchronize(scene["means3D"].device)
 
 
 GRAD_INPUTS = ("means3D", "means2D", "opacities", "shs", "scales", "rotations")
@@ -125,6 +147,7 @@ def run_once(fn: Callable, scene: Dict[str, object], mode: str) -> float:
         names = GRAD_INPUTS + (POSE_INPUTS if mode == "fwd+bwd+pose" else ())
         tensors = {k: (v.detach().clone().requires_grad_(True) if (k in names and v is not None) else v)
                    for k, v in tensors.items()}
+    _sync(scene)
     t0 = time.perf_counter()
     if mode == "fwd":
         with torch.no_grad():
@@ -133,6 +156,7 @@ def run_once(fn: Callable, scene: Dict[str, object], mode: str) -> float:
         color, _radii, invdepth, _dacc, _alpha = fn(**tensors, **scene["settings"])
         loss = color.square().sum() + invdepth.sum()
         loss.backward()
+    _sync(scene)
     return (time.perf_counter() - t0) * 1e3
 
 
@@ -157,7 +181,8 @@ def atomic_write_json(path: Path, data: object) -> None:
 
 def main(argv: Optional[List[str]] = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--backends", default="cpu,reference", help="comma list (reference, cpu)")
+    ap.add_argument("--backends", default=None,
+                    help="comma list of reference, cpu, cuda (default: cpu,reference, and cuda when usable)")
     ap.add_argument("--sizes", default=",".join(map(str, DEFAULT_SIZES)), help="numbers of Gaussians")
     ap.add_argument("--resolutions", default=",".join(map(str, DEFAULT_RES)), help="square image sizes")
     ap.add_argument("--repeats", type=int, default=5)
@@ -180,7 +205,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     # the target comparison: 20k Gaussians at 200x200 for the reference
     extra = [(args.reference_max_gaussians, 200)] if not args.quick else []
     scenes = sorted({(p, r) for p in sizes for r in resolutions} | set(extra))
-    backends = [b.strip() for b in args.backends.split(",") if b.strip()]
+    backends = [b.strip() for b in (args.backends or default_backends()).split(",") if b.strip()]
     fns = {}
     for b in backends:
         fn, why = get_backend(b)
@@ -190,10 +215,15 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     results = []
     for P, R in scenes:
-        scene = make_bench_scene(P, R, seed=args.seed)
+        scene_cpu = make_bench_scene(P, R, seed=args.seed)
+        on_device = {"cpu": scene_cpu}
         row = {"gaussians": P, "resolution": R, "ms": {}}
         for b in backends:
             fn = fns[b]
+            dev = BACKEND_DEVICE.get(b, "cpu")
+            if fn is not None and dev not in on_device:
+                on_device[dev] = scene_to(scene_cpu, dev)
+            scene = on_device[dev]
             skip = fn is None or (b == "reference" and (P > args.reference_max_gaussians
                                                         or R * R > args.reference_max_pixels))
             for mode in MODES:
@@ -209,11 +239,18 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     # markdown table
     cols = [f"{b}/{m}" for b in backends for m in MODES]
+    # (numerator, denominator, mode): reference/each native backend, and cpu/cuda
     ratio_cols = []
     if "reference" in backends:
-        ratio_cols = [(b, m) for b in backends if b != "reference" for m in MODES]
-    header = ["Gaussians", "image"] + [f"{c} (ms)" for c in cols] + [f"ref/{b} {m}" for b, m in ratio_cols]
-    print(f"threads: {torch.get_num_threads()}, repeats: {repeats} (median, after a warm-up), reference: 1 timed run")
+        ratio_cols = [("reference", b, m) for b in backends if b != "reference" for m in MODES]
+    if "cpu" in backends and "cuda" in backends:
+        ratio_cols += [("cpu", "cuda", m) for m in MODES]
+    short = {"reference": "ref"}
+    header = (["Gaussians", "image"] + [f"{c} (ms)" for c in cols]
+              + [f"{short.get(a, a)}/{b} {m}" for a, b, m in ratio_cols])
+    gpu = f", GPU: {torch.cuda.get_device_name()}" if "cuda" in backends and fns.get("cuda") else ""
+    print(f"threads: {torch.get_num_threads()}{gpu}, repeats: {repeats} (median, after a warm-up), "
+          "reference: 1 timed run")
     print("| " + " | ".join(header) + " |")
     print("|" + "---|" * len(header))
     for row in results:
@@ -221,11 +258,11 @@ def main(argv: Optional[List[str]] = None) -> int:
         for c in cols:
             v = row["ms"][c]
             cells.append("—" if v is None else f"{v:.1f}")
-        for b, m in ratio_cols:
-            r, n = row["ms"].get(f"reference/{m}"), row["ms"].get(f"{b}/{m}")
+        for a, b, m in ratio_cols:
+            r, n = row["ms"].get(f"{a}/{m}"), row["ms"].get(f"{b}/{m}")
             ratio = None if (r is None or n is None or n <= 0) else r / n
-            row.setdefault("ratio", {})[f"reference/{b}/{m}"] = ratio
-            cells.append("—" if ratio is None else f"{ratio:.0f}x")
+            row.setdefault("ratio", {})[f"{a}/{b}/{m}"] = ratio
+            cells.append("—" if ratio is None else (f"{ratio:.0f}x" if ratio >= 10 else f"{ratio:.1f}x"))
         print("| " + " | ".join(cells) + " |")
     if args.json is not None:
         atomic_write_json(args.json, {"threads": torch.get_num_threads(), "repeats": repeats, "results": results})

@@ -17,9 +17,7 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import logging
-import math
 import os
 import random
 import sys
@@ -142,7 +140,6 @@ def _cameras_extent(cameras) -> Optional[float]:
 
 
 def _load_model_folder(d: DictConfig, seed: int) -> Problem:
-    from icomma_plugin.demo_scene import perturb_about_pivot
     from icomma_plugin.io.cameras_json import entry_to_intrinsics, find_entry
     from icomma_plugin.io.datasets import read_dataset
     from icomma_plugin.io.model_folder import load_model_folder
@@ -252,12 +249,10 @@ def _load_model_folder(d: DictConfig, seed: int) -> Problem:
             raise UserError("data.init.rot_deg perturbs the ground truth, but no ground-truth pose is known "
                             "for this query (use data.query.camera / index, or data.gt.*)")
         rng = np.random.default_rng(int(ini.seed))
-        if ini.pivot == "camera":
-            init = perturb_pose(gt, float(ini.rot_deg), float(ini.trans), rng)
-        elif ini.pivot in ("scene_center", "origin"):
+        if ini.pivot in ("camera", "origin", "scene_center"):
             pivot = (mf.model.means.double().median(0).values.numpy() if ini.pivot == "scene_center"
-                     else np.zeros(3))
-            init = perturb_about_pivot(gt, float(ini.rot_deg), float(ini.trans), pivot, rng)
+                     else str(ini.pivot))
+            init = perturb_pose(gt, float(ini.rot_deg), float(ini.trans), rng, pivot=pivot)
         else:
             raise UserError(f"data.init.pivot must be scene_center, camera or origin, got {ini.pivot!r}")
     return Problem(
@@ -354,6 +349,10 @@ def run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
     lcfg = build_localizer_config(cfg.optimizer)
     matcher = build_matcher(cfg.get("matcher"))
     problem = load_problem(cfg)
+    if backend == "cuda":  # the CUDA kernel renders CUDA tensors; library code never moves data
+        if not torch.cuda.is_available():
+            raise UserError("renderer=cuda: no CUDA device is available here (use renderer=auto or cpu)")
+        problem.model = problem.model.to("cuda")
     ocfg = cfg.output
     init_w2c = np.linalg.inv(problem.init_c2w)
     gt_w2c = None if problem.gt_c2w is None else np.linalg.inv(problem.gt_c2w)

@@ -24,6 +24,21 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         py::arg("means3D"), py::arg("viewmatrix"), py::arg("projmatrix"),
         py::call_guard<py::gil_scoped_release>());
 #if defined(GRP_WITH_CUDA)
+  // CUDA twins: same arguments and returns, CUDA tensors (_native.py routes by device).
+  m.def("forward_cuda", &grp::rasterize_forward_cuda,
+        "rasterize_forward_cuda(<as forward>) -> list of 11 CUDA tensors",
+        py::arg("means3D"), py::arg("opacities"), py::arg("shs"), py::arg("colors_precomp"),
+        py::arg("scales"), py::arg("rotations"), py::arg("cov3D_precomp"), py::arg("bg"),
+        py::arg("viewmatrix"), py::arg("projmatrix"), py::arg("campos"), py::arg("image_height"),
+        py::arg("image_width"), py::arg("tanfovx"), py::arg("tanfovy"), py::arg("scale_modifier"),
+        py::arg("sh_degree"), py::arg("prefiltered"), py::arg("antialiasing"),
+        py::call_guard<py::gil_scoped_release>());
+  m.def("backward_cuda", &grp::rasterize_backward_cuda,
+        "rasterize_backward_cuda(<as backward>) -> list of 12 CUDA tensors (None where not applicable)",
+        py::call_guard<py::gil_scoped_release>());
+  m.def("mark_visible_cuda", &grp::mark_visible_cuda,
+        "mark_visible_cuda(means3D, viewmatrix, projmatrix) -> bool[P] (CUDA)", py::arg("means3D"),
+        py::arg("viewmatrix"), py::arg("projmatrix"), py::call_guard<py::gil_scoped_release>());
   m.attr("WITH_CUDA") = true;
 #else
   m.attr("WITH_CUDA") = false;

@@ -76,4 +76,32 @@ std::vector<at::Tensor> rasterize_backward_cpu(
 at::Tensor mark_visible_cpu(const at::Tensor& means3D, const at::Tensor& viewmatrix,
                             const at::Tensor& projmatrix);
 
+// CUDA twins (csrc/cuda/rasterize_cuda.cpp + kernels.cu; defined and bound only in a build with
+// GRP_WITH_CUDA): same arguments, returns and saved-state meaning as the *_cpu functions, on CUDA
+// tensors that all live on the device of means3D (work is queued on its current stream). The
+// forward synchronises with the host once (to size the (tile, Gaussian) pair buffers); the backward
+// does not, and is bitwise deterministic as well (no atomics; fixed reduction orders).
+std::vector<at::Tensor> rasterize_forward_cuda(
+    const at::Tensor& means3D, const at::Tensor& opacities, const std::optional<at::Tensor>& shs,
+    const std::optional<at::Tensor>& colors_precomp, const std::optional<at::Tensor>& scales,
+    const std::optional<at::Tensor>& rotations, const std::optional<at::Tensor>& cov3D_precomp,
+    const at::Tensor& bg, const at::Tensor& viewmatrix, const at::Tensor& projmatrix,
+    const at::Tensor& campos, int64_t image_height, int64_t image_width, double tanfovx,
+    double tanfovy, double scale_modifier, int64_t sh_degree, bool prefiltered, bool antialiasing);
+
+std::vector<at::Tensor> rasterize_backward_cuda(
+    const at::Tensor& means3D, const at::Tensor& opacities, const std::optional<at::Tensor>& shs,
+    const std::optional<at::Tensor>& colors_precomp, const std::optional<at::Tensor>& scales,
+    const std::optional<at::Tensor>& rotations, const std::optional<at::Tensor>& cov3D_precomp,
+    const at::Tensor& bg, const at::Tensor& viewmatrix, const at::Tensor& projmatrix,
+    const at::Tensor& campos, int64_t image_height, int64_t image_width, double tanfovx,
+    double tanfovy, double scale_modifier, int64_t sh_degree, bool antialiasing,
+    const at::Tensor& radii, const at::Tensor& geom, const at::Tensor& binning,
+    const at::Tensor& tile_ranges, const at::Tensor& offsets, const at::Tensor& final_T,
+    const at::Tensor& last_contrib, const at::Tensor& grad_color, const at::Tensor& grad_invdepth,
+    const at::Tensor& grad_depth_acc, const at::Tensor& grad_alpha, bool compute_camera_grad);
+
+at::Tensor mark_visible_cuda(const at::Tensor& means3D, const at::Tensor& viewmatrix,
+                             const at::Tensor& projmatrix);
+
 }  // namespace grp

@@ -25,9 +25,10 @@ from tests.renderer.scenes import Scene, make_scene, scene_tensors_requiring_gra
 
 
 def _cuda_skip_reason() -> Optional[str]:
-    if not torch.cuda.is_available():
-        return "no CUDA device (torch.cuda.is_available() is False)"
     ok, why = native_status("cuda")
+    if not torch.cuda.is_available():
+        built = "" if ok else f"; {why}"
+        return f"no CUDA device (torch.cuda.is_available() is False){built}"
     return None if ok else why
 
 
@@ -191,7 +192,10 @@ def test_camera_gradient_only_when_requested():
     without = run(scene, "cuda", CUDA, camera_grad=False, twist=False)
     assert "d_viewmatrix" not in without
     for k, v in without.items():
-        assert torch.equal(v, with_cam[k]), k
+        if k.startswith("d_"):  # another kernel instantiation: allow last-bit differences
+            assert_close(k, v, with_cam[k], 1e-6, None, "without vs with camera gradient")
+        else:
+            assert torch.equal(v, with_cam[k]), k
 
 
 def _absmax(t: torch.Tensor) -> float:

@@ -10,8 +10,9 @@ device-compatible: every helper GRP_HD, no namespace-scope constexpr arrays) sto
 - `rasterize_cuda.cpp` (torch-facing wrapper): compiled by the host compiler through nvcc (which
   supplies the CUDA include path) against this torch's headers with -DGRP_WITH_CUDA. A CPU build of
   torch lacks the generated `c10/cuda/impl/cuda_cmake_macros.h`; a stub is supplied for the check.
+- `ext.cpp` with -DGRP_WITH_CUDA (the CUDA bindings): syntax-checked by the host C++ compiler.
 
-Skipped cleanly when nvcc is not on PATH. Both compilations run in parallel (about a minute on 2
+Skipped cleanly when nvcc is not on PATH. The compilations run in parallel (under a minute on 2
 cores).
 """
 from __future__ import annotations
@@ -20,6 +21,7 @@ import importlib.util
 import os
 import shutil
 import subprocess
+import sysconfig
 from pathlib import Path
 
 import pytest
@@ -59,8 +61,8 @@ def _finish(proc: subprocess.Popen, cmd: list[str]) -> str:
     except subprocess.TimeoutExpired:
         proc.kill()
         out, _ = proc.communicate()
-        pytest.fail(f"nvcc timed out after {TIMEOUT_S} s: {' '.join(cmd)}\n{out}")
-    assert proc.returncode == 0, f"nvcc failed (exit {proc.returncode}): {' '.join(cmd)}\n{out}"
+        pytest.fail(f"compilation timed out after {TIMEOUT_S} s: {' '.join(cmd)}\n{out}")
+    assert proc.returncode == 0, f"compilation failed (exit {proc.returncode}): {' '.join(cmd)}\n{out}"
     return out
 
 
@@ -92,6 +94,20 @@ def _wrapper_cmd(tmp_path: Path) -> list[str] | None:
     return cmd
 
 
+def _bindings_cmd() -> list[str] | None:
+    """Host-compiler syntax check of ext.cpp with the CUDA bindings enabled, or None."""
+    cxx = os.environ.get("CXX") or shutil.which("c++") or shutil.which("g++")
+    if cxx is None:
+        return None
+    from torch.utils.cpp_extension import include_paths
+
+    cmd = [cxx, "-fsyntax-only", "-std=c++17", "-DGRP_WITH_CUDA", "-DTORCH_EXTENSION_NAME=_C",
+           "-I", str(CSRC)]
+    for p in include_paths() + [sysconfig.get_paths()["include"]]:
+        cmd += ["-isystem", p]
+    return cmd + [str(CSRC / "ext.cpp")]
+
+
 def test_cuda_sources_compile(tmp_path):
     kernels = CSRC / "cuda" / "kernels.cu"
     assert kernels.is_file(), f"missing {kernels}"
@@ -103,6 +119,9 @@ def test_cuda_sources_compile(tmp_path):
     wrapper = _wrapper_cmd(tmp_path)
     if wrapper is not None:
         jobs.append((wrapper, _start(wrapper)))
+    bindings = _bindings_cmd()
+    if bindings is not None:
+        jobs.append((bindings, _start(bindings)))
     outputs = [(cmd, _finish(proc, cmd)) for cmd, proc in jobs]
     for cmd, out in outputs:
         warnings = _our_warnings(out)

@@ -10,11 +10,19 @@ namespace grp {
 
 constexpr float kShC0 = 0.28209479177387814f;
 constexpr float kShC1 = 0.4886025119029199f;
-constexpr float kShC2[5] = {1.0925484305920792f, -1.0925484305920792f, 0.31539156525252005f,
-                            -1.0925484305920792f, 0.5462742152960396f};
-constexpr float kShC3[7] = {-0.5900435899266435f, 2.890611442640554f, -0.4570457994644658f,
-                            0.3731763325901154f, -0.4570457994644658f, 1.445305721320277f,
-                            -0.5900435899266435f};
+// Scalars, not arrays: a namespace-scope constexpr array cannot be read in CUDA device code.
+constexpr float kShC2_0 = 1.0925484305920792f;
+constexpr float kShC2_1 = -1.0925484305920792f;
+constexpr float kShC2_2 = 0.31539156525252005f;
+constexpr float kShC2_3 = -1.0925484305920792f;
+constexpr float kShC2_4 = 0.5462742152960396f;
+constexpr float kShC3_0 = -0.5900435899266435f;
+constexpr float kShC3_1 = 2.890611442640554f;
+constexpr float kShC3_2 = -0.4570457994644658f;
+constexpr float kShC3_3 = 0.3731763325901154f;
+constexpr float kShC3_4 = -0.4570457994644658f;
+constexpr float kShC3_5 = 1.445305721320277f;
+constexpr float kShC3_6 = -0.5900435899266435f;
 
 // Fills basis[0..(deg+1)^2) and, when grad != nullptr, d basis / d dir (x, y, z) per basis.
 GRP_INLINE int sh_basis(int deg, Vec3 d, float* basis, Vec3* grad) {
@@ -32,34 +40,34 @@ GRP_INLINE int sh_basis(int deg, Vec3 d, float* basis, Vec3* grad) {
   }
   if (deg < 2) return 4;
   const float xx = x * x, yy = y * y, zz = z * z, xy = x * y, yz = y * z, xz = x * z;
-  basis[4] = kShC2[0] * xy;
-  basis[5] = kShC2[1] * yz;
-  basis[6] = kShC2[2] * (2.f * zz - xx - yy);
-  basis[7] = kShC2[3] * xz;
-  basis[8] = kShC2[4] * (xx - yy);
+  basis[4] = kShC2_0 * xy;
+  basis[5] = kShC2_1 * yz;
+  basis[6] = kShC2_2 * (2.f * zz - xx - yy);
+  basis[7] = kShC2_3 * xz;
+  basis[8] = kShC2_4 * (xx - yy);
   if (grad) {
-    grad[4] = {kShC2[0] * y, kShC2[0] * x, 0.f};
-    grad[5] = {0.f, kShC2[1] * z, kShC2[1] * y};
-    grad[6] = {-2.f * kShC2[2] * x, -2.f * kShC2[2] * y, 4.f * kShC2[2] * z};
-    grad[7] = {kShC2[3] * z, 0.f, kShC2[3] * x};
-    grad[8] = {2.f * kShC2[4] * x, -2.f * kShC2[4] * y, 0.f};
+    grad[4] = {kShC2_0 * y, kShC2_0 * x, 0.f};
+    grad[5] = {0.f, kShC2_1 * z, kShC2_1 * y};
+    grad[6] = {-2.f * kShC2_2 * x, -2.f * kShC2_2 * y, 4.f * kShC2_2 * z};
+    grad[7] = {kShC2_3 * z, 0.f, kShC2_3 * x};
+    grad[8] = {2.f * kShC2_4 * x, -2.f * kShC2_4 * y, 0.f};
   }
   if (deg < 3) return 9;
-  basis[9] = kShC3[0] * y * (3.f * xx - yy);
-  basis[10] = kShC3[1] * xy * z;
-  basis[11] = kShC3[2] * y * (4.f * zz - xx - yy);
-  basis[12] = kShC3[3] * z * (2.f * zz - 3.f * xx - 3.f * yy);
-  basis[13] = kShC3[4] * x * (4.f * zz - xx - yy);
-  basis[14] = kShC3[5] * z * (xx - yy);
-  basis[15] = kShC3[6] * x * (xx - 3.f * yy);
+  basis[9] = kShC3_0 * y * (3.f * xx - yy);
+  basis[10] = kShC3_1 * xy * z;
+  basis[11] = kShC3_2 * y * (4.f * zz - xx - yy);
+  basis[12] = kShC3_3 * z * (2.f * zz - 3.f * xx - 3.f * yy);
+  basis[13] = kShC3_4 * x * (4.f * zz - xx - yy);
+  basis[14] = kShC3_5 * z * (xx - yy);
+  basis[15] = kShC3_6 * x * (xx - 3.f * yy);
   if (grad) {
-    grad[9] = {kShC3[0] * 6.f * xy, kShC3[0] * 3.f * (xx - yy), 0.f};
-    grad[10] = {kShC3[1] * yz, kShC3[1] * xz, kShC3[1] * xy};
-    grad[11] = {-2.f * kShC3[2] * xy, kShC3[2] * (4.f * zz - xx - 3.f * yy), 8.f * kShC3[2] * yz};
-    grad[12] = {-6.f * kShC3[3] * xz, -6.f * kShC3[3] * yz, kShC3[3] * (6.f * zz - 3.f * xx - 3.f * yy)};
-    grad[13] = {kShC3[4] * (4.f * zz - 3.f * xx - yy), -2.f * kShC3[4] * xy, 8.f * kShC3[4] * xz};
-    grad[14] = {2.f * kShC3[5] * xz, -2.f * kShC3[5] * yz, kShC3[5] * (xx - yy)};
-    grad[15] = {kShC3[6] * 3.f * (xx - yy), -6.f * kShC3[6] * xy, 0.f};
+    grad[9] = {kShC3_0 * 6.f * xy, kShC3_0 * 3.f * (xx - yy), 0.f};
+    grad[10] = {kShC3_1 * yz, kShC3_1 * xz, kShC3_1 * xy};
+    grad[11] = {-2.f * kShC3_2 * xy, kShC3_2 * (4.f * zz - xx - 3.f * yy), 8.f * kShC3_2 * yz};
+    grad[12] = {-6.f * kShC3_3 * xz, -6.f * kShC3_3 * yz, kShC3_3 * (6.f * zz - 3.f * xx - 3.f * yy)};
+    grad[13] = {kShC3_4 * (4.f * zz - 3.f * xx - yy), -2.f * kShC3_4 * xy, 8.f * kShC3_4 * xz};
+    grad[14] = {2.f * kShC3_5 * xz, -2.f * kShC3_5 * yz, kShC3_5 * (xx - yy)};
+    grad[15] = {kShC3_6 * 3.f * (xx - yy), -6.f * kShC3_6 * xy, 0.f};
   }
   return 16;
 }

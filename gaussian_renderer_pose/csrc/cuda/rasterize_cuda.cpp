@@ -11,6 +11,7 @@
 #include <c10/cuda/CUDAGuard.h>
 #include <c10/cuda/CUDAStream.h>  // (not ATen/cuda/CUDAContext.h: it pulls in cuBLAS/cuSPARSE)
 
+#include <algorithm>
 #include <cstdint>
 #include <limits>
 #include <optional>
@@ -279,19 +280,24 @@ std::vector<at::Tensor> rasterize_backward_cuda(
                                  ptr(dL_dcolors),  ptr(dL_dscales),  ptr(dL_drots), ptr(dL_dcov)};
   const int64_t nblocks = cuda::gaussian_backward_blocks(P);
   at::Tensor cam_partials;
-  if (compute_camera_grad) cam_partials = at::empty({nblocks * cuda::kCamGrad}, dopt);
+  if (compute_camera_grad) cam_partials = at::empty({std::max<int64_t>(nblocks, 1) * cuda::kCamGrad}, dopt);
   C10_CUDA_CHECK(cuda::gaussian_backward(a, radii.data_ptr<int32_t>(), offsets.data_ptr<int64_t>(),
                                          slots.data_ptr<float>(), gout,
                                          compute_camera_grad ? cam_partials.data_ptr<double>() : nullptr,
                                          stream));
   at::Tensor dL_dV, dL_dP, dL_dcampos;
   if (compute_camera_grad) {
-    at::Tensor cam = at::empty({cuda::kCamGrad}, fopt);
-    C10_CUDA_CHECK(cuda::reduce_partials(cam_partials.data_ptr<double>(), nblocks, cuda::kCamGrad,
-                                         cuda::kCamGrad, cam.data_ptr<float>(), stream));
-    dL_dV = cam.narrow(0, 0, 16).view({4, 4});
-    dL_dP = cam.narrow(0, 16, 16).view({4, 4});
-    dL_dcampos = cam.narrow(0, 32, 3);
+    // Rows of cam_partials: viewmatrix [0, 16), projmatrix [16, 32), campos [32, 35).
+    dL_dV = at::empty({4, 4}, fopt);
+    dL_dP = at::empty({4, 4}, fopt);
+    dL_dcampos = at::empty({3}, fopt);
+    const double* parts = cam_partials.data_ptr<double>();
+    C10_CUDA_CHECK(cuda::reduce_partials(parts, nblocks, cuda::kCamGrad, 16, dL_dV.data_ptr<float>(),
+                                         stream));
+    C10_CUDA_CHECK(cuda::reduce_partials(parts + 16, nblocks, cuda::kCamGrad, 16,
+                                         dL_dP.data_ptr<float>(), stream));
+    C10_CUDA_CHECK(cuda::reduce_partials(parts + 32, nblocks, cuda::kCamGrad, 3,
+                                         dL_dcampos.data_ptr<float>(), stream));
   }
   return {dL_dmeans3D, dL_dmeans2D, dL_dopac, dL_dshs, dL_dcolors, dL_dscales, dL_drots, dL_dcov,
           dL_dbg, dL_dV, dL_dP, dL_dcampos};
