@@ -335,16 +335,24 @@ def _write_trace(out: Path, trace, fmt: str) -> list:
 
 
 def run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
-    """The body of the tool: load, localise, write the outputs into `output_dir`; returns result.json."""
+    """The body of the tool: load, localise, write the outputs into `output_dir`; returns result.json.
+    `cfg.threads` applies for the duration of the call (torch's thread count is restored)."""
+    threads_before = torch.get_num_threads()
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
+    try:
+        return _run(cfg, Path(output_dir))
+    finally:
+        torch.set_num_threads(threads_before)
+
+
+def _run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
     from icomma_plugin import visualize as viz
     from icomma_plugin.io.atomic import write_json_atomic
     from icomma_plugin.io.cameras_json import CameraEntry
 
-    output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
     _seed(int(cfg.seed))
-    if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
     backend = str(cfg.renderer.backend)
     lcfg = build_localizer_config(cfg.optimizer)
     matcher = build_matcher(cfg.get("matcher"))
