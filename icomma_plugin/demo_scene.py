@@ -19,7 +19,7 @@ total at the default spacing), plus a baked per-face shading. A ring of 12 camer
 scene centre (`cameras.json`). The query camera sits at a random azimuth off the ring; the initial
 pose is the query pose rotated by 20-40 degrees about a random axis through the SCENE CENTRE (as
 iComMa / iNeRF perturb about the world origin, which moves the camera centre too) plus a small
-random translation: see `perturb_about_pivot`.
+random translation: `icomma_plugin.pose.convert.perturb_pose(..., pivot=centre)`.
 
 Camera axes are OpenCV (x right, y down, z forward); poses are camera-to-world unless named w2c.
 """
@@ -40,13 +40,14 @@ import torch
 
 from .camera import Intrinsics
 from .gaussians import GaussianModel, rgb_to_sh
+from .pose.convert import look_at_c2w, perturb_pose, rotation_about_axis
 
 logger = logging.getLogger(__name__)
 
 PathLike = Union[str, os.PathLike]
 
 #: Bump when the generated content changes, so that stale caches are rebuilt.
-DEMO_VERSION = 2
+DEMO_VERSION = 3
 #: The point_cloud/iteration_<N> the demo model is written as.
 DEMO_ITERATION = 30000
 
@@ -57,71 +58,6 @@ def default_demo_path(seed: int = 0) -> Path:
     """`<repo>/outputs/demo_scene` for seed 0, `<repo>/outputs/demo_scene_seed<N>` otherwise."""
     name = "demo_scene" if seed == 0 else f"demo_scene_seed{seed}"
     return REPO_ROOT / "outputs" / name
-
-
-# ----------------------------------------------------------------------------------------------
-# small geometry helpers (numpy, float64)
-# ----------------------------------------------------------------------------------------------
-
-
-def rotation_about_axis(axis: Sequence[float], angle_rad: float) -> np.ndarray:
-    """Rodrigues: 3x3 rotation by `angle_rad` about the (normalised) `axis`."""
-    a = np.asarray(axis, dtype=np.float64)
-    n = np.linalg.norm(a)
-    if not np.isfinite(n) or n == 0:
-        raise ValueError(f"axis must be a non-zero finite 3-vector, got {axis!r}")
-    a = a / n
-    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + math.sin(angle_rad) * K + (1 - math.cos(angle_rad)) * (K @ K)
-
-
-def look_at_c2w(eye: Sequence[float], target: Sequence[float], up: Sequence[float] = (0, 0, 1)) -> np.ndarray:
-    """OpenCV camera-to-world (x right, y down, z forward) at `eye` looking at `target`."""
-    eye = np.asarray(eye, np.float64)
-    z = np.asarray(target, np.float64) - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, np.asarray(up, np.float64))
-    if np.linalg.norm(x) < 1e-9:
-        raise ValueError("look_at_c2w: viewing direction is parallel to `up`")
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = x, y, z, eye
-    return c2w
-
-
-def random_unit_vector(rng: np.random.Generator) -> np.ndarray:
-    v = rng.normal(size=3)
-    return v / np.linalg.norm(v)
-
-
-def perturb_about_pivot(
-    c2w: np.ndarray,
-    rot_deg: float,
-    trans: float,
-    pivot: Sequence[float],
-    rng: np.random.Generator,
-) -> np.ndarray:
-    """Rotate the camera-to-world `c2w` by `rot_deg` about a random axis through `pivot` (a world
-    point), then shift its centre by `trans` world units in a random direction.
-
-    This is the iComMa / iNeRF perturbation (`c2w' = T_pivot @ c2w`, a world-frame left
-    multiplication; theirs pivots about the world origin) with a chosen pivot. The rotation error
-    of the result is exactly `rot_deg` (whatever the axis); the camera centre moves by the rotation
-    about the pivot plus `trans`.
-    """
-    c2w = np.asarray(c2w, np.float64)
-    if c2w.shape != (4, 4):
-        raise ValueError(f"c2w must be a 4x4 matrix, got shape {c2w.shape}")
-    p = np.asarray(pivot, np.float64).reshape(3)
-    R = rotation_about_axis(random_unit_vector(rng), math.radians(float(rot_deg)))
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = p - R @ p
-    out = T @ c2w
-    if trans:
-        out[:3, 3] += float(trans) * random_unit_vector(rng)
-    return out
 
 
 def _quat_from_matrix(R: np.ndarray) -> np.ndarray:
@@ -303,7 +239,7 @@ def _build_gaussians(seed: int, spacing: float, ground_half: float) -> Tuple[Gau
     styles = ["checker", "stripes", "blobs", "glyphs"]
     for b in boxes:
         c = np.asarray(b.centre, np.float64)
-        Rz = rotation_about_axis((0, 0, 1), math.radians(b.yaw_deg))
+        Rz = rotation_about_axis((0, 0, 1), b.yaw_deg)
         ex, ey, ez = Rz[:, 0], Rz[:, 1], Rz[:, 2]
         hx, hy, hz = b.half
         # (face centre offset, t1, t2, half1, half2, shade); t1 x t2 = outward normal.
@@ -563,7 +499,7 @@ def _build_into(folder: Path, final_path: Path, params: dict, num_ring_cameras: 
     gt_c2w = look_at_c2w(eye, target)
     # Initial guess: rotation about a random axis through the scene centre + small translation.
     rot_deg = float(rng.uniform(*params["rot_range_deg"]))
-    init_c2w = perturb_about_pivot(gt_c2w, rot_deg, params["trans"], centre, rng)
+    init_c2w = perturb_pose(gt_c2w, rot_deg, float(params["trans"]), generator=rng, pivot=centre)
 
     cfg = {
         "data_device": "cuda",

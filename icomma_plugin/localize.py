@@ -550,7 +550,7 @@ def localize(
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        last_loss = float(loss)
+        last_loss = float(loss.detach())
 
         with torch.no_grad():
             new_w2c = current_w2c().numpy()

@@ -32,6 +32,7 @@ if str(REPO_ROOT) not in sys.path:
 
 import torch  # noqa: E402
 
+from icomma_plugin.runtime import choose_threads  # noqa: E402
 from icomma_plugin.fit import FitConfig, fit_scene  # noqa: E402
 
 log = logging.getLogger("fit_scene")
@@ -75,17 +76,6 @@ def parse_args(argv=None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def choose_threads(requested: int) -> int:
-    if requested and requested > 0:
-        return requested
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    try:
-        load = os.getloadavg()[0]
-    except OSError:
-        load = 0.0
-    return 1 if load >= cores - 0.5 else cores
-
-
 def build_config(args: argparse.Namespace) -> FitConfig:
     over = {"eval_views": args.eval_views, "eval_interval": args.eval_interval,
             "save_iterations": tuple(args.save_iterations), "backend": args.backend, "seed": args.seed}
@@ -112,7 +102,7 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=getattr(logging, args.log_level.upper(), logging.INFO),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
-    torch.set_num_threads(choose_threads(args.threads))
+    torch.set_num_threads(choose_threads(args.threads or None))
     log.info("torch threads: %d", torch.get_num_threads())
     source = args.source or default_data_root() / "nerf_synthetic" / "lego_400"
     try:

@@ -38,6 +38,8 @@ from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 from icomma_plugin.camera import Intrinsics  # noqa: E402
 from icomma_plugin.localize import LocalizerConfig, localize  # noqa: E402
+from icomma_plugin.pose.convert import perturb_pose  # noqa: E402
+from icomma_plugin.runtime import torch_threads  # noqa: E402
 
 log = logging.getLogger("localize")
 
@@ -100,7 +102,7 @@ def _bg(white: bool) -> torch.Tensor:
 
 
 def _load_demo(d: DictConfig, backend: str) -> Problem:
-    from icomma_plugin.demo_scene import build_demo_scene, perturb_about_pivot
+    from icomma_plugin.demo_scene import build_demo_scene
 
     scene = build_demo_scene(
         d.path, seed=int(d.scene_seed), width=int(d.width), height=int(d.height),
@@ -111,8 +113,8 @@ def _load_demo(d: DictConfig, backend: str) -> Problem:
     init = scene.init_c2w
     if d.get("init_rot_deg") is not None:
         rng = np.random.default_rng(int(d.init_seed))
-        init = perturb_about_pivot(scene.gt_c2w, float(d.init_rot_deg), float(d.init_trans),
-                                   scene.scene_centre, rng)
+        init = perturb_pose(scene.gt_c2w, float(d.init_rot_deg), float(d.init_trans),
+                            generator=rng, pivot=scene.scene_centre)
     return Problem(
         model=model, query=scene.load_query(), query_alpha=None, intrinsics=scene.intrinsics,
         init_c2w=init, gt_c2w=scene.gt_c2w, bg=_bg(scene.white_background), query_name="query",
@@ -143,7 +145,6 @@ def _load_model_folder(d: DictConfig, seed: int) -> Problem:
     from icomma_plugin.io.cameras_json import entry_to_intrinsics, find_entry
     from icomma_plugin.io.datasets import read_dataset
     from icomma_plugin.io.model_folder import load_model_folder
-    from icomma_plugin.pose.convert import perturb_pose
 
     if OmegaConf.is_missing(d, "model_path") or not d.model_path:
         raise UserError("data.model_path is required with data=model_folder (a trained 3DGS output folder)")
@@ -337,13 +338,8 @@ def _write_trace(out: Path, trace, fmt: str) -> list:
 def run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
     """The body of the tool: load, localise, write the outputs into `output_dir`; returns result.json.
     `cfg.threads` applies for the duration of the call (torch's thread count is restored)."""
-    threads_before = torch.get_num_threads()
-    if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
-    try:
+    with torch_threads(cfg.get("threads")):
         return _run(cfg, Path(output_dir))
-    finally:
-        torch.set_num_threads(threads_before)
 
 
 def _run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:

@@ -224,7 +224,10 @@ def save_plots(spec: ProtocolSpec, summary: Dict[str, Any], out_dir, matcher: Op
             ax.set_ylim(-0.02, 1.02)
             ax.grid(alpha=0.3)
         axes[0, 0].set_ylabel("fraction of poses under threshold")
-        axes[0, -1].legend(fontsize=7, loc="lower right")
+        for ax in axes[0][::-1]:
+            if ax.get_legend_handles_labels()[0]:
+                ax.legend(fontsize=7, loc="lower right")
+                break
         name = f"success_vs_iteration_{spec.name}.png"
         _save(fig, out_dir / name)
         plt.close(fig)

@@ -31,6 +31,15 @@ from icomma_plugin.gaussians import GaussianModel, rgb_to_sh
 BACKEND = "auto"  # native CPU kernel when built, else the reference
 
 
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Tiny images: one intra-op thread is fastest (and far faster on a busy, shared machine)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 # ---------------------------------------------------------------------------------------- helpers
 def _tiny_model(P=4, scale=0.01, opacity=0.5, sh_degree=1) -> GaussianModel:
     g = torch.Generator().manual_seed(1)

@@ -13,7 +13,8 @@ import pytest
 import torch
 
 from icomma_plugin.camera import Intrinsics
-from icomma_plugin.demo_scene import look_at_c2w, perturb_about_pivot, textured_plane_model
+from icomma_plugin.demo_scene import textured_plane_model
+from icomma_plugin.pose.convert import look_at_c2w, perturb_pose
 from icomma_plugin.localize import LocalizationResult, LocalizerConfig, lift_keypoints, localize
 from icomma_plugin.matchers import make_matcher
 from icomma_plugin.pose.se3 import se3_log
@@ -105,7 +106,7 @@ def test_config_from_dict():
 @pytest.mark.parametrize("mode", ["image", "depth"])
 def test_one_step_moves_toward_truth(plane, mode):
     model, intr, gt_c2w, query = plane
-    init_c2w = perturb_about_pivot(gt_c2w, 6.0, 0.05, (0, 0, 0), np.random.default_rng(1))
+    init_c2w = perturb_pose(gt_c2w, 6.0, 0.05, generator=np.random.default_rng(1), pivot="origin")
     matcher = make_matcher("fake", mapping=plane_mapping(intr, gt_c2w, init_c2w), grid_step=6)
     # Matching term alone (lambda = 1) and a small lr: the step follows the matching gradient.
     cfg = LocalizerConfig(lambda_match=1.0, lr=0.005, max_iterations=1, gradient_mode=mode,
@@ -124,7 +125,7 @@ def test_one_step_moves_toward_truth(plane, mode):
 
 def test_losses_wiring_and_switch_schedule(plane):
     model, intr, gt_c2w, query = plane
-    init_c2w = perturb_about_pivot(gt_c2w, 2.0, 0.0, (0, 0, 0), np.random.default_rng(2))
+    init_c2w = perturb_pose(gt_c2w, 2.0, 0.0, generator=np.random.default_rng(2), pivot="origin")
     # Identity correspondences: in depth mode L_match is 0 at the current pose, below any threshold.
     matcher = make_matcher("fake", grid_step=8)
     cfg = LocalizerConfig(max_iterations=6, switch_threshold=1.0, converge_patience=0, gradient_mode="depth")
@@ -145,7 +146,7 @@ def test_losses_wiring_and_switch_schedule(plane):
 
 def test_no_switch_above_threshold(plane):
     model, intr, gt_c2w, query = plane
-    init_c2w = perturb_about_pivot(gt_c2w, 8.0, 0.0, (0, 0, 0), np.random.default_rng(2))
+    init_c2w = perturb_pose(gt_c2w, 8.0, 0.0, generator=np.random.default_rng(2), pivot="origin")
     matcher = make_matcher("fake", grid_step=8, noise=2.0)  # never exact: L_match > 0
     cfg = LocalizerConfig(max_iterations=3, switch_threshold=1e-9, converge_patience=0, gradient_mode="depth")
     res = localize(model, query, intr, np.linalg.inv(init_c2w), matcher, cfg, backend=BACKEND)
@@ -156,7 +157,7 @@ def test_no_switch_above_threshold(plane):
 @pytest.mark.parametrize("mode", ["image", "depth"])
 def test_too_few_matches_compare_alone(plane, mode):
     model, intr, gt_c2w, query = plane
-    init_c2w = perturb_about_pivot(gt_c2w, 3.0, 0.0, (0, 0, 0), np.random.default_rng(4))
+    init_c2w = perturb_pose(gt_c2w, 3.0, 0.0, generator=np.random.default_rng(4), pivot="origin")
     k = torch.tensor([[20.0, 20.0], [40.0, 30.0], [30.0, 44.0]])
     matcher = make_matcher("fake", kpts0=k, kpts1=k)  # 3 matches < min_matches = 5
     cfg = LocalizerConfig(max_iterations=2, converge_patience=0, gradient_mode=mode)
@@ -193,7 +194,7 @@ def test_convergence_stop(plane):
 
 def test_max_iterations_stop_and_json(plane):
     model, intr, gt_c2w, query = plane
-    init_c2w = perturb_about_pivot(gt_c2w, 3.0, 0.0, (0, 0, 0), np.random.default_rng(5))
+    init_c2w = perturb_pose(gt_c2w, 3.0, 0.0, generator=np.random.default_rng(5), pivot="origin")
     cfg = LocalizerConfig(use_matching=False, max_iterations=2, converge_patience=0)
     res = localize(model, query, intr, np.linalg.inv(init_c2w), make_matcher("none"), cfg,
                    gt_w2c=np.linalg.inv(gt_c2w), backend=BACKEND)
@@ -212,7 +213,7 @@ def test_pose_update_is_left_perturbation_of_w2c(plane):
     from icomma_plugin.pose.se3 import se3_exp
 
     model, intr, gt_c2w, query = plane
-    init_c2w = perturb_about_pivot(gt_c2w, 3.0, 0.02, (0, 0, 0), np.random.default_rng(6))
+    init_c2w = perturb_pose(gt_c2w, 3.0, 0.02, generator=np.random.default_rng(6), pivot="origin")
     cfg = LocalizerConfig(use_matching=False, max_iterations=3, converge_patience=0)
     res = localize(model, query, intr, np.linalg.inv(init_c2w), None, cfg, backend=BACKEND)
     xi = torch.tensor(res.trace[2]["xi"], dtype=torch.float64)

@@ -1,0 +1,36 @@
+"""Process-level settings shared by the command-line tools (torch thread count)."""
+from __future__ import annotations
+
+import contextlib
+import os
+from typing import Iterator, Optional
+
+import torch
+
+
+def choose_threads(requested: Optional[int] = None) -> int:
+    """Torch intra-op thread count: `requested` when positive, else automatic.
+
+    Automatic means all usable cores, or 1 when the machine is already busy (1-minute load average
+    >= cores - 0.5): intra-op threads then contend with the other processes and were measured to
+    run ~10x slower than one thread on a loaded 2-core machine.
+    """
+    if requested is not None and int(requested) > 0:
+        return int(requested)
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    try:
+        load = os.getloadavg()[0]
+    except OSError:
+        load = 0.0
+    return 1 if load >= cores - 0.5 else cores
+
+
+@contextlib.contextmanager
+def torch_threads(requested: Optional[int] = None) -> Iterator[int]:
+    """Use `choose_threads(requested)` threads inside the block; restore torch's count after."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(choose_threads(requested))
+    try:
+        yield torch.get_num_threads()
+    finally:
+        torch.set_num_threads(before)
