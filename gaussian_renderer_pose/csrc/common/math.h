@@ -136,8 +136,8 @@ GRP_INLINE Sym3 compute_cov3d(Vec3 scale, float mod, Vec4 q) {
 }
 
 // dL_dcov: gradient w.r.t. the 6 stored values. Writes dL/dscale (already times mod) and dL/dq.
-GRP_INLINE void compute_cov3d_vjp(Vec3 scale, float mod, Vec4 q, const Sym3& dL_dcov,
-                                  Vec3& dL_dscale, Vec4& dL_dq) {
+GRP_FORCE_INLINE void compute_cov3d_vjp(Vec3 scale, float mod, Vec4 q, const Sym3& dL_dcov,
+                                        Vec3& dL_dscale, Vec4& dL_dq) {
   const Mat3 R = quat_to_rotmat(q);
   const float s[3] = {mod * scale.x, mod * scale.y, mod * scale.z};
   float Mm[3][3];

@@ -1,5 +1,5 @@
 // Tile-based multi-threaded CPU rasterizer: forward and full backward (incl. camera gradient).
-// Loops only: the per-Gaussian maths lives in ../common/{math,sh}.h. See ../ops.h for the API.
+// Loops only: the per-Gaussian maths lives in ../common/{math,sh,raster}.h. See ../ops.h for the API.
 //
 // Pipeline (forward):
 //   1. preprocess, parallel over Gaussians: cull, project, cov2D/conic, radius, tile rect, colour.
@@ -31,20 +31,15 @@
 
 #include "../common/config.h"
 #include "../common/math.h"
+#include "../common/raster.h"
+#include "../common/raster_args_torch.h"
 #include "../common/sh.h"
 #include "../ops.h"
 
 namespace grp {
 namespace {
 
-// Per-Gaussian record written by the preprocess (one cache line).
-enum GeomField : int {
-  kGPx = 0, kGPy, kGConA, kGConB, kGConC, kGOpacity, kGR, kGG, kGB, kGInvZ, kGZ, kGBoxX, kGBoxY,
-  kGStride = 16
-};
-constexpr int kNumFeat = 5;                  // r, g, b, 1/z, z
-constexpr int kSlot = 2 + 3 + 1 + kNumFeat;  // dL/dxy (pixels), dL/dconic, dL/dopacity_eff, dL/dfeat
-constexpr int kCamGrad = 16 + 16 + 3;        // viewmatrix, projmatrix, campos
+// Geom record layout (kG*), kSlot, kCamGrad, RasterArgs: ../common/raster.h.
 constexpr int64_t kGaussBlock = 1024;        // fixed block size of the per-Gaussian backward
 constexpr int kPrefetch = 8;                 // tile-list entries prefetched ahead
 
@@ -69,18 +64,9 @@ void parallel_dynamic(int64_t n, const F& fn) {
 }
 
 void check_tensor(const at::Tensor& t, const char* name, std::initializer_list<int64_t> shape) {
-  TORCH_CHECK(t.defined(), name, " must be a tensor");
-  TORCH_CHECK(t.device().is_cpu(), name, " must be a CPU tensor, got ", t.device());
-  TORCH_CHECK(t.scalar_type() == at::kFloat, name, " must be float32, got ", t.scalar_type());
-  TORCH_CHECK(t.is_contiguous(), name, " must be contiguous");
-  TORCH_CHECK(t.dim() == (int64_t)shape.size(), name, " must have ", shape.size(),
-              " dimensions, got shape ", t.sizes());
-  int d = 0;
-  for (int64_t s : shape) {
-    TORCH_CHECK(s < 0 || t.size(d) == s, name, " has shape ", t.sizes(), ", expected dim ", d,
-                " == ", s);
-    ++d;
-  }
+  check_float_tensor(t, name, shape, [](const at::Tensor& x, const char* n) {
+    TORCH_CHECK(x.device().is_cpu(), n, " must be a CPU tensor, got ", x.device());
+  });
 }
 
 void check_int_tensor(const at::Tensor& t, const char* name, at::ScalarType st) {
@@ -88,177 +74,18 @@ void check_int_tensor(const at::Tensor& t, const char* name, at::ScalarType st) 
               name, " must be a contiguous CPU tensor of type ", st);
 }
 
-struct Inputs {
-  int64_t P = 0;
-  int H = 0, W = 0;
-  int grid_x = 0, grid_y = 0;
-  float tanfovx = 0, tanfovy = 0, focal_x = 0, focal_y = 0, scale_modifier = 1;
-  int sh_degree = 0;
-  int64_t M = 0;
-  bool antialiasing = false;
-  const float* means = nullptr;
-  const float* opac = nullptr;
-  const float* shs = nullptr;
-  const float* colors = nullptr;
-  const float* scales = nullptr;
-  const float* rots = nullptr;
-  const float* cov3d = nullptr;
-  const float* bg = nullptr;
-  const float* V = nullptr;
-  const float* Pm = nullptr;
-  const float* campos = nullptr;
-};
-
-Inputs check_inputs(const at::Tensor& means3D, const at::Tensor& opacities,
-                    const std::optional<at::Tensor>& shs,
-                    const std::optional<at::Tensor>& colors_precomp,
-                    const std::optional<at::Tensor>& scales,
-                    const std::optional<at::Tensor>& rotations,
-                    const std::optional<at::Tensor>& cov3D_precomp, const at::Tensor& bg,
-                    const at::Tensor& viewmatrix, const at::Tensor& projmatrix,
-                    const at::Tensor& campos, int64_t H, int64_t W, double tanfovx, double tanfovy,
-                    double scale_modifier, int64_t sh_degree, bool antialiasing) {
-  check_tensor(means3D, "means3D", {-1, 3});
-  Inputs in;
-  in.P = means3D.size(0);
-  const int64_t P = in.P;
-  check_tensor(opacities, "opacities", {P, 1});
-  check_tensor(bg, "bg", {3});
-  check_tensor(viewmatrix, "viewmatrix", {4, 4});
-  check_tensor(projmatrix, "projmatrix", {4, 4});
-  check_tensor(campos, "campos", {3});
-  TORCH_CHECK(H > 0 && W > 0 && H < (1 << 20) && W < (1 << 20), "image size must be positive, got ",
-              H, "x", W);
-  TORCH_CHECK(sh_degree >= 0 && sh_degree <= 3, "sh_degree must be in 0..3, got ", sh_degree);
-  TORCH_CHECK(tanfovx > 0 && tanfovy > 0, "tanfovx/tanfovy must be positive");
-  const bool has_colors = colors_precomp.has_value() && colors_precomp->defined();
-  const bool has_shs = shs.has_value() && shs->defined();
-  TORCH_CHECK(has_colors || has_shs, "either shs or colors_precomp must be given");
-  if (has_colors) {
-    check_tensor(*colors_precomp, "colors_precomp", {P, 3});
-    in.colors = colors_precomp->data_ptr<float>();
-  } else {
-    check_tensor(*shs, "shs", {P, -1, 3});
-    in.M = shs->size(1);
-    TORCH_CHECK(in.M >= (sh_degree + 1) * (sh_degree + 1), "shs has ", in.M,
-                " coefficients, sh_degree ", sh_degree, " needs ", (sh_degree + 1) * (sh_degree + 1));
-    in.shs = shs->data_ptr<float>();
-  }
-  const bool has_cov = cov3D_precomp.has_value() && cov3D_precomp->defined();
-  if (has_cov) {
-    check_tensor(*cov3D_precomp, "cov3D_precomp", {P, 6});
-    in.cov3d = cov3D_precomp->data_ptr<float>();
-  } else {
-    TORCH_CHECK(scales.has_value() && scales->defined() && rotations.has_value() &&
-                    rotations->defined(),
-                "either cov3D_precomp or scales and rotations must be given");
-    check_tensor(*scales, "scales", {P, 3});
-    check_tensor(*rotations, "rotations", {P, 4});
-    in.scales = scales->data_ptr<float>();
-    in.rots = rotations->data_ptr<float>();
-  }
-  in.H = (int)H;
-  in.W = (int)W;
-  in.grid_x = (in.W + kBlockX - 1) / kBlockX;
-  in.grid_y = (in.H + kBlockY - 1) / kBlockY;
-  in.tanfovx = (float)tanfovx;
-  in.tanfovy = (float)tanfovy;
-  in.focal_x = in.W / (2.0f * in.tanfovx);
-  in.focal_y = in.H / (2.0f * in.tanfovy);
-  in.scale_modifier = (float)scale_modifier;
-  in.sh_degree = (int)sh_degree;
-  in.antialiasing = antialiasing;
-  in.means = means3D.data_ptr<float>();
-  in.opac = opacities.data_ptr<float>();
-  in.bg = bg.data_ptr<float>();
-  in.V = viewmatrix.data_ptr<float>();
-  in.Pm = projmatrix.data_ptr<float>();
-  in.campos = campos.data_ptr<float>();
-  return in;
-}
-
-inline Vec3 load3(const float* p) { return {p[0], p[1], p[2]}; }
-
-inline Sym3 gaussian_cov3d(const Inputs& in, int64_t g) {
-  if (in.cov3d != nullptr) {
-    const float* c = in.cov3d + 6 * g;
-    return {{c[0], c[1], c[2], c[3], c[4], c[5]}};
-  }
-  const float* q = in.rots + 4 * g;
-  return compute_cov3d(load3(in.scales + 3 * g), in.scale_modifier, {q[0], q[1], q[2], q[3]});
-}
-
 // ------------------------------------------------------------------------------------------------
 // 1. Preprocess
 // ------------------------------------------------------------------------------------------------
-void preprocess(const Inputs& in, float* geom, int32_t* radii, int32_t* rects, int64_t* ntiles) {
+void preprocess(const RasterArgs& in, float* geom, int32_t* radii, int32_t* rects,
+                int64_t* ntiles) {
   at::parallel_for(0, in.P, 1024, [&](int64_t b, int64_t e) {
     for (int64_t g = b; g < e; ++g) {
-      radii[g] = 0;
-      ntiles[g] = 0;
-      int32_t* rect = rects + 4 * g;
-      rect[0] = rect[1] = rect[2] = rect[3] = 0;
-      const Vec3 m = load3(in.means + 3 * g);
-      const Vec3 t = transform_point_4x3(in.V, m);
-      if (!(t.z > kNearPlane)) continue;  // also culls NaN
-      const Vec4 ph = transform_point_4x4(in.Pm, m);
-      const float p_w = 1.0f / (ph.w + kProjEps);
-      const Vec3 ndc = {ph.x * p_w, ph.y * p_w, ph.z * p_w};
-      const Sym3 cov3 = gaussian_cov3d(in, g);
-      Cov2DCtx ctx;
-      const Sym2 cov2 = compute_cov2d(t, in.focal_x, in.focal_y, in.tanfovx, in.tanfovy, cov3, in.V, ctx);
-      const ConicResult cr = dilate_and_invert(cov2, in.antialiasing);
-      if (cr.det == 0.0f) continue;
-      const float radius = screen_radius(cr.dilated, cr.det);
-      const Vec2 pix = {ndc2pix(ndc.x, in.W), ndc2pix(ndc.y, in.H)};
-      if (!(radius >= 1.f) || !std::isfinite(pix.x) || !std::isfinite(pix.y) ||
-          radius > 1e9f || std::fabs(pix.x) > 1e9f || std::fabs(pix.y) > 1e9f)
-        continue;
-      int minx, miny, maxx, maxy;
-      get_rect(pix, (int)radius, in.grid_x, in.grid_y, minx, miny, maxx, maxy);
-      const int64_t area = (int64_t)(maxx - minx) * (maxy - miny);
-      if (area == 0) continue;
-      Vec3 rgb;
-      if (in.colors != nullptr) {
-        rgb = load3(in.colors + 3 * g);
-      } else {
-        rgb = eval_sh(in.sh_degree, in.shs + g * in.M * 3, m, load3(in.campos));
-        rgb = {rgb.x < 0.f ? 0.f : rgb.x, rgb.y < 0.f ? 0.f : rgb.y, rgb.z < 0.f ? 0.f : rgb.z};
-      }
-      const float o = in.opac[g] * cr.coef;
-      float* gd = geom + kGStride * g;
-      gd[kGPx] = pix.x;
-      gd[kGPy] = pix.y;
-      gd[kGConA] = cr.conic.a;
-      gd[kGConB] = cr.conic.b;
-      gd[kGConC] = cr.conic.c;
-      gd[kGOpacity] = o;
-      gd[kGR] = rgb.x;
-      gd[kGG] = rgb.y;
-      gd[kGB] = rgb.z;
-      gd[kGZ] = t.z;
-      gd[kGInvZ] = 1.0f / t.z;
-      // Conservative half extents of {d : o exp(-d^T conic d / 2) >= 1/255}; pixels outside can
-      // never pass the alpha test, so skipping them is exact. Negative = contributes nowhere.
-      float bx, by;
-      if (!(o >= kAlphaMin)) {
-        bx = by = -1.f;
-      } else if (cr.det > 0.f && cr.dilated.a > 0.f && cr.dilated.c > 0.f) {
-        float k = logf(o / kAlphaMin);
-        k = (k > 0.f ? k : 0.f) * 1.001f + 1e-3f;
-        bx = sqrtf(2.f * k * cr.dilated.a) * 1.001f + 0.01f;
-        by = sqrtf(2.f * k * cr.dilated.c) * 1.001f + 0.01f;
-      } else {
-        bx = by = std::numeric_limits<float>::infinity();
-      }
-      gd[kGBoxX] = bx;
-      gd[kGBoxY] = by;
-      radii[g] = (int32_t)radius;
-      rect[0] = minx;
-      rect[1] = miny;
-      rect[2] = maxx;
-      rect[3] = maxy;
-      ntiles[g] = area;
+      const PreprocessResult r =
+          preprocess_gaussian(in, g, in.viewmatrix, in.projmatrix, geom + kGStride * g);
+      radii[g] = r.radius;
+      ntiles[g] = r.area;
+      for (int k = 0; k < 4; ++k) rects[4 * g + k] = r.rect[k];
     }
   });
 }
@@ -346,23 +173,34 @@ inline bool row_range(const float* gd, int y0, int nrows, int& r0, int& r1) {
   return r0 <= r1;
 }
 
+// One tile row of a Gaussian (upstream renderCUDA): power = -d^T conic d / 2 at the 16 pixels
+// (dx = px - x per lane, qx = conic.a dx^2, dy = py - y), G = exp(power), oG = o G and
+// alpha = min(kAlphaMax, oG). Shared by the forward and the backward tile loops.
+inline void row_alpha(const vf& qx, const vf& dx, float dy, float cB, float cC, float o, vf& power,
+                      vf& G, vf& oG, vf& alpha) {
+  power = -0.5f * (qx + cC * dy * dy) - cB * dx * dy;
+  G = vexp_nonpos(power);
+  oG = o * G;
+  alpha = oG < splat(kAlphaMax) ? oG : splat(kAlphaMax);
+}
+
+// Pixel origin and size of tile `tile` (edge tiles are clipped to the image).
+inline void tile_extent(const RasterArgs& in, int64_t tile, int& x0, int& y0, int& ncols,
+                        int& nrows) {
+  const int tx = (int)(tile % in.grid_x), ty = (int)(tile / in.grid_x);
+  x0 = tx * kBlockX;
+  y0 = ty * kBlockY;
+  ncols = std::min(kBlockX, in.W - x0);
+  nrows = std::min(kBlockY, in.H - y0);
+}
+
 // ------------------------------------------------------------------------------------------------
 // 3. Forward render of one tile
 // ------------------------------------------------------------------------------------------------
-struct RenderOut {
-  float* color;      // [3, H, W]
-  float* invdepth;   // [H, W]
-  float* depth_acc;  // [H, W]
-  float* alpha;      // [H, W]
-  float* final_T;    // [H, W]
-  int32_t* last;     // [H, W]
-};
-
-void render_tile(const Inputs& in, int64_t tile, const float* geom, const int32_t* binning,
-                 const int32_t* tile_ranges, const RenderOut& out) {
-  const int tx = (int)(tile % in.grid_x), ty = (int)(tile / in.grid_x);
-  const int x0 = tx * kBlockX, y0 = ty * kBlockY;
-  const int ncols = std::min(kBlockX, in.W - x0), nrows = std::min(kBlockY, in.H - y0);
+void render_tile(const RasterArgs& in, int64_t tile, const float* geom, const int32_t* binning,
+                 const int32_t* tile_ranges, const RenderOutputs& out) {
+  int x0, y0, ncols, nrows;
+  tile_extent(in, tile, x0, y0, ncols, nrows);
   // Pixel state, one record per tile row (keeps a row's vectors together in L1).
   struct Row {
     vf T, C0, C1, C2, ID, DA;
@@ -399,10 +237,8 @@ void render_tile(const Inputs& in, int64_t tile, const float* geom, const int32_
     for (int r = r0; r <= r1; ++r) {
       Row& R = rows[r];
       const float dy = py - (float)(y0 + r);
-      const vf power = -0.5f * (qx + cC * dy * dy) - cB * dx * dy;
-      const vf G = vexp_nonpos(power);
-      const vf oG = o * G;
-      const vf alpha = oG < splat(kAlphaMax) ? oG : splat(kAlphaMax);
+      vf power, G, oG, alpha;
+      row_alpha(qx, dx, dy, cB, cC, o, power, G, oG, alpha);
       const vi valid = R.act & ~(power > splat(0.f)) & ~(alpha < splat(kAlphaMin));
       const vf Tc = R.T;
       const vf testT = Tc * (1.f - alpha);
@@ -442,19 +278,11 @@ void render_tile(const Inputs& in, int64_t tile, const float* geom, const int32_
 // ------------------------------------------------------------------------------------------------
 // 4. Backward of one tile: writes the slot of every entry of the tile's list.
 // ------------------------------------------------------------------------------------------------
-struct GradIn {
-  const float* color;      // [3, H, W]
-  const float* invdepth;   // [H, W]
-  const float* depth_acc;  // [H, W]
-  const float* alpha;      // [H, W]
-};
-
-void backward_tile(const Inputs& in, int64_t tile, const float* geom, const int32_t* binning,
+void backward_tile(const RasterArgs& in, int64_t tile, const float* geom, const int32_t* binning,
                    const int32_t* tile_ranges, const float* final_T, const int32_t* last_contrib,
-                   const GradIn& gin, float* slots, double* dbg_tile) {
-  const int tx = (int)(tile % in.grid_x), ty = (int)(tile / in.grid_x);
-  const int x0 = tx * kBlockX, y0 = ty * kBlockY;
-  const int ncols = std::min(kBlockX, in.W - x0), nrows = std::min(kBlockY, in.H - y0);
+                   const GradImages& gin, float* slots, double* dbg_tile) {
+  int x0, y0, ncols, nrows;
+  tile_extent(in, tile, x0, y0, ncols, nrows);
   const int64_t HW = (int64_t)in.H * in.W;
   // Per pixel (upstream renderCUDA backward, features = r, g, b, 1/z, z):
   //   T: transmittance, recovered back to front; lastA: alpha of the Gaussian behind;
@@ -527,10 +355,8 @@ void backward_tile(const Inputs& in, int64_t tile, const float* geom, const int3
     for (int r = r0; r <= r1; ++r) {
       Row& R = rows[r];
       const float dy = py - (float)(y0 + r);
-      const vf power = -0.5f * (qx + cC * dy * dy) - cB * dx * dy;
-      const vf G = vexp_nonpos(power);
-      const vf oG = o * G;
-      const vf alpha = oG < splat(kAlphaMax) ? oG : splat(kAlphaMax);
+      vf power, G, oG, alpha;
+      row_alpha(qx, dx, dy, cB, cC, o, power, G, oG, alpha);
       const vi valid = (jl <= R.last) & ~(power > splat(0.f)) & ~(alpha < splat(kAlphaMin));
       const vf a = valid ? alpha : splat(0.f);
       const vf inv_1ma = 1.f / (1.f - a);
@@ -587,28 +413,20 @@ std::vector<at::Tensor> rasterize_forward_cpu(
     const at::Tensor& campos, int64_t image_height, int64_t image_width, double tanfovx,
     double tanfovy, double scale_modifier, int64_t sh_degree, bool prefiltered, bool antialiasing) {
   (void)prefiltered;
-  const Inputs in = check_inputs(means3D, opacities, shs, colors_precomp, scales, rotations,
-                                 cov3D_precomp, bg, viewmatrix, projmatrix, campos, image_height,
-                                 image_width, tanfovx, tanfovy, scale_modifier, sh_degree,
-                                 antialiasing);
+  const RasterArgs in = fill_raster_args(check_tensor, means3D, opacities, shs, colors_precomp,
+                                         scales, rotations, cov3D_precomp, bg, viewmatrix,
+                                         projmatrix, campos, image_height, image_width, tanfovx,
+                                         tanfovy, scale_modifier, sh_degree, antialiasing);
   const int64_t P = in.P;
   const auto fopt = means3D.options();
   const auto iopt = fopt.dtype(at::kInt);
   const int64_t num_tiles = (int64_t)in.grid_x * in.grid_y;
 
-  at::Tensor color = at::empty({3, in.H, in.W}, fopt);
-  at::Tensor invdepth = at::empty({1, in.H, in.W}, fopt);
-  at::Tensor depth_acc = at::empty({1, in.H, in.W}, fopt);
-  at::Tensor alpha = at::empty({1, in.H, in.W}, fopt);
-  at::Tensor final_T = at::empty({in.H, in.W}, fopt);
-  at::Tensor last_contrib = at::empty({in.H, in.W}, iopt);
-  at::Tensor radii = at::empty({P}, iopt);
-  at::Tensor geom = at::empty({P, kGStride}, fopt);
-  at::Tensor offsets = at::empty({P + 1}, fopt.dtype(at::kLong));
+  ForwardTensors fw(in, fopt);
   std::vector<int32_t> rects(4 * P);
 
-  int64_t* off = offsets.data_ptr<int64_t>();
-  preprocess(in, geom.data_ptr<float>(), radii.data_ptr<int32_t>(), rects.data(), off + 1);
+  int64_t* off = fw.offsets.data_ptr<int64_t>();
+  preprocess(in, fw.geom.data_ptr<float>(), fw.radii.data_ptr<int32_t>(), rects.data(), off + 1);
   off[0] = 0;
   for (int64_t g = 0; g < P; ++g) off[g + 1] += off[g];
   const int64_t num_rendered = off[P];
@@ -616,13 +434,13 @@ std::vector<at::Tensor> rasterize_forward_cpu(
               "too many (tile, Gaussian) pairs: ", num_rendered);
 
   // 2. Binning.
-  const float* gm = geom.data_ptr<float>();
-  const std::vector<int32_t> order = sort_by_depth(gm, radii.data_ptr<int32_t>(), P);
-  at::Tensor tile_ranges = at::zeros({num_tiles + 1}, iopt);
-  at::Tensor binning = at::empty({num_rendered, 2}, iopt);
+  const float* gm = fw.geom.data_ptr<float>();
+  const std::vector<int32_t> order = sort_by_depth(gm, fw.radii.data_ptr<int32_t>(), P);
+  fw.tile_ranges = at::zeros({num_tiles + 1}, iopt);
+  fw.binning = at::empty({num_rendered, 2}, iopt);
   {
-    int32_t* tr = tile_ranges.data_ptr<int32_t>();
-    int32_t* bin = binning.data_ptr<int32_t>();
+    int32_t* tr = fw.tile_ranges.data_ptr<int32_t>();
+    int32_t* bin = fw.binning.data_ptr<int32_t>();
     const int gx = in.grid_x;
     std::vector<int32_t> counts(num_tiles, 0);
     at::parallel_for(0, in.grid_y, 1, [&](int64_t ty0, int64_t ty1) {
@@ -652,14 +470,12 @@ std::vector<at::Tensor> rasterize_forward_cpu(
   }
 
   // 3. Render.
-  RenderOut out{color.data_ptr<float>(), invdepth.data_ptr<float>(), depth_acc.data_ptr<float>(),
-                alpha.data_ptr<float>(), final_T.data_ptr<float>(), last_contrib.data_ptr<int32_t>()};
-  const int32_t* bin = binning.data_ptr<int32_t>();
-  const int32_t* tr = tile_ranges.data_ptr<int32_t>();
+  const RenderOutputs out = fw.render_outputs();
+  const int32_t* bin = fw.binning.data_ptr<int32_t>();
+  const int32_t* tr = fw.tile_ranges.data_ptr<int32_t>();
   parallel_dynamic(num_tiles, [&](int64_t t) { render_tile(in, t, gm, bin, tr, out); });
 
-  return {color, radii, invdepth, depth_acc, alpha, geom, binning, tile_ranges, offsets, final_T,
-          last_contrib};
+  return fw.list();
 }
 
 // ------------------------------------------------------------------------------------------------
@@ -676,44 +492,22 @@ std::vector<at::Tensor> rasterize_backward_cpu(
     const at::Tensor& tile_ranges, const at::Tensor& offsets, const at::Tensor& final_T,
     const at::Tensor& last_contrib, const at::Tensor& grad_color, const at::Tensor& grad_invdepth,
     const at::Tensor& grad_depth_acc, const at::Tensor& grad_alpha, bool compute_camera_grad) {
-  const Inputs in = check_inputs(means3D, opacities, shs, colors_precomp, scales, rotations,
-                                 cov3D_precomp, bg, viewmatrix, projmatrix, campos, image_height,
-                                 image_width, tanfovx, tanfovy, scale_modifier, sh_degree,
-                                 antialiasing);
+  const RasterArgs in = fill_raster_args(check_tensor, means3D, opacities, shs, colors_precomp,
+                                         scales, rotations, cov3D_precomp, bg, viewmatrix,
+                                         projmatrix, campos, image_height, image_width, tanfovx,
+                                         tanfovy, scale_modifier, sh_degree, antialiasing);
   const int64_t P = in.P;
   const int64_t num_tiles = (int64_t)in.grid_x * in.grid_y;
-  check_tensor(grad_color, "grad_color", {3, in.H, in.W});
-  check_tensor(grad_invdepth, "grad_invdepth", {1, in.H, in.W});
-  check_tensor(grad_depth_acc, "grad_depth_acc", {1, in.H, in.W});
-  check_tensor(grad_alpha, "grad_alpha", {1, in.H, in.W});
-  check_tensor(geom, "geom", {P, kGStride});
-  check_tensor(final_T, "final_T", {in.H, in.W});
-  check_int_tensor(radii, "radii", at::kInt);
-  check_int_tensor(binning, "binning", at::kInt);
-  check_int_tensor(tile_ranges, "tile_ranges", at::kInt);
-  check_int_tensor(offsets, "offsets", at::kLong);
-  check_int_tensor(last_contrib, "last_contrib", at::kInt);
-  TORCH_CHECK(radii.numel() == P && offsets.numel() == P + 1 && tile_ranges.numel() == num_tiles + 1 &&
-                  last_contrib.numel() == (int64_t)in.H * in.W,
-              "saved forward state does not match the inputs");
+  check_backward_inputs(check_tensor, check_int_tensor, in, radii, geom, binning, tile_ranges,
+                        offsets, final_T, last_contrib, grad_color, grad_invdepth, grad_depth_acc,
+                        grad_alpha);
   const int64_t num_rendered = offsets.data_ptr<int64_t>()[P];
   TORCH_CHECK(binning.dim() == 2 && binning.size(0) == num_rendered && binning.size(1) == 2 &&
                   tile_ranges.data_ptr<int32_t>()[num_tiles] == num_rendered,
               "saved binning state does not match the inputs");
 
   const auto fopt = means3D.options();
-  at::Tensor dL_dmeans3D = at::zeros({P, 3}, fopt);
-  at::Tensor dL_dmeans2D = at::zeros({P, 3}, fopt);
-  at::Tensor dL_dopac = at::zeros({P, 1}, fopt);
-  at::Tensor dL_dshs, dL_dcolors, dL_dscales, dL_drots, dL_dcov;
-  if (in.colors != nullptr) dL_dcolors = at::zeros({P, 3}, fopt);
-  else dL_dshs = at::zeros({P, in.M, 3}, fopt);
-  if (in.cov3d != nullptr) {
-    dL_dcov = at::zeros({P, 6}, fopt);
-  } else {
-    dL_dscales = at::zeros({P, 3}, fopt);
-    dL_drots = at::zeros({P, 4}, fopt);
-  }
+  GradTensors grads = zero_gaussian_grads(in, fopt);
   // 4. Per-tile backward into per-entry slots.
   // Every slot is written by exactly one tile (no zero-fill needed).
   std::unique_ptr<float[]> slots(new float[(size_t)std::max<int64_t>(num_rendered, 1) * kSlot]);
@@ -721,7 +515,7 @@ std::vector<at::Tensor> rasterize_backward_cpu(
   const float* gm = geom.data_ptr<float>();
   const int32_t* bin = binning.data_ptr<int32_t>();
   const int32_t* tr = tile_ranges.data_ptr<int32_t>();
-  const GradIn gin{grad_color.data_ptr<float>(), grad_invdepth.data_ptr<float>(),
+  const GradImages gin{grad_color.data_ptr<float>(), grad_invdepth.data_ptr<float>(),
                    grad_depth_acc.data_ptr<float>(), grad_alpha.data_ptr<float>()};
   const float* fT = final_T.data_ptr<float>();
   const int32_t* lc = last_contrib.data_ptr<int32_t>();
@@ -741,14 +535,7 @@ std::vector<at::Tensor> rasterize_backward_cpu(
   std::vector<double> cam_blocks(compute_camera_grad ? (size_t)nblocks * kCamGrad : 0, 0.0);
   const int32_t* rad = radii.data_ptr<int32_t>();
   const int64_t* off = offsets.data_ptr<int64_t>();
-  float* o_m3 = dL_dmeans3D.data_ptr<float>();
-  float* o_m2 = dL_dmeans2D.data_ptr<float>();
-  float* o_op = dL_dopac.data_ptr<float>();
-  float* o_sh = dL_dshs.defined() ? dL_dshs.data_ptr<float>() : nullptr;
-  float* o_col = dL_dcolors.defined() ? dL_dcolors.data_ptr<float>() : nullptr;
-  float* o_sc = dL_dscales.defined() ? dL_dscales.data_ptr<float>() : nullptr;
-  float* o_rot = dL_drots.defined() ? dL_drots.data_ptr<float>() : nullptr;
-  float* o_cov = dL_dcov.defined() ? dL_dcov.data_ptr<float>() : nullptr;
+  const GaussianGrads gout = grads.ptrs();
   const Vec3 cpos = load3(in.campos);
   at::parallel_for(0, nblocks, 1, [&](int64_t b0, int64_t b1) {
     for (int64_t blk = b0; blk < b1; ++blk) {
@@ -764,63 +551,7 @@ std::vector<at::Tensor> rasterize_backward_cpu(
           const float* sl = slots.get() + e * kSlot;
           for (int k = 0; k < kSlot; ++k) s[k] += sl[k];
         }
-        const Vec3 m = load3(in.means + 3 * g);
-        const Vec3 t = transform_point_4x3(in.V, m);
-        const Vec4 ph = transform_point_4x4(in.Pm, m);
-        const Sym3 cov3 = gaussian_cov3d(in, g);
-        Cov2DCtx ctx;
-        const Sym2 cov2 = compute_cov2d(t, in.focal_x, in.focal_y, in.tanfovx, in.tanfovy, cov3, in.V, ctx);
-        const ConicResult cr = dilate_and_invert(cov2, in.antialiasing);
-        // opacity_eff = opacity * coef
-        o_op[g] = s[5] * cr.coef;
-        const float dcoef = s[5] * in.opac[g];
-        const Sym2 dcov2 = dilate_and_invert_vjp(cov2, in.antialiasing, {s[2], s[3], s[4]}, dcoef);
-        Vec3 dt = {0.f, 0.f, -s[9] / (t.z * t.z) + s[10]};  // features 1/z and z
-        Sym3 dcov3;
-        compute_cov2d_vjp(t, in.focal_x, in.focal_y, cov3, in.V, ctx, dcov2, dt, dcov3, dV);
-        if (o_cov != nullptr) {
-          for (int k = 0; k < 6; ++k) o_cov[6 * g + k] = dcov3.v[k];
-        } else {
-          const float* q = in.rots + 4 * g;
-          Vec3 dsc;
-          Vec4 dq;
-          compute_cov3d_vjp(load3(in.scales + 3 * g), in.scale_modifier, {q[0], q[1], q[2], q[3]},
-                            dcov3, dsc, dq);
-          o_sc[3 * g + 0] = dsc.x;
-          o_sc[3 * g + 1] = dsc.y;
-          o_sc[3 * g + 2] = dsc.z;
-          o_rot[4 * g + 0] = dq.x;
-          o_rot[4 * g + 1] = dq.y;
-          o_rot[4 * g + 2] = dq.z;
-          o_rot[4 * g + 3] = dq.w;
-        }
-        const Vec2 dndc = {s[0] * 0.5f * in.W, s[1] * 0.5f * in.H};
-        o_m2[3 * g + 0] = dndc.x;
-        o_m2[3 * g + 1] = dndc.y;
-        Vec3 dm = {0.f, 0.f, 0.f};
-        project_vjp(in.Pm, m, ph, dndc, dm, dP);
-        transform_point_4x3_vjp(in.V, m, dt, dm, dV);
-        if (o_col != nullptr) {
-          o_col[3 * g + 0] = s[6];
-          o_col[3 * g + 1] = s[7];
-          o_col[3 * g + 2] = s[8];
-        } else {
-          const Vec3 dv = eval_sh_vjp(in.sh_degree, in.shs + g * in.M * 3, m, cpos,
-                                      {s[6], s[7], s[8]}, o_sh + g * in.M * 3);
-          if (in.sh_degree > 0) {
-            dm.x += dv.x;
-            dm.y += dv.y;
-            dm.z += dv.z;
-            if (dC != nullptr) {
-              dC[0] -= dv.x;
-              dC[1] -= dv.y;
-              dC[2] -= dv.z;
-            }
-          }
-        }
-        o_m3[3 * g + 0] = dm.x;
-        o_m3[3 * g + 1] = dm.y;
-        o_m3[3 * g + 2] = dm.z;
+        gaussian_backward_one(in, g, s, in.viewmatrix, in.projmatrix, cpos, gout, dV, dP, dC);
       }
     }
   });
@@ -836,8 +567,8 @@ std::vector<at::Tensor> rasterize_backward_cpu(
     for (int k = 0; k < 16; ++k) dL_dP.data_ptr<float>()[k] = (float)sum[16 + k];
     for (int k = 0; k < 3; ++k) dL_dcampos.data_ptr<float>()[k] = (float)sum[32 + k];
   }
-  return {dL_dmeans3D, dL_dmeans2D, dL_dopac, dL_dshs, dL_dcolors, dL_dscales, dL_drots, dL_dcov,
-          dL_dbg, dL_dV, dL_dP, dL_dcampos};
+  return {grads.means3D, grads.means2D, grads.opac,  grads.shs, grads.colors, grads.scales,
+          grads.rots,    grads.cov3d,   dL_dbg,      dL_dV,     dL_dP,        dL_dcampos};
 }
 
 at::Tensor mark_visible_cpu(const at::Tensor& means3D, const at::Tensor& viewmatrix,

@@ -1,8 +1,9 @@
 // CUDA kernels of the rasterizer: forward and full backward (incl. camera gradient). Pure CUDA: no
 // torch/ATen (the wrapper rasterize_cuda.cpp allocates and passes plain pointers; see kernels.h).
 //
-// Every per-Gaussian formula comes from ../common/{math,sh}.h (GRP_HD helpers shared with the CPU
-// kernel ../cpu/rasterize_cpu.cpp); the per-pixel blending and its backward are written out below
+// Every per-Gaussian formula comes from ../common/{math,sh,raster}.h (GRP_HD helpers shared with
+// the CPU kernel ../cpu/rasterize_cpu.cpp; raster.h holds the whole per-Gaussian preprocess and
+// backward bodies); the per-pixel blending and its backward are written out below
 // as literal mirrors of the CPU kernel's loops (same expressions, same skip/stop rules, same
 // exp_nonpos), so the two backends agree to float rounding.
 //
@@ -23,6 +24,7 @@
 
 #include "common/config.h"
 #include "common/math.h"
+#include "common/raster.h"
 #include "common/sh.h"
 #include "kernels.h"
 
@@ -38,8 +40,6 @@ static_assert(kBlockSize % 32 == 0, "tile blocks must be whole warps");
 static_assert(kBlockX == 16, "a warp covers two 16-pixel rows of a tile");
 static_assert(kGaussThreads % 32 == 0 && kGaussThreads >= kCamGrad, "per-Gaussian block size");
 static_assert(kBwdBatch <= kBlockSize, "backward batch loaded by one thread per entry");
-
-__device__ __forceinline__ Vec3 load3(const float* p) { return {p[0], p[1], p[2]}; }
 
 template <typename T>
 __device__ __forceinline__ T warp_sum(T v) {
@@ -57,22 +57,13 @@ __device__ __forceinline__ int warp_max(int v) {
   return v;  // valid in lane 0
 }
 
-__device__ __forceinline__ Sym3 gaussian_cov3d(const SceneArgs& a, int64_t g) {
-  if (a.cov3d != nullptr) {
-    const float* c = a.cov3d + 6 * g;
-    return {{c[0], c[1], c[2], c[3], c[4], c[5]}};
-  }
-  const float* q = a.rots + 4 * g;
-  return compute_cov3d(load3(a.scales + 3 * g), a.scale_modifier, {q[0], q[1], q[2], q[3]});
-}
-
 inline unsigned grid_1d(int64_t n, int threads) { return (unsigned)((n + threads - 1) / threads); }
 
 // ------------------------------------------------------------------------------------------------
-// 1. Preprocess (mirror of rasterize_cpu.cpp::preprocess).
+// 1. Preprocess (body: preprocess_gaussian, ../common/raster.h, shared with the CPU kernel).
 // ------------------------------------------------------------------------------------------------
 __global__ void __launch_bounds__(kGaussThreads)
-    preprocess_kernel(const SceneArgs a, float* __restrict__ geom, int32_t* __restrict__ radii,
+    preprocess_kernel(const RasterArgs a, float* __restrict__ geom, int32_t* __restrict__ radii,
                       int64_t* __restrict__ ntiles) {
   __shared__ float sV[16], sP[16];
   if (threadIdx.x < 16) {
@@ -82,65 +73,9 @@ __global__ void __launch_bounds__(kGaussThreads)
   __syncthreads();
   const int64_t g = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
   if (g >= a.P) return;
-  radii[g] = 0;
-  ntiles[g] = 0;
-  const Vec3 m = load3(a.means + 3 * g);
-  const Vec3 t = transform_point_4x3(sV, m);
-  if (!(t.z > kNearPlane)) return;  // also culls NaN
-  const Vec4 ph = transform_point_4x4(sP, m);
-  const float p_w = 1.0f / (ph.w + kProjEps);
-  const Vec3 ndc = {ph.x * p_w, ph.y * p_w, ph.z * p_w};
-  const Sym3 cov3 = gaussian_cov3d(a, g);
-  Cov2DCtx ctx;
-  const Sym2 cov2 = compute_cov2d(t, a.focal_x, a.focal_y, a.tanfovx, a.tanfovy, cov3, sV, ctx);
-  const ConicResult cr = dilate_and_invert(cov2, a.antialiasing);
-  if (cr.det == 0.0f) return;
-  const float radius = screen_radius(cr.dilated, cr.det);
-  const Vec2 pix = {ndc2pix(ndc.x, a.W), ndc2pix(ndc.y, a.H)};
-  if (!(radius >= 1.f) || !isfinite(pix.x) || !isfinite(pix.y) || radius > 1e9f ||
-      fabsf(pix.x) > 1e9f || fabsf(pix.y) > 1e9f)
-    return;
-  int minx, miny, maxx, maxy;
-  get_rect(pix, (int)radius, a.grid_x, a.grid_y, minx, miny, maxx, maxy);
-  const int64_t area = (int64_t)(maxx - minx) * (maxy - miny);
-  if (area == 0) return;
-  Vec3 rgb;
-  if (a.colors != nullptr) {
-    rgb = load3(a.colors + 3 * g);
-  } else {
-    rgb = eval_sh(a.sh_degree, a.shs + g * a.M * 3, m, load3(a.campos));
-    rgb = {rgb.x < 0.f ? 0.f : rgb.x, rgb.y < 0.f ? 0.f : rgb.y, rgb.z < 0.f ? 0.f : rgb.z};
-  }
-  const float o = a.opac[g] * cr.coef;
-  float* gd = geom + (int64_t)kGStride * g;
-  gd[kGPx] = pix.x;
-  gd[kGPy] = pix.y;
-  gd[kGConA] = cr.conic.a;
-  gd[kGConB] = cr.conic.b;
-  gd[kGConC] = cr.conic.c;
-  gd[kGOpacity] = o;
-  gd[kGR] = rgb.x;
-  gd[kGG] = rgb.y;
-  gd[kGB] = rgb.z;
-  gd[kGZ] = t.z;
-  gd[kGInvZ] = 1.0f / t.z;
-  // Same conservative alpha >= 1/255 half extents as the CPU kernel (kept for layout parity; the
-  // GPU evaluates every pixel of the tile, which is exact as well).
-  float bx, by;
-  if (!(o >= kAlphaMin)) {
-    bx = by = -1.f;
-  } else if (cr.det > 0.f && cr.dilated.a > 0.f && cr.dilated.c > 0.f) {
-    float k = logf(o / kAlphaMin);
-    k = (k > 0.f ? k : 0.f) * 1.001f + 1e-3f;
-    bx = sqrtf(2.f * k * cr.dilated.a) * 1.001f + 0.01f;
-    by = sqrtf(2.f * k * cr.dilated.c) * 1.001f + 0.01f;
-  } else {
-    bx = by = __int_as_float(0x7f800000);  // +inf
-  }
-  gd[kGBoxX] = bx;
-  gd[kGBoxY] = by;
-  radii[g] = (int32_t)radius;
-  ntiles[g] = area;
+  const PreprocessResult r = preprocess_gaussian(a, g, sV, sP, geom + (int64_t)kGStride * g);
+  radii[g] = r.radius;
+  ntiles[g] = r.area;
 }
 
 // ------------------------------------------------------------------------------------------------
@@ -180,7 +115,7 @@ __global__ void tile_ranges_kernel(const uint64_t* __restrict__ keys, int64_t R,
 // 3. Forward render (mirror of rasterize_cpu.cpp::render_tile, one thread per pixel).
 // ------------------------------------------------------------------------------------------------
 __global__ void __launch_bounds__(kBlockSize)
-    render_kernel(const SceneArgs a, const float* __restrict__ geom,
+    render_kernel(const RasterArgs a, const float* __restrict__ geom,
                   const int32_t* __restrict__ binning, const int32_t* __restrict__ ranges,
                   const RenderOutputs out) {
   const int tile = blockIdx.y * a.grid_x + blockIdx.x;
@@ -263,7 +198,7 @@ __global__ void mark_visible_kernel(const float* __restrict__ means,
 // 4. Backward render (mirror of rasterize_cpu.cpp::backward_tile, one thread per pixel).
 // ------------------------------------------------------------------------------------------------
 __global__ void __launch_bounds__(kBlockSize)
-    render_backward_kernel(const SceneArgs a, const float* __restrict__ geom,
+    render_backward_kernel(const RasterArgs a, const float* __restrict__ geom,
                            const int32_t* __restrict__ binning, const int32_t* __restrict__ ranges,
                            const float* __restrict__ final_T, const int32_t* __restrict__ last_contrib,
                            const GradImages grad, float* __restrict__ slots,
@@ -440,7 +375,7 @@ __global__ void __launch_bounds__(kBlockSize)
 // ------------------------------------------------------------------------------------------------
 template <bool kCam>
 __global__ void __launch_bounds__(kGaussThreads)
-    gaussian_backward_kernel(const SceneArgs a, const int32_t* __restrict__ radii,
+    gaussian_backward_kernel(const RasterArgs a, const int32_t* __restrict__ radii,
                              const int64_t* __restrict__ offsets, const float* __restrict__ slots,
                              const GaussianGrads out, double* __restrict__ cam_partials) {
   __shared__ float sV[16], sP[16], sC[3];
@@ -469,64 +404,7 @@ __global__ void __launch_bounds__(kGaussThreads)
 #pragma unroll
       for (int k = 0; k < kSlot; ++k) s[k] += sl[k];
     }
-    const Vec3 m = load3(a.means + 3 * g);
-    const Vec3 t = transform_point_4x3(sV, m);
-    const Vec4 ph = transform_point_4x4(sP, m);
-    const Sym3 cov3 = gaussian_cov3d(a, g);
-    Cov2DCtx ctx;
-    const Sym2 cov2 = compute_cov2d(t, a.focal_x, a.focal_y, a.tanfovx, a.tanfovy, cov3, sV, ctx);
-    const ConicResult cr = dilate_and_invert(cov2, a.antialiasing);
-    // opacity_eff = opacity * coef
-    out.opac[g] = s[5] * cr.coef;
-    const float dcoef = s[5] * a.opac[g];
-    const Sym2 dcov2 = dilate_and_invert_vjp(cov2, a.antialiasing, {s[2], s[3], s[4]}, dcoef);
-    Vec3 dt = {0.f, 0.f, -s[9] / (t.z * t.z) + s[10]};  // features 1/z and z
-    Sym3 dcov3;
-    compute_cov2d_vjp(t, a.focal_x, a.focal_y, cov3, sV, ctx, dcov2, dt, dcov3, dV);
-    if (out.cov3d != nullptr) {
-      for (int k = 0; k < 6; ++k) out.cov3d[6 * g + k] = dcov3.v[k];
-    } else {
-      const float* q = a.rots + 4 * g;
-      Vec3 dsc;
-      Vec4 dq;
-      compute_cov3d_vjp(load3(a.scales + 3 * g), a.scale_modifier, {q[0], q[1], q[2], q[3]}, dcov3,
-                        dsc, dq);
-      out.scales[3 * g + 0] = dsc.x;
-      out.scales[3 * g + 1] = dsc.y;
-      out.scales[3 * g + 2] = dsc.z;
-      out.rots[4 * g + 0] = dq.x;
-      out.rots[4 * g + 1] = dq.y;
-      out.rots[4 * g + 2] = dq.z;
-      out.rots[4 * g + 3] = dq.w;
-    }
-    const Vec2 dndc = {s[0] * 0.5f * a.W, s[1] * 0.5f * a.H};
-    out.means2D[3 * g + 0] = dndc.x;
-    out.means2D[3 * g + 1] = dndc.y;
-    Vec3 dm = {0.f, 0.f, 0.f};
-    project_vjp(sP, m, ph, dndc, dm, dP);
-    transform_point_4x3_vjp(sV, m, dt, dm, dV);
-    if (out.colors != nullptr) {
-      out.colors[3 * g + 0] = s[6];
-      out.colors[3 * g + 1] = s[7];
-      out.colors[3 * g + 2] = s[8];
-    } else {
-      const Vec3 cpos = {sC[0], sC[1], sC[2]};
-      const Vec3 dv = eval_sh_vjp(a.sh_degree, a.shs + g * a.M * 3, m, cpos, {s[6], s[7], s[8]},
-                                  out.shs + g * a.M * 3);
-      if (a.sh_degree > 0) {
-        dm.x += dv.x;
-        dm.y += dv.y;
-        dm.z += dv.z;
-        if (dC != nullptr) {
-          dC[0] -= dv.x;
-          dC[1] -= dv.y;
-          dC[2] -= dv.z;
-        }
-      }
-    }
-    out.means3D[3 * g + 0] = dm.x;
-    out.means3D[3 * g + 1] = dm.y;
-    out.means3D[3 * g + 2] = dm.z;
+    gaussian_backward_one(a, g, s, sV, sP, Vec3{sC[0], sC[1], sC[2]}, out, dV, dP, dC);
   }
 
   if (kCam) {  // per-block reduction in double (fixed order), no atomics
@@ -569,7 +447,7 @@ __global__ void __launch_bounds__(kReduceThreads)
 // ------------------------------------------------------------------------------------------------
 // Host launchers.
 // ------------------------------------------------------------------------------------------------
-cudaError_t preprocess(const SceneArgs& a, float* geom, int32_t* radii, int64_t* ntiles,
+cudaError_t preprocess(const RasterArgs& a, float* geom, int32_t* radii, int64_t* ntiles,
                        cudaStream_t stream) {
   if (a.P <= 0) return cudaSuccess;
   preprocess_kernel<<<grid_1d(a.P, kGaussThreads), kGaussThreads, 0, stream>>>(a, geom, radii, ntiles);
@@ -593,7 +471,7 @@ cudaError_t scan_offsets(void* temp, size_t temp_bytes, const int64_t* ntiles, i
   return cudaGetLastError();
 }
 
-cudaError_t duplicate_with_keys(const SceneArgs& a, const float* geom, const int32_t* radii,
+cudaError_t duplicate_with_keys(const RasterArgs& a, const float* geom, const int32_t* radii,
                                 const int64_t* offsets, uint64_t* keys, int32_t* values,
                                 cudaStream_t stream) {
   if (a.P <= 0) return cudaSuccess;
@@ -635,7 +513,7 @@ cudaError_t tile_ranges(const uint64_t* sorted_keys, int64_t R, int64_t num_tile
   return cudaGetLastError();
 }
 
-cudaError_t render(const SceneArgs& a, const float* geom, const int32_t* binning,
+cudaError_t render(const RasterArgs& a, const float* geom, const int32_t* binning,
                    const int32_t* ranges, const RenderOutputs& out, cudaStream_t stream) {
   if (a.grid_x <= 0 || a.grid_y <= 0) return cudaSuccess;
   const dim3 grid(a.grid_x, a.grid_y), block(kBlockX, kBlockY);
@@ -650,7 +528,7 @@ cudaError_t mark_visible(const float* means, const float* viewmatrix, int64_t P,
   return cudaGetLastError();
 }
 
-cudaError_t render_backward(const SceneArgs& a, const float* geom, const int32_t* binning,
+cudaError_t render_backward(const RasterArgs& a, const float* geom, const int32_t* binning,
                             const int32_t* ranges, const float* final_T, const int32_t* last,
                             const GradImages& grad, float* slots, double* dbg_tiles,
                             cudaStream_t stream) {
@@ -663,7 +541,7 @@ cudaError_t render_backward(const SceneArgs& a, const float* geom, const int32_t
 
 int64_t gaussian_backward_blocks(int64_t P) { return P <= 0 ? 0 : (P + kGaussThreads - 1) / kGaussThreads; }
 
-cudaError_t gaussian_backward(const SceneArgs& a, const int32_t* radii, const int64_t* offsets,
+cudaError_t gaussian_backward(const RasterArgs& a, const int32_t* radii, const int64_t* offsets,
                               const float* slots, const GaussianGrads& out, double* cam_partials,
                               cudaStream_t stream) {
   const int64_t nb = gaussian_backward_blocks(a.P);

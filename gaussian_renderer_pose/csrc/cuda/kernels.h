@@ -19,45 +19,19 @@
 #include <cstddef>
 #include <cstdint>
 
+#include "../common/raster.h"
+
 namespace grp {
 namespace cuda {
 
-// Per-Gaussian record written by the preprocess (same layout as the CPU kernel's).
-enum GeomField : int {
-  kGPx = 0, kGPy, kGConA, kGConB, kGConC, kGOpacity, kGR, kGG, kGB, kGInvZ, kGZ, kGBoxX, kGBoxY,
-  kGStride = 16
-};
-constexpr int kNumFeat = 5;                  // r, g, b, 1/z, z
-constexpr int kSlot = 2 + 3 + 1 + kNumFeat;  // dL/dxy (pixels), dL/dconic, dL/dopacity_eff, dL/dfeat
-constexpr int kCamGrad = 16 + 16 + 3;        // viewmatrix, projmatrix, campos
+// Geom record layout (kG*), kNumFeat, kSlot, kCamGrad, RasterArgs (inputs of one rasterization,
+// device pointers here) and GaussianGrads: ../common/raster.h, shared with the CPU kernel.
 constexpr int kGaussThreads = 256;           // threads per block of the per-Gaussian kernels
-
-// Inputs of one rasterization (device pointers; optional ones are nullptr when absent).
-struct SceneArgs {
-  int64_t P = 0;
-  int H = 0, W = 0;
-  int grid_x = 0, grid_y = 0;
-  float tanfovx = 0.f, tanfovy = 0.f, focal_x = 0.f, focal_y = 0.f, scale_modifier = 1.f;
-  int sh_degree = 0;
-  int64_t M = 0;  // SH coefficients per Gaussian (shs [P, M, 3])
-  bool antialiasing = false;
-  const float* means = nullptr;       // [P, 3]
-  const float* opac = nullptr;        // [P, 1]
-  const float* shs = nullptr;         // [P, M, 3]   (or nullptr)
-  const float* colors = nullptr;      // [P, 3]      (or nullptr)
-  const float* scales = nullptr;      // [P, 3]      (or nullptr)
-  const float* rots = nullptr;        // [P, 4]      (or nullptr)
-  const float* cov3d = nullptr;       // [P, 6]      (or nullptr)
-  const float* bg = nullptr;          // [3]
-  const float* viewmatrix = nullptr;  // [16]
-  const float* projmatrix = nullptr;  // [16]
-  const float* campos = nullptr;      // [3]
-};
 
 // ---- forward ------------------------------------------------------------------------------------
 // Cull, project, cov2D/conic, radius, tile rect, colour. Writes geom [P,16], radii [P] (0 = culled)
 // and ntiles [P] (tiles touched, 0 when culled).
-cudaError_t preprocess(const SceneArgs& a, float* geom, int32_t* radii, int64_t* ntiles,
+cudaError_t preprocess(const RasterArgs& a, float* geom, int32_t* radii, int64_t* ntiles,
                        cudaStream_t stream);
 
 // offsets[0] = 0, offsets[1..P] = inclusive prefix sum of ntiles. `temp` of scan_temp_bytes(P).
@@ -67,7 +41,7 @@ cudaError_t scan_offsets(void* temp, size_t temp_bytes, const int64_t* ntiles, i
 
 // One (key, value) per (Gaussian, touched tile): key = tile << 32 | float bits of view depth,
 // value = (gaussian id, slot id). keys [R], values [R, 2].
-cudaError_t duplicate_with_keys(const SceneArgs& a, const float* geom, const int32_t* radii,
+cudaError_t duplicate_with_keys(const RasterArgs& a, const float* geom, const int32_t* radii,
                                 const int64_t* offsets, uint64_t* keys, int32_t* values,
                                 cudaStream_t stream);
 
@@ -83,16 +57,9 @@ cudaError_t sort_pairs(void* temp, size_t temp_bytes, const uint64_t* keys_in, u
 cudaError_t tile_ranges(const uint64_t* sorted_keys, int64_t R, int64_t num_tiles, int32_t* ranges,
                         cudaStream_t stream);
 
-struct RenderOutputs {
-  float* color;      // [3, H, W]
-  float* invdepth;   // [H, W]
-  float* depth_acc;  // [H, W]
-  float* alpha;      // [H, W]
-  float* final_T;    // [H, W]
-  int32_t* last;     // [H, W]
-};
+// RenderOutputs: ../common/raster.h.
 // One 16x16 block per tile, front-to-back blending over shared-memory batches.
-cudaError_t render(const SceneArgs& a, const float* geom, const int32_t* binning,
+cudaError_t render(const RasterArgs& a, const float* geom, const int32_t* binning,
                    const int32_t* ranges, const RenderOutputs& out, cudaStream_t stream);
 
 // view-space z > near plane (upstream markVisible); visible [P] (bool, 1 byte).
@@ -100,37 +67,24 @@ cudaError_t mark_visible(const float* means, const float* viewmatrix, int64_t P,
                          cudaStream_t stream);
 
 // ---- backward -----------------------------------------------------------------------------------
-struct GradImages {
-  const float* color;      // [3, H, W]
-  const float* invdepth;   // [H, W]
-  const float* depth_acc;  // [H, W]
-  const float* alpha;      // [H, W]
-};
+// GradImages: ../common/raster.h.
 
 // Per tile, reverse order from the last contributor: writes slots [R, kSlot] (the caller
 // zero-fills them: entries behind every pixel's last contributor are not visited) and the per-tile
 // background terms dbg_tiles [num_tiles, 3] (double).
-cudaError_t render_backward(const SceneArgs& a, const float* geom, const int32_t* binning,
+cudaError_t render_backward(const RasterArgs& a, const float* geom, const int32_t* binning,
                             const int32_t* ranges, const float* final_T, const int32_t* last,
                             const GradImages& grad, float* slots, double* dbg_tiles,
                             cudaStream_t stream);
 
-struct GaussianGrads {  // outputs, zero-filled by the caller; nullptr where the input is absent
-  float* means3D;  // [P, 3]
-  float* means2D;  // [P, 3] (d/d NDC xy; z stays 0)
-  float* opac;     // [P, 1]
-  float* shs;      // [P, M, 3]
-  float* colors;   // [P, 3]
-  float* scales;   // [P, 3]
-  float* rots;     // [P, 4]
-  float* cov3d;    // [P, 6]
-};
+// GaussianGrads (../common/raster.h): outputs, zero-filled by the caller; nullptr where the input
+// is absent.
 // Number of blocks of the per-Gaussian backward (= rows of cam_partials).
 int64_t gaussian_backward_blocks(int64_t P);
 // Per Gaussian: sums its slots in order and chains through the per-Gaussian VJPs. When
 // cam_partials != nullptr, also reduces the camera terms of each block (in double) into
 // cam_partials [gaussian_backward_blocks(P), kCamGrad].
-cudaError_t gaussian_backward(const SceneArgs& a, const int32_t* radii, const int64_t* offsets,
+cudaError_t gaussian_backward(const RasterArgs& a, const int32_t* radii, const int64_t* offsets,
                               const float* slots, const GaussianGrads& out, double* cam_partials,
                               cudaStream_t stream);
 

@@ -18,6 +18,8 @@
 #include <vector>
 
 #include "../common/config.h"
+#include "../common/raster.h"
+#include "../common/raster_args_torch.h"
 #include "../ops.h"
 #include "kernels.h"
 
@@ -26,19 +28,10 @@ namespace {
 
 void check_cuda_tensor(const at::Tensor& t, const char* name, std::initializer_list<int64_t> shape,
                        const at::Device& device) {
-  TORCH_CHECK(t.defined(), name, " must be a tensor");
-  TORCH_CHECK(t.device() == device, name, " must be on ", device, " (the device of means3D), got ",
-              t.device());
-  TORCH_CHECK(t.scalar_type() == at::kFloat, name, " must be float32, got ", t.scalar_type());
-  TORCH_CHECK(t.is_contiguous(), name, " must be contiguous");
-  TORCH_CHECK(t.dim() == (int64_t)shape.size(), name, " must have ", shape.size(),
-              " dimensions, got shape ", t.sizes());
-  int d = 0;
-  for (int64_t s : shape) {
-    TORCH_CHECK(s < 0 || t.size(d) == s, name, " has shape ", t.sizes(), ", expected dim ", d,
-                " == ", s);
-    ++d;
-  }
+  check_float_tensor(t, name, shape, [&device](const at::Tensor& x, const char* n) {
+    TORCH_CHECK(x.device() == device, n, " must be on ", device, " (the device of means3D), got ",
+                x.device());
+  });
 }
 
 void check_cuda_state(const at::Tensor& t, const char* name, at::ScalarType st,
@@ -47,75 +40,21 @@ void check_cuda_state(const at::Tensor& t, const char* name, at::ScalarType st,
               name, " must be a contiguous tensor of type ", st, " on ", device);
 }
 
-bool present(const std::optional<at::Tensor>& t) { return t.has_value() && t->defined(); }
+// Tensor check of fill_raster_args: on the device of means3D (which must be a CUDA tensor).
+struct CudaCheck {
+  at::Device dev;
+  explicit CudaCheck(const at::Tensor& means3D) : dev(cuda_device_of(means3D)) {}
+  static at::Device cuda_device_of(const at::Tensor& means3D) {
+    TORCH_CHECK(means3D.defined() && means3D.is_cuda(), "means3D must be a CUDA tensor");
+    return means3D.device();
+  }
+  void operator()(const at::Tensor& t, const char* name, std::initializer_list<int64_t> shape) const {
+    check_cuda_tensor(t, name, shape, dev);
+  }
+};
 
-cuda::SceneArgs check_inputs(const at::Tensor& means3D, const at::Tensor& opacities,
-                             const std::optional<at::Tensor>& shs,
-                             const std::optional<at::Tensor>& colors_precomp,
-                             const std::optional<at::Tensor>& scales,
-                             const std::optional<at::Tensor>& rotations,
-                             const std::optional<at::Tensor>& cov3D_precomp, const at::Tensor& bg,
-                             const at::Tensor& viewmatrix, const at::Tensor& projmatrix,
-                             const at::Tensor& campos, int64_t H, int64_t W, double tanfovx,
-                             double tanfovy, double scale_modifier, int64_t sh_degree,
-                             bool antialiasing) {
-  TORCH_CHECK(means3D.defined() && means3D.is_cuda(), "means3D must be a CUDA tensor");
-  const at::Device dev = means3D.device();
-  check_cuda_tensor(means3D, "means3D", {-1, 3}, dev);
-  cuda::SceneArgs a;
-  a.P = means3D.size(0);
-  const int64_t P = a.P;
-  TORCH_CHECK(P < (int64_t)std::numeric_limits<int32_t>::max(), "too many Gaussians: ", P);
-  check_cuda_tensor(opacities, "opacities", {P, 1}, dev);
-  check_cuda_tensor(bg, "bg", {3}, dev);
-  check_cuda_tensor(viewmatrix, "viewmatrix", {4, 4}, dev);
-  check_cuda_tensor(projmatrix, "projmatrix", {4, 4}, dev);
-  check_cuda_tensor(campos, "campos", {3}, dev);
-  TORCH_CHECK(H > 0 && W > 0 && H < (1 << 20) && W < (1 << 20), "image size must be positive, got ",
-              H, "x", W);
-  TORCH_CHECK(sh_degree >= 0 && sh_degree <= 3, "sh_degree must be in 0..3, got ", sh_degree);
-  TORCH_CHECK(tanfovx > 0 && tanfovy > 0, "tanfovx/tanfovy must be positive");
-  const bool has_colors = present(colors_precomp);
-  TORCH_CHECK(has_colors || present(shs), "either shs or colors_precomp must be given");
-  if (has_colors) {
-    check_cuda_tensor(*colors_precomp, "colors_precomp", {P, 3}, dev);
-    a.colors = colors_precomp->data_ptr<float>();
-  } else {
-    check_cuda_tensor(*shs, "shs", {P, -1, 3}, dev);
-    a.M = shs->size(1);
-    TORCH_CHECK(a.M >= (sh_degree + 1) * (sh_degree + 1), "shs has ", a.M,
-                " coefficients, sh_degree ", sh_degree, " needs ", (sh_degree + 1) * (sh_degree + 1));
-    a.shs = shs->data_ptr<float>();
-  }
-  if (present(cov3D_precomp)) {
-    check_cuda_tensor(*cov3D_precomp, "cov3D_precomp", {P, 6}, dev);
-    a.cov3d = cov3D_precomp->data_ptr<float>();
-  } else {
-    TORCH_CHECK(present(scales) && present(rotations),
-                "either cov3D_precomp or scales and rotations must be given");
-    check_cuda_tensor(*scales, "scales", {P, 3}, dev);
-    check_cuda_tensor(*rotations, "rotations", {P, 4}, dev);
-    a.scales = scales->data_ptr<float>();
-    a.rots = rotations->data_ptr<float>();
-  }
-  a.H = (int)H;
-  a.W = (int)W;
-  a.grid_x = (a.W + kBlockX - 1) / kBlockX;
-  a.grid_y = (a.H + kBlockY - 1) / kBlockY;
-  a.tanfovx = (float)tanfovx;
-  a.tanfovy = (float)tanfovy;
-  a.focal_x = a.W / (2.0f * a.tanfovx);
-  a.focal_y = a.H / (2.0f * a.tanfovy);
-  a.scale_modifier = (float)scale_modifier;
-  a.sh_degree = (int)sh_degree;
-  a.antialiasing = antialiasing;
-  a.means = means3D.data_ptr<float>();
-  a.opac = opacities.data_ptr<float>();
-  a.bg = bg.data_ptr<float>();
-  a.viewmatrix = viewmatrix.data_ptr<float>();
-  a.projmatrix = projmatrix.data_ptr<float>();
-  a.campos = campos.data_ptr<float>();
-  return a;
+void check_gaussian_count(const RasterArgs& a) {
+  TORCH_CHECK(a.P < (int64_t)std::numeric_limits<int32_t>::max(), "too many Gaussians: ", a.P);
 }
 
 at::Tensor byte_buffer(size_t bytes, const at::TensorOptions& like) {
@@ -137,10 +76,11 @@ std::vector<at::Tensor> rasterize_forward_cuda(
     const at::Tensor& campos, int64_t image_height, int64_t image_width, double tanfovx,
     double tanfovy, double scale_modifier, int64_t sh_degree, bool prefiltered, bool antialiasing) {
   (void)prefiltered;
-  const cuda::SceneArgs a = check_inputs(means3D, opacities, shs, colors_precomp, scales, rotations,
-                                         cov3D_precomp, bg, viewmatrix, projmatrix, campos,
-                                         image_height, image_width, tanfovx, tanfovy,
-                                         scale_modifier, sh_degree, antialiasing);
+  const RasterArgs a = fill_raster_args(CudaCheck(means3D), means3D, opacities, shs,
+                                        colors_precomp, scales, rotations, cov3D_precomp, bg,
+                                        viewmatrix, projmatrix, campos, image_height, image_width,
+                                        tanfovx, tanfovy, scale_modifier, sh_degree, antialiasing);
+  check_gaussian_count(a);
   const c10::cuda::CUDAGuard guard(means3D.device());
   const cudaStream_t stream = c10::cuda::getCurrentCUDAStream().stream();
   const int64_t P = a.P;
@@ -149,15 +89,10 @@ std::vector<at::Tensor> rasterize_forward_cuda(
   const auto lopt = fopt.dtype(at::kLong);
   const int64_t num_tiles = (int64_t)a.grid_x * a.grid_y;
 
-  at::Tensor color = at::empty({3, a.H, a.W}, fopt);
-  at::Tensor invdepth = at::empty({1, a.H, a.W}, fopt);
-  at::Tensor depth_acc = at::empty({1, a.H, a.W}, fopt);
-  at::Tensor alpha = at::empty({1, a.H, a.W}, fopt);
-  at::Tensor final_T = at::empty({a.H, a.W}, fopt);
-  at::Tensor last_contrib = at::empty({a.H, a.W}, iopt);
-  at::Tensor radii = at::empty({P}, iopt);
-  at::Tensor geom = at::empty({P, cuda::kGStride}, fopt);
-  at::Tensor offsets = at::empty({P + 1}, lopt);
+  ForwardTensors fw(a, fopt);
+  const at::Tensor& radii = fw.radii;
+  const at::Tensor& geom = fw.geom;
+  const at::Tensor& offsets = fw.offsets;
   at::Tensor ntiles = at::empty({P}, lopt);
 
   // 1. Preprocess + prefix sum of the tiles touched.
@@ -174,8 +109,10 @@ std::vector<at::Tensor> rasterize_forward_cuda(
               "too many (tile, Gaussian) pairs: ", num_rendered);
 
   // 2. Binning: duplicate with (tile | depth) keys, stable radix sort, tile ranges.
-  at::Tensor tile_ranges = at::zeros({num_tiles + 1}, iopt);
-  at::Tensor binning = at::empty({num_rendered, 2}, iopt);
+  fw.tile_ranges = at::zeros({num_tiles + 1}, iopt);
+  fw.binning = at::empty({num_rendered, 2}, iopt);
+  const at::Tensor& tile_ranges = fw.tile_ranges;
+  const at::Tensor& binning = fw.binning;
   if (num_rendered > 0) {
     at::Tensor keys_in = at::empty({num_rendered}, lopt);
     at::Tensor keys_out = at::empty({num_rendered}, lopt);
@@ -194,14 +131,11 @@ std::vector<at::Tensor> rasterize_forward_cuda(
   }
 
   // 3. Render.
-  const cuda::RenderOutputs out{color.data_ptr<float>(),   invdepth.data_ptr<float>(),
-                                depth_acc.data_ptr<float>(), alpha.data_ptr<float>(),
-                                final_T.data_ptr<float>(),   last_contrib.data_ptr<int32_t>()};
+  const RenderOutputs out = fw.render_outputs();
   C10_CUDA_CHECK(cuda::render(a, geom.data_ptr<float>(), binning.data_ptr<int32_t>(),
                               tile_ranges.data_ptr<int32_t>(), out, stream));
 
-  return {color, radii, invdepth, depth_acc, alpha, geom, binning, tile_ranges, offsets, final_T,
-          last_contrib};
+  return fw.list();
 }
 
 // ------------------------------------------------------------------------------------------------
@@ -218,27 +152,23 @@ std::vector<at::Tensor> rasterize_backward_cuda(
     const at::Tensor& tile_ranges, const at::Tensor& offsets, const at::Tensor& final_T,
     const at::Tensor& last_contrib, const at::Tensor& grad_color, const at::Tensor& grad_invdepth,
     const at::Tensor& grad_depth_acc, const at::Tensor& grad_alpha, bool compute_camera_grad) {
-  const cuda::SceneArgs a = check_inputs(means3D, opacities, shs, colors_precomp, scales, rotations,
-                                         cov3D_precomp, bg, viewmatrix, projmatrix, campos,
-                                         image_height, image_width, tanfovx, tanfovy,
-                                         scale_modifier, sh_degree, antialiasing);
+  const RasterArgs a = fill_raster_args(CudaCheck(means3D), means3D, opacities, shs,
+                                        colors_precomp, scales, rotations, cov3D_precomp, bg,
+                                        viewmatrix, projmatrix, campos, image_height, image_width,
+                                        tanfovx, tanfovy, scale_modifier, sh_degree, antialiasing);
+  check_gaussian_count(a);
   const at::Device dev = means3D.device();
   const int64_t P = a.P;
   const int64_t num_tiles = (int64_t)a.grid_x * a.grid_y;
-  check_cuda_tensor(grad_color, "grad_color", {3, a.H, a.W}, dev);
-  check_cuda_tensor(grad_invdepth, "grad_invdepth", {1, a.H, a.W}, dev);
-  check_cuda_tensor(grad_depth_acc, "grad_depth_acc", {1, a.H, a.W}, dev);
-  check_cuda_tensor(grad_alpha, "grad_alpha", {1, a.H, a.W}, dev);
-  check_cuda_tensor(geom, "geom", {P, cuda::kGStride}, dev);
-  check_cuda_tensor(final_T, "final_T", {a.H, a.W}, dev);
-  check_cuda_state(radii, "radii", at::kInt, dev);
-  check_cuda_state(binning, "binning", at::kInt, dev);
-  check_cuda_state(tile_ranges, "tile_ranges", at::kInt, dev);
-  check_cuda_state(offsets, "offsets", at::kLong, dev);
-  check_cuda_state(last_contrib, "last_contrib", at::kInt, dev);
-  TORCH_CHECK(radii.numel() == P && offsets.numel() == P + 1 && tile_ranges.numel() == num_tiles + 1 &&
-                  last_contrib.numel() == (int64_t)a.H * a.W,
-              "saved forward state does not match the inputs");
+  check_backward_inputs(
+      [&dev](const at::Tensor& t, const char* name, std::initializer_list<int64_t> shape) {
+        check_cuda_tensor(t, name, shape, dev);
+      },
+      [&dev](const at::Tensor& t, const char* name, at::ScalarType st) {
+        check_cuda_state(t, name, st, dev);
+      },
+      a, radii, geom, binning, tile_ranges, offsets, final_T, last_contrib, grad_color,
+      grad_invdepth, grad_depth_acc, grad_alpha);
   TORCH_CHECK(binning.dim() == 2 && binning.size(1) == 2, "saved binning state must be [R, 2], got ",
               binning.sizes());
   const int64_t num_rendered = binning.size(0);  // no host sync (the CPU also checks offsets[P])
@@ -247,23 +177,12 @@ std::vector<at::Tensor> rasterize_backward_cuda(
   const cudaStream_t stream = c10::cuda::getCurrentCUDAStream().stream();
   const auto fopt = means3D.options();
   const auto dopt = fopt.dtype(at::kDouble);
-  at::Tensor dL_dmeans3D = at::zeros({P, 3}, fopt);
-  at::Tensor dL_dmeans2D = at::zeros({P, 3}, fopt);
-  at::Tensor dL_dopac = at::zeros({P, 1}, fopt);
-  at::Tensor dL_dshs, dL_dcolors, dL_dscales, dL_drots, dL_dcov;
-  if (a.colors != nullptr) dL_dcolors = at::zeros({P, 3}, fopt);
-  else dL_dshs = at::zeros({P, a.M, 3}, fopt);
-  if (a.cov3d != nullptr) {
-    dL_dcov = at::zeros({P, 6}, fopt);
-  } else {
-    dL_dscales = at::zeros({P, 3}, fopt);
-    dL_drots = at::zeros({P, 4}, fopt);
-  }
+  GradTensors grads = zero_gaussian_grads(a, fopt);
 
   // 4. Per-tile backward into per-entry slots (zero-filled: unvisited entries contribute 0).
-  at::Tensor slots = at::zeros({num_rendered * cuda::kSlot}, fopt);
+  at::Tensor slots = at::zeros({num_rendered * kSlot}, fopt);
   at::Tensor dbg_tiles = at::empty({num_tiles * 3}, dopt);
-  const cuda::GradImages gin{grad_color.data_ptr<float>(), grad_invdepth.data_ptr<float>(),
+  const GradImages gin{grad_color.data_ptr<float>(), grad_invdepth.data_ptr<float>(),
                              grad_depth_acc.data_ptr<float>(), grad_alpha.data_ptr<float>()};
   C10_CUDA_CHECK(cuda::render_backward(a, geom.data_ptr<float>(), binning.data_ptr<int32_t>(),
                                        tile_ranges.data_ptr<int32_t>(), final_T.data_ptr<float>(),
@@ -275,12 +194,10 @@ std::vector<at::Tensor> rasterize_backward_cuda(
                                        dL_dbg.data_ptr<float>(), stream));
 
   // 5. Per-Gaussian backward (+ per-block camera terms, reduced in a fixed order).
-  auto ptr = [](at::Tensor& t) { return t.defined() ? t.data_ptr<float>() : nullptr; };
-  const cuda::GaussianGrads gout{ptr(dL_dmeans3D), ptr(dL_dmeans2D), ptr(dL_dopac), ptr(dL_dshs),
-                                 ptr(dL_dcolors),  ptr(dL_dscales),  ptr(dL_drots), ptr(dL_dcov)};
+  const GaussianGrads gout = grads.ptrs();
   const int64_t nblocks = cuda::gaussian_backward_blocks(P);
   at::Tensor cam_partials;
-  if (compute_camera_grad) cam_partials = at::empty({std::max<int64_t>(nblocks, 1) * cuda::kCamGrad}, dopt);
+  if (compute_camera_grad) cam_partials = at::empty({std::max<int64_t>(nblocks, 1) * kCamGrad}, dopt);
   C10_CUDA_CHECK(cuda::gaussian_backward(a, radii.data_ptr<int32_t>(), offsets.data_ptr<int64_t>(),
                                          slots.data_ptr<float>(), gout,
                                          compute_camera_grad ? cam_partials.data_ptr<double>() : nullptr,
@@ -292,15 +209,15 @@ std::vector<at::Tensor> rasterize_backward_cuda(
     dL_dP = at::empty({4, 4}, fopt);
     dL_dcampos = at::empty({3}, fopt);
     const double* parts = cam_partials.data_ptr<double>();
-    C10_CUDA_CHECK(cuda::reduce_partials(parts, nblocks, cuda::kCamGrad, 16, dL_dV.data_ptr<float>(),
+    C10_CUDA_CHECK(cuda::reduce_partials(parts, nblocks, kCamGrad, 16, dL_dV.data_ptr<float>(),
                                          stream));
-    C10_CUDA_CHECK(cuda::reduce_partials(parts + 16, nblocks, cuda::kCamGrad, 16,
+    C10_CUDA_CHECK(cuda::reduce_partials(parts + 16, nblocks, kCamGrad, 16,
                                          dL_dP.data_ptr<float>(), stream));
-    C10_CUDA_CHECK(cuda::reduce_partials(parts + 32, nblocks, cuda::kCamGrad, 3,
+    C10_CUDA_CHECK(cuda::reduce_partials(parts + 32, nblocks, kCamGrad, 3,
                                          dL_dcampos.data_ptr<float>(), stream));
   }
-  return {dL_dmeans3D, dL_dmeans2D, dL_dopac, dL_dshs, dL_dcolors, dL_dscales, dL_drots, dL_dcov,
-          dL_dbg, dL_dV, dL_dP, dL_dcampos};
+  return {grads.means3D, grads.means2D, grads.opac,  grads.shs, grads.colors, grads.scales,
+          grads.rots,    grads.cov3d,   dL_dbg,      dL_dV,     dL_dP,        dL_dcampos};
 }
 
 at::Tensor mark_visible_cuda(const at::Tensor& means3D, const at::Tensor& viewmatrix,
