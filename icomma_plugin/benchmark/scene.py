@@ -124,7 +124,7 @@ def load_model_folder_scene(
     model_path, dataset=None, num_queries: int = 5, split: str = "test",
     query_indices: Optional[Sequence[int]] = None, image_scale: Optional[float] = None,
     white_background: Optional[bool] = None, iteration: Optional[int] = None,
-    translation_unit: str = "scene_radius",
+    translation_unit: str = "world",
 ) -> BenchScene:
     """Model folder + the dataset's ``split`` views as queries.
 
@@ -200,7 +200,7 @@ def synthetic_model(num_gaussians: int = 300, seed: int = 0, extent: float = 1.0
 
 def synthetic_scene(
     num_gaussians: int = 300, width: int = 64, height: int = 64, num_queries: int = 2,
-    seed: int = 0, radius: float = 4.0, fov_deg: float = 40.0, translation_unit: str = "scene_radius",
+    seed: int = 0, radius: float = 4.0, fov_deg: float = 40.0, translation_unit: str = "world",
     backend: str = "auto",
 ) -> BenchScene:
     """A procedural model around the origin, 12 "train" cameras on a ring (for the scene radius)

@@ -181,7 +181,7 @@ def test_every_protocol_composes(name):
     for m in full.methods:
         if m != "essential":
             method_config(m, LocalizerConfig(), full.max_iterations)
-    assert cfg.scene.translation_unit == "scene_radius"
+    assert cfg.scene.translation_unit == "world"
 
 
 def test_protocol_intervals_match_the_brief():
@@ -312,7 +312,7 @@ def test_tool_smoke_run_on_synthetic_scene(tmp_path):
     doc = json.loads((out / "results.json").read_text())
     assert doc["status"] == "complete" and doc["quick"] is True and doc["size"] == "quick"
     assert doc["num_runs_done"] == 2 and doc["seed"] == 0
-    assert doc["scene"]["translation_unit"] == "scene_radius" and doc["scene"]["translation_scale"] > 0
+    assert doc["scene"]["translation_unit"] == "world" and doc["scene"]["translation_scale"] == 1.0
     assert doc["records"][0]["seed"] == [0, 0, 0, 0]
     md = (out / "results.md").read_text()
     assert "paper" in md and "failure_rate" in md
