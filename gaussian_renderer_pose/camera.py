@@ -16,6 +16,8 @@ from typing import NamedTuple, Optional, Union
 
 import torch
 
+from ._validate import _positive_float
+
 Number = Union[int, float]
 
 
@@ -27,16 +29,6 @@ class CameraMatrices(NamedTuple):
     campos: torch.Tensor  # [3] camera centre in world
     tanfovx: float
     tanfovy: float
-
-
-def _positive_finite(name: str, value) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a positive finite number, got {value!r}") from None
-    if not math.isfinite(v) or v <= 0:
-        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
-    return v
 
 
 def projection_matrix(
@@ -56,10 +48,10 @@ def projection_matrix(
     (NDC offsets of the principal point), ``P[2,2] = f/(f-n)``, ``P[2,3] = -f n/(f-n)``,
     ``P[3,2] = 1`` (so ``w = z_cam``).
     """
-    tanfovx = _positive_finite("tanfovx", tanfovx)
-    tanfovy = _positive_finite("tanfovy", tanfovy)
-    znear = _positive_finite("znear", znear)
-    zfar = _positive_finite("zfar", zfar)
+    tanfovx = _positive_float("tanfovx", tanfovx)
+    tanfovy = _positive_float("tanfovy", tanfovy)
+    znear = _positive_float("znear", znear)
+    zfar = _positive_float("zfar", zfar)
     if zfar <= znear:
         raise ValueError(f"zfar must be greater than znear={znear}, got {zfar}")
     P = torch.zeros(4, 4, dtype=dtype, device=device)
@@ -97,8 +89,8 @@ def camera_matrices(
         raise ValueError(f"w2c must have shape [4, 4], got {list(w2c.shape)}")
     if not w2c.is_floating_point():
         raise ValueError(f"w2c must be a floating-point tensor, got dtype {w2c.dtype}")
-    fx = _positive_finite("fx", fx)
-    fy = _positive_finite("fy", fy)
+    fx = _positive_float("fx", fx)
+    fy = _positive_float("fy", fy)
     for name, v in (("width", width), ("height", height)):
         if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
             raise ValueError(f"{name} must be a positive int, got {v!r}")

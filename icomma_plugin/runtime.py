@@ -2,10 +2,14 @@
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
-from typing import Iterator, Optional
+import sys
+from typing import Callable, Iterator, Optional, TypeVar
 
 import torch
+
+T = TypeVar("T")
 
 
 def choose_threads(requested: Optional[int] = None) -> int:
@@ -34,3 +38,20 @@ def torch_threads(requested: Optional[int] = None) -> Iterator[int]:
         yield torch.get_num_threads()
     finally:
         torch.set_num_threads(before)
+
+
+def run_or_exit(job: Callable[[], T], multirun: bool, log: logging.Logger) -> T:
+    """Run a tool's job; bad input (ValueError / FileNotFoundError) becomes one `error:` line.
+
+    A single run exits with status 2 after printing the line to stderr; in a multirun sweep the
+    error is logged and re-raised so the launcher records the failed job.
+    """
+    try:
+        return job()
+    except (ValueError, FileNotFoundError) as e:
+        msg = f"error: {e}"
+        if multirun:
+            log.error(msg)
+            raise
+        print(msg, file=sys.stderr)
+        sys.exit(2)

@@ -40,6 +40,7 @@ from icomma_plugin.benchmark import (  # noqa: E402
     ProtocolSpec, ResultsWriter, load_done, load_model_folder_scene, run_protocol, synthetic_scene,
 )
 from icomma_plugin.localize import LocalizerConfig  # noqa: E402
+from icomma_plugin.runtime import choose_threads, run_or_exit  # noqa: E402
 
 log = logging.getLogger("benchmark")
 
@@ -108,8 +109,7 @@ def run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
     random.seed(seed)
     np.random.seed(seed % (2 ** 32))
     torch.manual_seed(seed)
-    if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
+    torch.set_num_threads(choose_threads(cfg.get("threads")))
     backend = str(cfg.renderer.backend)
     proto = OmegaConf.to_container(cfg.benchmark_protocol, resolve=True)
     spec = ProtocolSpec.from_dict(proto, quick=bool(cfg.quick))
@@ -168,15 +168,7 @@ def main(cfg: DictConfig) -> float:
     hc = HydraConfig.get()
     output_dir = Path(hc.runtime.output_dir)
     multirun = str(hc.mode) == "RunMode.MULTIRUN"
-    try:
-        doc = run(cfg, output_dir)
-    except (ValueError, FileNotFoundError) as e:
-        msg = f"error: {e}"
-        if multirun:
-            log.error(msg)
-            raise
-        print(msg, file=sys.stderr)
-        sys.exit(2)
+    doc = run_or_exit(lambda: run(cfg, output_dir), multirun, log)
     print((output_dir / "results.md").read_text())
     print(f"outputs in {output_dir}")
     proto = ProtocolSpec.from_dict(OmegaConf.to_container(cfg.benchmark_protocol, resolve=True), quick=bool(cfg.quick))

@@ -39,7 +39,7 @@ from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from icomma_plugin.camera import Intrinsics  # noqa: E402
 from icomma_plugin.localize import LocalizerConfig, localize  # noqa: E402
 from icomma_plugin.pose.convert import perturb_pose  # noqa: E402
-from icomma_plugin.runtime import torch_threads  # noqa: E402
+from icomma_plugin.runtime import run_or_exit, torch_threads  # noqa: E402
 
 log = logging.getLogger("localize")
 
@@ -503,15 +503,7 @@ def main(cfg: DictConfig) -> float:
     hc = HydraConfig.get()
     output_dir = Path(hc.runtime.output_dir)
     multirun = str(hc.mode) == "RunMode.MULTIRUN"
-    try:
-        res = run(cfg, output_dir)
-    except (ValueError, FileNotFoundError) as e:  # bad inputs: one clear line
-        msg = f"error: {e}"
-        if multirun:
-            log.error(msg)
-            raise
-        print(msg, file=sys.stderr)
-        sys.exit(2)
+    res = run_or_exit(lambda: run(cfg, output_dir), multirun, log)
     print(summary(res, output_dir))
     if res["final_rotation_error_deg"] is not None:
         return float(res["final_rotation_error_deg"])
