@@ -15,9 +15,10 @@ T = TypeVar("T")
 def choose_threads(requested: Optional[int] = None) -> int:
     """Torch intra-op thread count: `requested` when positive, else automatic.
 
-    Automatic means all usable cores, or 1 when the machine is already busy (1-minute load average
-    >= cores - 0.5): intra-op threads then contend with the other processes and were measured to
-    run ~10x slower than one thread on a loaded 2-core machine.
+    Automatic means the cores left free by other work: round(cores - 1-minute load average),
+    at least 1. Intra-op threads that share a core with another busy process stall at every
+    OpenMP barrier: on a 2-core machine with one other busy process, 2 threads ran the demo ~15x
+    slower than 1 thread (243 s vs 15 s).
     """
     if requested is not None and int(requested) > 0:
         return int(requested)
@@ -26,7 +27,7 @@ def choose_threads(requested: Optional[int] = None) -> int:
         load = os.getloadavg()[0]
     except OSError:
         load = 0.0
-    return 1 if load >= cores - 0.5 else cores
+    return max(1, min(cores, int(cores - load + 0.5)))
 
 
 @contextlib.contextmanager

@@ -64,8 +64,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--backend", default="auto", choices=["auto", "cpu", "reference", "cuda"])
     p.add_argument("--device", default="cpu")
     p.add_argument("--threads", type=int, default=0,
-                   help="torch threads; 0 (default): all cores, or 1 when the machine is already busy "
-                        "(load average >= cores - 0.5: intra-op threads then contend and run ~10x slower)")
+                   help="torch threads; 0 (default): the cores other work leaves free "
+                        "(icomma_plugin.runtime.choose_threads; contended threads run ~10x slower)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                    help="override any FitConfig field (python literal), repeatable")
