@@ -2,8 +2,8 @@
 success.
 
 Conventions: rotation errors in degrees (iComMa: ``arccos((tr(R_est R_gt^T) - 1) / 2)``),
-translation errors as camera-centre distances in NORMALISED units (world distance / translation
-scale; see docs/BENCHMARK.md). Success is strict: ``rot < rot_thr and trans < trans_thr``. A
+translation errors as camera-centre distances in the benchmark's translation unit (world distance /
+translation scale; the scale is 1 in world units; see docs/BENCHMARK.md). Success is strict: ``rot < rot_thr and trans < trans_thr``. A
 missing value (None / NaN, e.g. a failed baseline) counts as a failure and as an infinite error.
 """
 from __future__ import annotations

@@ -13,9 +13,9 @@ uniformly random axis (a random axis covers both signs, so ``+-[a, b]`` is ``[a,
 the pivot (the world origin by default) and ``offset`` a world-frame translation of the camera
 centre. The rotation error of the result against the ground truth is exactly the drawn angle.
 
-Translations are given in NORMALISED units (the paper's translation thresholds are relative to
-the scene size): world offset = normalised offset x ``translation_scale`` (the scene radius by
-default; see docs/BENCHMARK.md). ``per_axis`` draws each component's magnitude uniformly in
+Translations are given in the benchmark's translation unit: world offset = offset x
+``translation_scale`` (1 for world units, the default; the scene radius with
+``translation_unit=scene_radius``; see docs/BENCHMARK.md). ``per_axis`` draws each component's magnitude uniformly in
 ``[t_lo, t_hi]`` with a random sign (iNeRF / iComMa "+-[a, b] per axis"); ``norm`` draws a
 uniform direction and a norm uniformly in ``[t_lo, t_hi]``.
 
