@@ -14,10 +14,14 @@ Readers (see each module's docstring for the file layout):
 - `read_colmap` (colmap.py): `sparse/0` or `sparse/` (binary or text) + `images/`.
 - `read_blender` (blender.py): `transforms_{train,val,test}.json`.
 - `read_llff` (llff.py): `poses_bounds.npy` + `images/`.
+- `read_transforms_json` (transforms_json.py): instant-ngp / nerfstudio single `transforms.json`.
 - `read_cameras_json_scene` (cameras_json_reader.py): a 3DGS model folder's `cameras.json` + an
   image folder.
 `read_dataset` picks one like 3DGS's `Scene` does (sparse/ first, then transforms_train.json),
-then poses_bounds.npy, then cameras.json.
+then transforms.json, then poses_bounds.npy, then cameras.json.
+
+`view.load_image(scale)` also returns the mask of valid pixels (real image content, not filled
+by undistortion): `ViewImage(rgb, alpha, valid)`; `valid` is None when every pixel is valid.
 """
 from __future__ import annotations
 
@@ -30,6 +34,7 @@ from .base import (
     DatasetError,
     SceneData,
     View,
+    ViewImage,
     random_points,
     read_image_file,
     undistort_image,
@@ -38,6 +43,7 @@ from .blender import read_blender
 from .cameras_json_reader import read_cameras_json_scene
 from .colmap import read_colmap
 from .llff import read_llff
+from .transforms_json import read_transforms_json
 
 __all__ = [
     "DatasetError",
@@ -45,6 +51,7 @@ __all__ = [
     "READERS",
     "SceneData",
     "View",
+    "ViewImage",
     "detect_dataset_kind",
     "random_points",
     "read_blender",
@@ -53,24 +60,28 @@ __all__ = [
     "read_dataset",
     "read_image_file",
     "read_llff",
+    "read_transforms_json",
     "undistort_image",
 ]
 
 READERS: Dict[str, Callable[..., SceneData]] = {
     "colmap": read_colmap,
     "blender": read_blender,
+    "transforms_json": read_transforms_json,
     "llff": read_llff,
     "cameras_json": read_cameras_json_scene,
 }
 
 _LOOKED_FOR = (
-    "sparse/ (COLMAP), transforms_train.json (Blender/NeRF-synthetic), poses_bounds.npy (LLFF), "
-    "cameras.json (3DGS model folder, with an image folder)"
+    "sparse/ (COLMAP), transforms_train.json (Blender/NeRF-synthetic), transforms.json "
+    "(instant-ngp / nerfstudio), poses_bounds.npy (LLFF), cameras.json (3DGS model folder, with "
+    "an image folder)"
 )
 
 
 def detect_dataset_kind(path) -> str:
-    """'colmap', 'blender', 'llff' or 'cameras_json' for a dataset folder (3DGS dispatch order)."""
+    """'colmap', 'blender', 'transforms_json', 'llff' or 'cameras_json' for a dataset folder
+    (3DGS dispatch order, with transforms.json after transforms_train.json)."""
     root = Path(path)
     if not root.exists():
         raise DatasetError(f"dataset path does not exist: {root}")
@@ -80,6 +91,8 @@ def detect_dataset_kind(path) -> str:
         return "colmap"
     if (root / "transforms_train.json").is_file():
         return "blender"
+    if (root / "transforms.json").is_file():
+        return "transforms_json"
     if (root / "poses_bounds.npy").is_file():
         return "llff"
     if (root / "cameras.json").is_file():
@@ -88,9 +101,9 @@ def detect_dataset_kind(path) -> str:
 
 
 def read_dataset(path, kind: Optional[str] = None, **kwargs: Any) -> SceneData:
-    """Read any supported dataset folder. `kind` forces a reader ('colmap', 'blender', 'llff',
-    'cameras_json'); other keyword arguments go to that reader (an argument it does not take
-    raises ValueError naming the reader and what it accepts)."""
+    """Read any supported dataset folder. `kind` forces a reader ('colmap', 'blender',
+    'transforms_json', 'llff', 'cameras_json'); other keyword arguments go to that reader (an
+    argument it does not take raises ValueError naming the reader and what it accepts)."""
     if kind is None:
         kind = detect_dataset_kind(path)
     elif kind not in READERS:

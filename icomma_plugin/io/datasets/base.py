@@ -5,15 +5,20 @@ axes (x right, y down, z forward), column vectors. Pixel centres sit at integer 
 the centre of a W-wide image is (W - 1) / 2 and a principal point `cx, cy` is in that convention.
 (COLMAP, instant-ngp and nerfstudio files put the pixel centre at +0.5; the readers subtract 0.5.)
 
-Image loading (`View.load`) does, in this order:
+Image loading (`View.load_image`, and `View.load` for (rgb, alpha) only) does, in this order:
 1. decode the file (8- or 16-bit; grey, RGB or RGBA) to float in [0, 1];
 2. undistort at full resolution when the view carries lens distortion (`View.distortion`):
    the image is remapped to the pinhole camera with the SAME calibration matrix K (same size,
-   same fx, fy, cx, cy), with `cv2.initUndistortRectifyMap(K, dist, None, K)` + `cv2.remap`
-   (bilinear); pixels whose source falls outside the image become 0 (alpha 0 too if any);
+   same fx, fy, cx, cy), with `cv2.initUndistortRectifyMap(K, dist, None, K)` (or
+   `cv2.fisheye.initUndistortRectifyMap` for `distortion_model="fisheye"`) + `cv2.remap`
+   (bilinear); pixels whose source falls outside the image become 0 (alpha 0 too if any), and
+   the validity mask marks them invalid (a pixel is valid only if all its bilinear taps are
+   inside the source image);
 3. composite an RGBA image over the background: `rgb * a + bg * (1 - a)` (as 3DGS's readers);
 4. resize to `view.intrinsics.scaled(scale)` size (cv2 INTER_AREA when shrinking, INTER_LINEAR
-   when enlarging), so that the scaled intrinsics describe the returned image exactly.
+   when enlarging), so that the scaled intrinsics describe the returned image exactly. The mask
+   is resized the same way and thresholded at `VALID_THRESHOLD` (close to 1), so a resized pixel
+   is valid only if all of its source pixels were.
 """
 from __future__ import annotations
 
@@ -40,6 +45,10 @@ IMAGE_SUFFIXES = {e.lower() for e in IMAGE_EXTENSIONS}
 SPLITS = ("train", "test")
 
 BackgroundLike = Union[None, float, Sequence[float], torch.Tensor]
+
+DISTORTION_MODELS = ("opencv", "fisheye")
+# A resampled validity mask keeps a pixel only if (almost) all of its source was valid.
+VALID_THRESHOLD = 0.999
 
 
 class DatasetError(ValueError):
@@ -111,23 +120,65 @@ def read_image_file(path: PathLike) -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
-def undistort_image(img: np.ndarray, K: np.ndarray, dist: Sequence[float]) -> np.ndarray:
+def undistort_image(img: np.ndarray, K: np.ndarray, dist: Sequence[float],
+                    model: str = "opencv") -> Tuple[np.ndarray, np.ndarray]:
     """Remap a distorted image to the pinhole camera with the same K (same size).
 
-    `dist` are OpenCV coefficients (k1, k2, p1, p2[, k3[, k4, k5, k6]]); K uses pixel centres at
-    integers (OpenCV's convention, and ours). Pixels mapped from outside the image become 0.
+    Args:
+        img: float32 [H, W, C] (or [H, W]) image.
+        K: 3x3 calibration matrix, pixel centres at integers (OpenCV's convention, and ours).
+        dist: for model "opencv", OpenCV coefficients (k1, k2, p1, p2[, k3[, k4, k5, k6]]); for
+            "fisheye", the four coefficients (k1, k2, k3, k4) of OpenCV's fisheye model
+            (theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)).
+        model: "opencv" or "fisheye".
+
+    Returns:
+        (undistorted [H, W, C] float32, valid [H, W] bool): pixels mapped from outside the source
+        image are 0 in the image and False in `valid` (True only where every bilinear tap of the
+        source lies inside the image).
     """
     import cv2
 
+    if model not in DISTORTION_MODELS:
+        raise ValueError(f"model must be one of {DISTORTION_MODELS}, got {model!r}")
     h, w = img.shape[:2]
     K = np.asarray(K, dtype=np.float64)
     d = np.asarray(dist, dtype=np.float64)
-    map1, map2 = cv2.initUndistortRectifyMap(K, d, None, K, (w, h), cv2.CV_32FC1)
+    if model == "fisheye":
+        if d.shape != (4,):
+            raise ValueError(f"dist must hold 4 fisheye coefficients (k1, k2, k3, k4), got "
+                             f"{d.tolist()}")
+        map1, map2 = cv2.fisheye.initUndistortRectifyMap(K, d, np.eye(3), K, (w, h), cv2.CV_32FC1)
+    else:
+        map1, map2 = cv2.initUndistortRectifyMap(K, d, None, K, (w, h), cv2.CV_32FC1)
     out = cv2.remap(img, map1, map2, interpolation=cv2.INTER_LINEAR,
                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     if out.ndim == 2:
         out = out[:, :, None]
-    return out
+    # remapping ones with the same maps gives the weight of the taps that fell inside the image
+    inside = cv2.remap(np.ones((h, w), np.float32), map1, map2, interpolation=cv2.INTER_LINEAR,
+                       borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    valid = inside >= VALID_THRESHOLD
+    return out, valid
+
+
+def resize_image(img: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Resize [H, W, C] float32 to (width, height): INTER_AREA when shrinking, else INTER_LINEAR."""
+    import cv2
+
+    h, w = img.shape[:2]
+    if (w, h) == (width, height):
+        return img
+    interp = cv2.INTER_AREA if (width < w and height < h) else cv2.INTER_LINEAR
+    out = cv2.resize(img, (width, height), interpolation=interp)
+    return out[:, :, None] if out.ndim == 2 else out
+
+
+def resize_valid(valid: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Resize a bool [H, W] validity mask conservatively: a pixel stays valid only if all of its
+    source pixels were (the resampled mask is thresholded at `VALID_THRESHOLD`)."""
+    out = resize_image(valid.astype(np.float32), width, height)[:, :, 0]
+    return out >= VALID_THRESHOLD
 
 
 def _background_array(background: BackgroundLike) -> np.ndarray:
@@ -172,6 +223,26 @@ def check_pose(c2w: Any, what: str) -> np.ndarray:
 
 
 @dataclass(eq=False)
+class ViewImage:
+    """A loaded view image (`View.load_image`).
+
+    rgb: [3, H, W] float32 in [0, 1].
+    alpha: [1, H, W] float32, or None when the file has no alpha channel.
+    valid: [1, H, W] float32 in {0, 1}: 1 where the pixel is real image content (0 where
+        undistortion filled it from outside the source image); None when every pixel is valid.
+    """
+
+    rgb: torch.Tensor
+    alpha: Optional[torch.Tensor] = None
+    valid: Optional[torch.Tensor] = None
+
+    @property
+    def valid_fraction(self) -> float:
+        """Fraction of valid pixels (1.0 when `valid` is None)."""
+        return 1.0 if self.valid is None else float(self.valid.mean())
+
+
+@dataclass(eq=False)
 class View:
     """One posed image of a dataset.
 
@@ -181,8 +252,10 @@ class View:
     image_path: the image file.
     split: "train" or "test".
     background: RGB the RGBA images are composited over by default (None: no compositing).
-    distortion: OpenCV distortion coefficients (k1, k2, p1, p2[, k3...]) of the raw image, or
-        None. `load` undistorts to `intrinsics` (same K) before anything else.
+    distortion: distortion coefficients of the raw image, or None: OpenCV's (k1, k2, p1, p2[,
+        k3...]) for `distortion_model` "opencv", (k1, k2, k3, k4) for "fisheye". `load` undistorts
+        to `intrinsics` (same K) before anything else.
+    distortion_model: "opencv" (radial-tangential) or "fisheye" (OpenCV's equidistant model).
     bounds: (near, far) scene depth bounds (LLFF), or None.
     meta: reader-specific extras (e.g. COLMAP image_id / camera_id / model).
     """
@@ -196,12 +269,16 @@ class View:
     distortion: Optional[Tuple[float, ...]] = None
     bounds: Optional[Tuple[float, float]] = None
     meta: Dict[str, Any] = field(default_factory=dict)
+    distortion_model: str = "opencv"
 
     def __post_init__(self):
         self.c2w = check_pose(self.c2w, f"view {self.name!r}")
         self.image_path = Path(self.image_path)
         if self.split not in SPLITS:
             raise ValueError(f"View.split must be one of {SPLITS}, got {self.split!r}")
+        if self.distortion_model not in DISTORTION_MODELS:
+            raise ValueError(f"View.distortion_model must be one of {DISTORTION_MODELS}, "
+                             f"got {self.distortion_model!r}")
 
     @property
     def w2c(self) -> np.ndarray:
@@ -224,8 +301,14 @@ class View:
     def height(self) -> int:
         return self.intrinsics.height
 
-    def load_array(self, composite: bool = True, background: BackgroundLike = None) -> np.ndarray:
-        """Full-resolution float32 [H, W, C] image after undistortion and compositing (C = 3 or 4)."""
+    @property
+    def is_distorted(self) -> bool:
+        """True when `load` undistorts (some distortion coefficient is non-zero)."""
+        return self.distortion is not None and any(float(c) != 0.0 for c in self.distortion)
+
+    def _load_full(self, composite: bool, background: BackgroundLike
+                   ) -> Tuple[np.ndarray, Optional[np.ndarray]]:
+        """Full-resolution (float32 [H, W, C] image, bool [H, W] valid mask or None)."""
         img = read_image_file(self.image_path)
         h, w = img.shape[:2]
         if (w, h) != (self.intrinsics.width, self.intrinsics.height):
@@ -233,8 +316,12 @@ class View:
                 f"image file {self.image_path} is {w}x{h} but view {self.name!r} expects "
                 f"{self.intrinsics.width}x{self.intrinsics.height} (from the camera file)"
             )
-        if self.distortion is not None and any(float(c) != 0.0 for c in self.distortion):
-            img = undistort_image(img, self.intrinsics.K().numpy(), self.distortion)
+        valid = None
+        if self.is_distorted:
+            img, valid = undistort_image(img, self.intrinsics.K().numpy(), self.distortion,
+                                         self.distortion_model)
+            if valid.all():
+                valid = None
         if img.shape[2] == 4 and composite:
             bg = background if background is not None else self.background
             if bg is not None:
@@ -242,7 +329,40 @@ class View:
                 a = img[:, :, 3:4]
                 rgb = img[:, :, :3] * a + bg[None, None, :] * (1.0 - a)
                 img = np.concatenate([rgb, a], axis=2)
-        return img
+        return img, valid
+
+    def load_array(self, composite: bool = True, background: BackgroundLike = None) -> np.ndarray:
+        """Full-resolution float32 [H, W, C] image after undistortion and compositing (C = 3 or 4)."""
+        return self._load_full(composite, background)[0]
+
+    def load_image(self, scale: float = 1.0, background: BackgroundLike = None,
+                   composite: bool = True) -> "ViewImage":
+        """Load the image with its alpha and validity mask (see the module docstring).
+
+        Args:
+            scale: size factor; the result has the size of `self.intrinsics.scaled(scale)`.
+            background: what an RGBA image is composited over (a number, 3 values or a tensor);
+                None: `self.background`.
+            composite: False returns the straight RGB of an RGBA image.
+
+        Returns:
+            ViewImage(rgb [3, H, W], alpha [1, H, W] or None (no alpha channel), valid [1, H, W]
+            float32 or None (every pixel is image content)).
+        """
+        if isinstance(scale, bool) or not (isinstance(scale, (int, float)) and math.isfinite(scale)
+                                           and scale > 0):
+            raise ValueError(f"scale must be a positive finite number, got {scale!r}")
+        img, valid = self._load_full(composite, background)
+        if scale != 1.0:
+            target = self.intrinsics.scaled(scale)
+            img = resize_image(img, target.width, target.height)
+            if valid is not None:
+                valid = resize_valid(valid, target.width, target.height)
+        t = torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1))).float().clamp_(0.0, 1.0)
+        rgb = t[:3].contiguous()
+        alpha = t[3:4].contiguous() if t.shape[0] == 4 else None
+        mask = None if valid is None else torch.from_numpy(valid[None].astype(np.float32))
+        return ViewImage(rgb=rgb, alpha=alpha, valid=mask)
 
     def load(self, scale: float = 1.0, background: BackgroundLike = None,
              composite: bool = True) -> Tuple[torch.Tensor, Optional[torch.Tensor]]:
@@ -251,26 +371,10 @@ class View:
         The size is that of `self.intrinsics.scaled(scale)`. An RGBA image is composited over
         `background` (a number, 3 values or a tensor), or over `self.background` when None; with
         `composite=False` (or no background at all) the straight RGB is returned. alpha is None
-        when the file has no alpha channel.
+        when the file has no alpha channel. `load_image` also returns the validity mask.
         """
-        if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
-            raise ValueError(f"scale must be a positive finite number, got {scale!r}")
-        img = self.load_array(composite=composite, background=background)
-        if scale != 1.0:
-            import cv2
-
-            target = self.intrinsics.scaled(scale)
-            tw, th = target.width, target.height
-            h, w = img.shape[:2]
-            if (tw, th) != (w, h):
-                interp = cv2.INTER_AREA if (tw < w and th < h) else cv2.INTER_LINEAR
-                img = cv2.resize(img, (tw, th), interpolation=interp)
-                if img.ndim == 2:
-                    img = img[:, :, None]
-        t = torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1))).float().clamp_(0.0, 1.0)
-        rgb = t[:3].contiguous()
-        alpha = t[3:4].contiguous() if t.shape[0] == 4 else None
-        return rgb, alpha
+        im = self.load_image(scale=scale, background=background, composite=composite)
+        return im.rgb, im.alpha
 
     def __repr__(self) -> str:
         i = self.intrinsics
@@ -286,8 +390,12 @@ class SceneData:
     train, test: the views of each split (sorted as the reader documents).
     points, colors: [N, 3] float64 initial point cloud and its colours in [0, 1], or None.
     white_background: the background RGBA images are composited over (white if True, else black).
-    source: which reader made it: "blender", "colmap", "llff" or "cameras_json".
+    source: which reader made it: "blender", "colmap", "llff", "cameras_json" or
+        "transforms_json".
     root: the dataset folder.
+    init_box: when `points` are random (no point cloud in the dataset), the cube they were
+        drawn in, as (centre [3], half_extent); a consumer may draw its own count in it
+        (`random_points(n, seed, half_extent, centre)`). None otherwise.
     """
 
     train: List[View]
@@ -297,6 +405,7 @@ class SceneData:
     white_background: bool
     source: str
     root: Optional[Path] = None
+    init_box: Optional[Tuple[Tuple[float, float, float], float]] = None
 
     def views(self, split: str = "train") -> List[View]:
         """Views of a split: "train", "test" or "all" (train then test)."""
@@ -367,11 +476,15 @@ def name_matches(name: str, wanted: set) -> bool:
     return bool({name, stem, base, os.path.splitext(base)[0]} & wanted)
 
 
-def random_points(num: int = 100_000, seed: int = 0, extent: float = 1.3) -> Tuple[np.ndarray, np.ndarray]:
-    """Upstream Blender init cloud: `num` points uniform in [-extent, extent]^3, colours
-    SH2RGB(U[0, 1)/255) (i.e. about 0.5 grey), from a seeded generator."""
+def random_points(num: int = 100_000, seed: int = 0, extent: float = 1.3,
+                  center: Optional[Sequence[float]] = None) -> Tuple[np.ndarray, np.ndarray]:
+    """Upstream Blender init cloud: `num` points uniform in the cube `center` +
+    [-extent, extent]^3 (center defaults to the origin), colours SH2RGB(U[0, 1)/255) (i.e. about
+    0.5 grey), from a seeded generator."""
     rng = np.random.default_rng(seed)
     xyz = rng.random((num, 3)) * (2.0 * extent) - extent
+    if center is not None:
+        xyz = xyz + np.asarray(center, dtype=np.float64).reshape(1, 3)
     shs = rng.random((num, 3)) / 255.0
     colors = shs * 0.28209479177387814 + 0.5
     return xyz.astype(np.float64), colors.astype(np.float64)

@@ -5,10 +5,11 @@ File layout: `{"camera_angle_x": ..., "frames": [{"file_path": "./train/r_0", "t
 y up, z back); it is converted to OpenCV axes with `c2w[:3, 1:3] *= -1` as 3DGS does.
 
 Intrinsics: fx = W / (2 tan(camera_angle_x / 2)); fy = fx (3DGS: FovY = focal2fov(fx, H)) unless
-`camera_angle_y` is given. instant-ngp / nerfstudio keys `fl_x, fl_y, cx, cy, w, h` (and
-distortion `k1, k2, k3, p1, p2`) are honoured when present, globally or per frame (per frame
-wins); their `cx, cy` put pixel centres at +0.5, so 0.5 is subtracted to reach our convention.
-W, H come from `w, h` when given, else from the image file.
+`camera_angle_y` is given. instant-ngp / nerfstudio camera keys (`fl_x, fl_y, cx, cy, w, h`,
+distortion, `camera_model`) are honoured when present, globally or per frame (per frame wins),
+exactly as the single-file reader does (`transforms_json.frame_camera`, one home for both);
+their `cx, cy` put pixel centres at +0.5, so 0.5 is subtracted to reach our convention.
+W, H come from `w, h` when given (and must match the image file), else from the image file.
 
 `file_path` may carry an extension or not (then `extension`, default ".png", then any common image
 extension is tried). Images with alpha are composited over white (`white_background=True`) or
@@ -18,13 +19,8 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Union
-
-import numpy as np
-
-from icomma_plugin.camera import Intrinsics
+from typing import Any, Dict, List, Union
 
 from .base import (
     IMAGE_SUFFIXES,
@@ -33,15 +29,12 @@ from .base import (
     SceneData,
     View,
     background_of,
-    check_pose,
     find_image,
-    image_size,
     random_points,
 )
+from .transforms_json import frame_camera, frame_pose
 
 logger = logging.getLogger(__name__)
-
-_DIST_KEYS = ("k1", "k2", "p1", "p2", "k3")
 
 
 def _load_json(path: Path) -> Dict[str, Any]:
@@ -57,15 +50,6 @@ def _load_json(path: Path) -> Dict[str, Any]:
     if not isinstance(frames, list):
         raise DatasetError(f"{path}: expected key 'frames' with a list of frames, got {type(frames).__name__}")
     return data
-
-
-def _num(d: Dict[str, Any], key: str, path: Path, where: str) -> Optional[float]:
-    if key not in d or d[key] is None:
-        return None
-    v = d[key]
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise DatasetError(f"{path}: {where} key {key!r} must be a finite number, got {v!r}")
-    return float(v)
 
 
 def _resolve_image(root: Path, file_path: str, extension: str, where: str) -> Path:
@@ -96,57 +80,13 @@ def read_blender_split(root: PathLike, transforms_file: str, split: str, white_b
         fp = frame.get("file_path")
         if not isinstance(fp, str) or not fp:
             raise DatasetError(f"{where}: missing or empty 'file_path'")
-        if "transform_matrix" not in frame:
-            raise DatasetError(f"{where}: missing 'transform_matrix'")
-        try:
-            m = np.array(frame["transform_matrix"], dtype=np.float64)
-        except (TypeError, ValueError) as e:
-            raise DatasetError(f"{where}: 'transform_matrix' is not a numeric matrix: {e}") from e
-        if m.shape not in ((4, 4), (3, 4)):
-            raise DatasetError(f"{where}: 'transform_matrix' must be 4x4, got shape {m.shape}")
-        c2w = check_pose(m, where).copy()
-        c2w[:3, 1:3] *= -1.0  # OpenGL/Blender (y up, z back) -> OpenCV (y down, z forward)
-
+        c2w = frame_pose(frame, where)
         image_path = _resolve_image(root, fp, extension, where)
-
-        def get(key):  # per-frame value wins over the global one
-            v = _num(frame, key, path, f"frame {i}")
-            return v if v is not None else _num(data, key, path, "top-level")
-
-        w, h = get("w"), get("h")
-        if w is None or h is None:
-            iw, ih = image_size(image_path)
-            w = float(iw) if w is None else w
-            h = float(ih) if h is None else h
-        if w <= 0 or h <= 0 or w != int(w) or h != int(h):
-            raise DatasetError(f"{where}: image size must be positive integers, got w={w}, h={h}")
-        w, h = int(w), int(h)
-        fx, fy = get("fl_x"), get("fl_y")
-        angle_x, angle_y = get("camera_angle_x"), get("camera_angle_y")
-        if fx is None and angle_x is not None:
-            if not 0.0 < angle_x < math.pi:
-                raise DatasetError(f"{path}: camera_angle_x must be in (0, pi) radians, got {angle_x}")
-            fx = w / (2.0 * math.tan(angle_x / 2.0))
-        if fy is None and angle_y is not None:
-            if not 0.0 < angle_y < math.pi:
-                raise DatasetError(f"{path}: camera_angle_y must be in (0, pi) radians, got {angle_y}")
-            fy = h / (2.0 * math.tan(angle_y / 2.0))
-        if fx is None and fy is None:
-            raise DatasetError(f"{where}: no focal length: expected 'camera_angle_x' (or 'fl_x')")
-        fx = fy if fx is None else fx
-        fy = fx if fy is None else fy
-        cx, cy = get("cx"), get("cy")
-        cx = None if cx is None else cx - 0.5
-        cy = None if cy is None else cy - 0.5
-        try:
-            intr = Intrinsics(w, h, fx, fy, cx, cy)
-        except ValueError as e:
-            raise DatasetError(f"{where}: bad intrinsics: {e}") from e
-        dist = [get(k) or 0.0 for k in _DIST_KEYS]
-        distortion = tuple(dist) if any(dist) else None
+        cam = frame_camera(data, frame, where, image_path)
         name = Path(fp).stem if Path(fp).suffix.lower() in IMAGE_SUFFIXES else Path(fp).name
-        views.append(View(name=name, intrinsics=intr, c2w=c2w, image_path=image_path, split=split,
-                          background=bg, distortion=distortion, meta={"file_path": fp}))
+        views.append(View(name=name, intrinsics=cam.intrinsics, c2w=c2w, image_path=image_path,
+                          split=split, background=bg, distortion=cam.distortion,
+                          distortion_model=cam.distortion_model, meta={"file_path": fp}))
     return views
 
 
