@@ -88,15 +88,20 @@ def _subset(n: int, k: int) -> List[int]:
 
 def views_to_fit(views, resolution, downscale, background, dtype=torch.float32, device=None,
                  keep_alpha: bool = False) -> List[FitView]:
-    """Load dataset `View`s at the requested resolution, composited over `background`."""
+    """Load dataset `View`s at the requested resolution, composited over `background`, with
+    their validity masks (pixels filled by undistortion are left out of losses and PSNR)."""
     out = []
+
+    def to(t):
+        return None if t is None else t.to(dtype=dtype, device=device)
+
     for v in views:
         s = resolution_scale(resolution, downscale, v.intrinsics.width)
-        rgb, alpha = v.load(scale=s, background=background)
+        im = v.load_image(scale=s, background=background)
         intr = v.intrinsics.scaled(s)
         w2c = torch.as_tensor(v.w2c, dtype=dtype, device=device)
-        out.append(FitView(v.name, rgb.to(dtype=dtype, device=device), intr, w2c,
-                           alpha=alpha.to(dtype=dtype, device=device) if (keep_alpha and alpha is not None) else None))
+        out.append(FitView(v.name, to(im.rgb), intr, w2c, alpha=to(im.alpha) if keep_alpha else None,
+                           valid=to(im.valid)))
     return out
 
 

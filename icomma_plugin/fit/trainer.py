@@ -32,24 +32,37 @@ SaveFn = Callable[[int, GaussianModel], None]
 
 @dataclass
 class FitView:
-    """A posed image in memory: rgb [3, H, W] in [0, 1] (composited over the background)."""
+    """A posed image in memory: rgb [3, H, W] in [0, 1] (composited over the background).
+
+    valid: [1, H, W] in {0, 1}, 1 where the pixel is real image content (`ViewImage.valid`);
+    None: every pixel. Losses and PSNR count only the valid pixels.
+    """
 
     name: str
     image: torch.Tensor
     intrinsics: Intrinsics
     w2c: torch.Tensor  # [4, 4]
     alpha: Optional[torch.Tensor] = None  # [1, H, W]; lets random backgrounds re-composite
+    valid: Optional[torch.Tensor] = None  # [1, H, W]
     _mats: object = field(default=None, repr=False)
 
     def __post_init__(self):
         i = self.intrinsics
-        if self.image.ndim != 3 or self.image.shape[0] != 3 or tuple(self.image.shape[1:]) != (i.height, i.width):
+        hw = (i.height, i.width)
+        if self.image.ndim != 3 or self.image.shape[0] != 3 or tuple(self.image.shape[1:]) != hw:
             raise ValueError(
-                f"FitView {self.name!r}: image must be [3, {i.height}, {i.width}] to match its intrinsics, "
-                f"got {list(self.image.shape)}"
+                f"FitView {self.name!r}: image must be [3, {i.height}, {i.width}] to match its "
+                f"intrinsics, got {list(self.image.shape)}"
             )
         if tuple(self.w2c.shape) != (4, 4):
             raise ValueError(f"FitView {self.name!r}: w2c must be [4, 4], got {list(self.w2c.shape)}")
+        for what in ("alpha", "valid"):
+            t = getattr(self, what)
+            if t is not None and tuple(t.shape) != (1,) + hw:
+                raise ValueError(f"FitView {self.name!r}: {what} must be [1, {i.height}, {i.width}] "
+                                 f"or None, got {list(t.shape)}")
+        if self.valid is not None and not bool(self.valid.any()):
+            raise ValueError(f"FitView {self.name!r}: valid mask has no valid pixel")
 
     def matrices(self, dtype: torch.dtype, device: torch.device):
         """Rasterizer matrices (cached; the pose is fixed during fitting)."""
@@ -170,7 +183,7 @@ class Trainer:
         if c.random_background and view.alpha is not None:
             gt = gt + (bg - self.background).view(3, 1, 1) * (1.0 - view.alpha)  # re-composite
         # loss and its image gradient in closed form (no autograd graph for L1 / SSIM)
-        loss, dloss = photometric_loss_and_grad(out.color.detach(), gt, c.lambda_dssim)
+        loss, dloss = photometric_loss_and_grad(out.color.detach(), gt, c.lambda_dssim, view.valid)
         t2 = time.perf_counter()
         out.color.backward(dloss)
         t3 = time.perf_counter()
@@ -194,7 +207,7 @@ class Trainer:
             st.zero_grad()
             tm["adam"] += time.perf_counter() - t5
             if it % self.progress_every == 0 or it == c.iterations:
-                info["psnr"] = psnr(out.color, gt)
+                info["psnr"] = psnr(out.color, gt, view.valid)
         tm["render"] += t1 - t0
         tm["loss"] += t2 - t1
         tm["backward"] += t3 - t2
@@ -204,14 +217,15 @@ class Trainer:
     # ------------------------------------------------------------------ evaluation
     @torch.no_grad()
     def evaluate(self, views: Optional[Sequence[FitView]] = None, sh_degree: Optional[int] = None) -> float:
-        """Mean PSNR (dB) over `views` (default: the test views), rendered over the background."""
+        """Mean PSNR (dB) over `views` (default: the test views), rendered over the background,
+        each on its valid pixels."""
         views = self.test_views if views is None else list(views)
         if not views:
             raise ValueError("evaluate: no views to evaluate on")
         vals = []
         for v in views:
             out = render_state(self.state, v, self.background, self.config.backend, sh_degree=sh_degree)
-            vals.append(psnr(out.color, v.image))
+            vals.append(psnr(out.color, v.image, v.valid))
         return float(sum(vals) / len(vals))
 
     # ------------------------------------------------------------------ the schedule

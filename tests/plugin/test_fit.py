@@ -403,3 +403,93 @@ def test_lego_split_and_resolution_smoke(lego_root):
     assert views[0].image.shape == (3, 200, 200)
     assert views[0].intrinsics.fx == pytest.approx(0.5 * 555.555, rel=1e-3)
     assert views[0].image.max() <= 1.0 and views[0].image[:, 0, 0].min() > 0.99  # white corner
+
+
+# ------------------------------------------------------------------------------ validity masks
+def _border_mask(H, W, b=3):
+    m = torch.zeros(1, H, W, dtype=torch.float64)
+    m[:, b:H - b, b + 1:W - b] = 1.0
+    return m
+
+
+def test_masked_loss_gradient_matches_autograd_and_finite_differences():
+    from icomma_plugin.fit.losses import photometric_loss_and_grad
+
+    g = torch.Generator().manual_seed(3)
+    H, W = 13, 15
+    render = torch.rand(3, H, W, generator=g, dtype=torch.float64)
+    gt = torch.rand(3, H, W, generator=g, dtype=torch.float64)
+    mask = _border_mask(H, W)
+    loss, grad = photometric_loss_and_grad(render, gt, 0.2, mask)
+    r = render.clone().requires_grad_(True)
+    ref = photometric_loss(r, gt, 0.2, mask=mask)
+    ref.backward()
+    assert loss.item() == pytest.approx(ref.item(), rel=1e-12)
+    torch.testing.assert_close(grad, r.grad, rtol=1e-9, atol=1e-12)
+    assert torch.count_nonzero(grad * (1 - mask)) == 0  # invalid pixels get no gradient
+    # central differences on a few valid pixels (away from L1's kink)
+    for c, y, x in ((0, 6, 7), (2, 3, 4), (1, 9, 11)):
+        e = torch.zeros_like(render)
+        e[c, y, x] = 1e-6
+        fd = (photometric_loss(render + e, gt, 0.2, mask=mask)
+              - photometric_loss(render - e, gt, 0.2, mask=mask)) / 2e-6
+        assert grad[c, y, x].item() == pytest.approx(fd.item(), rel=1e-5, abs=1e-9)
+    # content outside the mask does not matter, and an all-ones mask is no mask
+    junk = gt.clone()
+    junk[:, :3] = torch.rand(3, 3, W, generator=g, dtype=torch.float64)
+    assert photometric_loss_and_grad(render, junk, 0.2, mask)[0].item() == pytest.approx(loss.item())
+    ones = torch.ones(1, H, W, dtype=torch.float64)
+    assert photometric_loss_and_grad(render, gt, 0.2, ones)[0].item() == pytest.approx(
+        photometric_loss_and_grad(render, gt, 0.2)[0].item(), rel=1e-12)
+    assert ssim(render, gt, mask=ones).item() == pytest.approx(ssim(render, gt).item(), rel=1e-12)
+    with pytest.raises(ValueError, match="mask"):
+        photometric_loss_and_grad(render, gt, 0.2, mask[:, :5])
+
+
+def test_psnr_on_valid_pixels_only():
+    H, W = 20, 30
+    gt = torch.full((3, H, W), 0.5)
+    render = gt.clone()
+    mask = torch.zeros(1, H, W)
+    mask[:, 2:18, 3:27] = 1.0
+    render[:, 2:18, 3:27] += 0.1  # MSE 0.01 on the valid pixels: 20 dB
+    render[:, :2] = 1.0            # garbage where invalid (black borders would be the same)
+    assert psnr(render, gt, mask) == pytest.approx(20.0, abs=1e-4)
+    assert psnr(render, gt) < 19.0
+    with pytest.raises(ValueError, match="no valid pixel"):
+        psnr(render, gt, torch.zeros(1, H, W))
+
+
+def test_fit_ignores_invalid_pixels():
+    """Training on images whose invalid border is junk moves the Gaussians exactly as training
+    on clean images with the same mask; the evaluation counts the valid pixels only."""
+    rendered = _render_views(_gt_model(), _ring_poses(4), size=32)
+    mask = _border_mask(32, 32, b=5).float()
+
+    def views(junk: bool, masked: bool):
+        out = []
+        for n, img, _, intr, w2c in rendered:
+            im = img.clone()
+            if junk:
+                im[:, :5] = 0.0  # like an undistortion border
+                im[:, :, -5:] = 1.0
+            out.append(FitView(n, im, intr, torch.as_tensor(w2c, dtype=torch.float32),
+                               valid=mask if masked else None))
+        return out
+
+    def fit(train):
+        xyz, rgb = random_cube_points(200, 0.8, seed=0)
+        cfg = FitConfig.scaled_schedule(30, sh_degree=1, backend=BACKEND)
+        t = Trainer(model_from_points(xyz, rgb, sh_degree=1), train, 3.3, cfg, test=train)
+        t.run()
+        return t, t.state.get("means").detach().clone()
+
+    t_clean, m_clean = fit(views(junk=False, masked=True))
+    t_junk, m_junk = fit(views(junk=True, masked=True))
+    _, m_unmasked = fit(views(junk=True, masked=False))
+    assert torch.equal(m_clean, m_junk)
+    assert not torch.equal(m_clean, m_unmasked)
+    assert t_junk.evaluate() == pytest.approx(t_clean.evaluate(), abs=1e-9)
+    with pytest.raises(ValueError, match="valid"):
+        FitView("v", torch.zeros(3, 8, 8), Intrinsics(8, 8, 9.0, 9.0), torch.eye(4),
+                valid=torch.zeros(1, 8, 6))
