@@ -51,13 +51,16 @@ DEMO_VERSION = 3
 #: The point_cloud/iteration_<N> the demo model is written as.
 DEMO_ITERATION = 30000
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-
 
 def default_demo_path(seed: int = 0) -> Path:
-    """`<repo>/outputs/demo_scene` for seed 0, `<repo>/outputs/demo_scene_seed<N>` otherwise."""
+    """`./outputs/demo_scene` for seed 0, `./outputs/demo_scene_seed<N>` otherwise (absolute).
+
+    Relative to the current folder, beside the tools' Hydra outputs (`outputs/localize/...`), so
+    that an installed package never writes into site-packages; `make demo` runs in the checkout
+    and so keeps its cache in `<repo>/outputs/demo_scene`.
+    """
     name = "demo_scene" if seed == 0 else f"demo_scene_seed{seed}"
-    return REPO_ROOT / "outputs" / name
+    return Path.cwd() / "outputs" / name
 
 
 def _quat_from_matrix(R: np.ndarray) -> np.ndarray:
