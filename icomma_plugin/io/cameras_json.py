@@ -30,6 +30,9 @@ __all__ = ["CameraEntry", "read_cameras_json", "write_cameras_json", "entry_to_i
 
 # Tolerance on R^T R = I for a stored rotation (upstream stores float64 reprs: ~1e-15).
 _ORTHO_TOL = 1e-4
+# Largest accepted image side: far above any camera, small enough that sizes and focal ratios
+# stay exact floats; a larger width/height is a corrupt field.
+_MAX_SIDE = 1 << 20
 
 
 @dataclass
@@ -80,8 +83,20 @@ class CameraEntry:
         }
 
 
+def _short(v, n: int = 80) -> str:
+    """``repr(v)`` cut to ``n`` characters (a corrupt field can be a huge value)."""
+    r = repr(v)
+    return r if len(r) <= n else r[:n] + "..."
+
+
 def _is_number(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    """A finite int or float, not a bool (an int beyond the float range is not finite)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return False
+    try:
+        return math.isfinite(float(v))
+    except OverflowError:
+        return False
 
 
 def _parse_entry(e, i: int, path) -> CameraEntry:
@@ -93,27 +108,34 @@ def _parse_entry(e, i: int, path) -> CameraEntry:
     if missing:
         raise ValueError(f"{where}: missing fields {missing}")
     if not isinstance(e["id"], int) or isinstance(e["id"], bool):
-        raise ValueError(f"{where}: field 'id' must be an int, got {e['id']!r}")
+        raise ValueError(f"{where}: field 'id' must be an int, got {_short(e['id'])}")
     if not isinstance(e["img_name"], str):
-        raise ValueError(f"{where}: field 'img_name' must be a string, got {e['img_name']!r}")
+        raise ValueError(f"{where}: field 'img_name' must be a string, "
+                         f"got {_short(e['img_name'])}")
     for k in ("width", "height"):
         v = e[k]
-        if not isinstance(v, int) or isinstance(v, bool) or v <= 0:
-            raise ValueError(f"{where}: field '{k}' must be a positive int, got {v!r}")
+        if not isinstance(v, int) or isinstance(v, bool) or not 0 < v <= _MAX_SIDE:
+            raise ValueError(f"{where}: field '{k}' must be an int in 1..{_MAX_SIDE}, "
+                             f"got {_short(v)}")
     for k in ("fx", "fy"):
         v = e[k]
         if not _is_number(v) or v <= 0:
-            raise ValueError(f"{where}: field '{k}' must be a positive finite number, got {v!r}")
+            raise ValueError(f"{where}: field '{k}' must be a positive finite number, "
+                             f"got {_short(v)}")
     pos = e["position"]
     if not (isinstance(pos, list) and len(pos) == 3 and all(_is_number(v) for v in pos)):
-        raise ValueError(f"{where}: field 'position' must be 3 finite numbers, got {pos!r}")
+        raise ValueError(f"{where}: field 'position' must be 3 finite numbers, "
+                         f"got {_short(pos)}")
     rot = e["rotation"]
     if not (isinstance(rot, list) and len(rot) == 3
             and all(isinstance(r, list) and len(r) == 3 and all(_is_number(v) for v in r)
                     for r in rot)):
         raise ValueError(f"{where}: field 'rotation' must be a 3x3 nested list of finite numbers, "
-                         f"got {rot!r}")
+                         f"got {_short(rot)}")
     R = np.array(rot, dtype=np.float64)
+    if np.abs(R).max() > 2.0:  # not a rotation, and R^T R could overflow
+        raise ValueError(f"{where}: field 'rotation' is not a rotation matrix "
+                         f"(entry of magnitude {np.abs(R).max():.3g})")
     err = float(np.abs(R.T @ R - np.eye(3)).max())
     if err > _ORTHO_TOL or np.linalg.det(R) < 0:
         raise ValueError(f"{where}: field 'rotation' is not a rotation matrix "
@@ -133,15 +155,18 @@ def read_cameras_json(path: PathLike) -> List[CameraEntry]:
 
     Raises:
         ValueError: naming the file (and entry index and field) for a missing file, invalid
-            JSON, a non-list top level, missing/ill-typed fields or a non-rotation ``rotation``.
+            JSON (also too deeply nested), a non-list top level, missing/ill-typed fields, a
+            width/height outside 1..2^20, non-finite numbers or a non-rotation ``rotation``.
     """
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"cameras.json {path}: file not found")
     try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise ValueError(f"cameras.json {path}: invalid JSON ({e})") from e
+        data = json.loads(path.read_bytes())
+    except (ValueError, RecursionError) as e:
+        # ValueError: JSONDecodeError, UnicodeDecodeError, an int of more than 4300 digits.
+        raise ValueError(f"cameras.json {path}: invalid JSON ({type(e).__name__}: "
+                         f"{str(e)[:200]})") from e
     if not isinstance(data, list):
         raise ValueError(f"cameras.json {path}: expected a JSON list of cameras, "
                          f"got {type(data).__name__}")

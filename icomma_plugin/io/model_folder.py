@@ -159,7 +159,8 @@ def load_model_folder(path: PathLike, iteration: Optional[int] = None) -> ModelF
         (upstream writes it only when training from scratch).
 
     Raises:
-        ValueError: naming the path for: missing folder, missing ``cfg_args`` or a bad one, no
+        ValueError: naming the path for: missing folder, missing ``cfg_args`` or a bad one (not
+            UTF-8, not a ``Namespace(...)`` of literals, a non-bool ``white_background``), no
             ``point_cloud/`` or no ``iteration_*`` folder in it (lists what was found), a requested
             iteration that is absent (lists the available ones), missing/bad ``point_cloud.ply``
             or a bad ``cameras.json``.
@@ -170,7 +171,15 @@ def load_model_folder(path: PathLike, iteration: Optional[int] = None) -> ModelF
     cfg_path = root / "cfg_args"
     if not cfg_path.is_file():
         raise ValueError(f"model folder {root}: missing cfg_args (found {_listing(root)})")
-    cfg = parse_cfg_args(cfg_path.read_text(), cfg_path)
+    try:
+        cfg_text = cfg_path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ValueError(f"cfg_args {cfg_path}: not UTF-8 text ({e})") from e
+    cfg = parse_cfg_args(cfg_text, cfg_path)
+    wb = cfg.get("white_background", False)
+    if not isinstance(wb, bool):  # bool('False') is True: refuse rather than guess
+        raise ValueError(f"cfg_args {cfg_path}: field 'white_background' must be True or False, "
+                         f"got {str(repr(wb))[:80]}")
 
     pc = root / "point_cloud"
     if not pc.is_dir():

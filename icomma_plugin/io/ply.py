@@ -1,5 +1,8 @@
 """3DGS ``point_cloud.ply`` (Gaussians) and ``input.ply`` (coloured points) reading and writing.
 
+Reading parses the header here and reads only the ``vertex`` element, in one block for binary
+files (plyfile, used for writing, reads row by row and allocates what a header's counts claim).
+
 Layout of a Gaussian PLY (upstream ``GaussianModel.save_ply`` / ``load_ply``): one ``vertex``
 element, every property ``float`` (f4), binary little-endian, in the order
 ``x, y, z, nx, ny, nz, f_dc_0..2, f_rest_0..(3K-1), opacity, scale_0..2, rot_0..3`` where
@@ -10,15 +13,17 @@ values are raw (opacity logit, log-scale, unnormalised quaternion w,x,y,z), exac
 """
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import re
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Tuple, Union
+from typing import List, Optional, Tuple, Union
 
 import numpy as np
 import torch
-from plyfile import PlyData, PlyElement, PlyListProperty, PlyParseError
+from plyfile import PlyData, PlyElement
 
 from ..gaussians import GaussianModel, num_sh_coeffs
 from .atomic import atomic_path
@@ -43,32 +48,176 @@ def _attribute_names(sh_degree: int) -> list:
             + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
 
 
-def _read_ply(path: Path, what: str) -> PlyData:
+# PLY scalar type names -> numpy codes (the PLY 1.0 names and their sized aliases).
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2",
+              "int16": "i2", "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4",
+              "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4", "double": "f8",
+              "float64": "f8"}
+_FORMATS = {"ascii": "<", "binary_little_endian": "<", "binary_big_endian": ">"}
+# A 3DGS header is ~1.5 KB; anything past this without 'end_header' is not a PLY header.
+_MAX_HEADER = 1 << 20
+
+
+@dataclass
+class _Element:
+    """One ``element`` of a PLY header: its row count and ``(name, numpy code or None)``
+    properties, None marking a list property."""
+
+    name: str
+    count: int
+    props: List[Tuple[str, Optional[str]]] = field(default_factory=list)
+
+
+def _header_error(where: str, no: int, line: str, msg: str) -> ValueError:
+    return ValueError(f"{where}: cannot parse PLY header line {no} {line[:80]!r}: {msg}")
+
+
+def _parse_header(path: Path, what: str) -> Tuple[bool, str, List[_Element], int]:
+    """``(is_ascii, byte order, elements, body offset)`` of a PLY file, checked line by line."""
+    with open(path, "rb") as f:
+        head = f.read(_MAX_HEADER)
+    if head[:3] != b"ply":
+        raise ValueError(f"{what} {path}: not a PLY file (it does not start with 'ply', "
+                         f"got {head[:4]!r})")
+    nl = next((n for n in (b"\r\n", b"\n", b"\r") if head[3:3 + len(n)] == n), None)
+    if nl is None:
+        raise ValueError(f"{what} {path}: cannot parse PLY header (no line break after 'ply')")
+    end = head.find(nl + b"end_header" + nl)
+    if end < 0:
+        raise ValueError(f"{what} {path}: cannot parse PLY header (no 'end_header' line in the "
+                         f"first {min(len(head), _MAX_HEADER)} bytes: truncated or not a PLY)")
+    try:
+        lines = head[3 + len(nl):end].decode("ascii").split(nl.decode("ascii"))
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{what} {path}: cannot parse PLY header (not ASCII text: {e})") from e
+    fmt = None
+    elements: List[_Element] = []
+    for no, line in enumerate(lines, start=2):
+        words = line.split()
+        bad = functools.partial(_header_error, f"{what} {path}", no, line)
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        key = words[0]
+        if fmt is None:
+            if key != "format" or len(words) != 3 or words[1] not in _FORMATS \
+                    or words[2] != "1.0":
+                raise bad(f"expected 'format <{'|'.join(_FORMATS)}> 1.0' first")
+            fmt = words[1]
+        elif key == "element":
+            if len(words) != 3 or not words[2].isdigit() or len(words[2]) > 18:
+                raise bad("expected 'element <name> <count>' with a count below 10^18")
+            if any(e.name == words[1] for e in elements):
+                raise bad(f"element {words[1]!r} declared twice")
+            elements.append(_Element(words[1], int(words[2])))
+        elif key == "property":
+            if not elements:
+                raise bad("property before any element")
+            if len(words) == 5 and words[1] == "list":
+                if words[2] not in _PLY_TYPES or words[3] not in _PLY_TYPES:
+                    raise bad(f"unknown type (known: {', '.join(_PLY_TYPES)})")
+                name, code = words[4], None
+            elif len(words) == 3:
+                if words[1] not in _PLY_TYPES:
+                    raise bad(f"unknown type {words[1]!r} (known: {', '.join(_PLY_TYPES)})")
+                name, code = words[2], _PLY_TYPES[words[1]]
+            else:
+                raise bad("expected 'property <type> <name>' or "
+                          "'property list <count type> <type> <name>'")
+            if any(n == name for n, _ in elements[-1].props):
+                raise bad(f"property {name!r} declared twice")
+            elements[-1].props.append((name, code))
+        else:
+            raise bad("expected 'element', 'property', 'comment' or 'obj_info'")
+    if fmt is None:
+        raise ValueError(f"{what} {path}: cannot parse PLY header (no 'format' line)")
+    body = end + len(nl) * 2 + len(b"end_header")
+    return fmt == "ascii", _FORMATS[fmt], elements, body
+
+
+def _read_vertex(path: Path, what: str) -> np.ndarray:
+    """The ``vertex`` element of a PLY file as a structured array (one field per property).
+
+    Only the vertex element is read (elements after it are not). Every row count is checked
+    against the bytes the file has before anything is allocated, so a corrupt count is an error,
+    not a huge allocation.
+    """
     if not path.exists():
         raise ValueError(f"{what} {path}: file not found")
     if not path.is_file():
         raise ValueError(f"{what} {path}: not a regular file")
-    with open(path, "rb") as f:
-        magic = f.read(4)
-    if magic[:3] != b"ply":
-        raise ValueError(f"{what} {path}: not a PLY file (it does not start with 'ply', "
-                         f"got {magic!r})")
-    try:
-        return PlyData.read(str(path), mmap=False)
-    except (PlyParseError, ValueError, EOFError, IndexError, TypeError) as e:
-        # plyfile reports truncation as "early end-of-file" and header problems with the line.
-        raise ValueError(f"{what} {path}: cannot parse PLY ({type(e).__name__}: {e})") from e
-
-
-def _vertex(ply: PlyData, path: Path, what: str):
-    names = [el.name for el in ply.elements]
+    ascii_, order, elements, body = _parse_header(path, what)
+    names = [e.name for e in elements]
     if "vertex" not in names:
         raise ValueError(f"{what} {path}: no 'vertex' element (elements found: {names})")
-    el = ply["vertex"]
-    lists = [p.name for p in el.properties if isinstance(p, PlyListProperty)]
+    k = names.index("vertex")
+    vertex = elements[k]
+    lists = [n for n, code in vertex.props if code is None]
     if lists:
         raise ValueError(f"{what} {path}: vertex properties {lists} are lists; expected scalars")
-    return el
+    if not vertex.props:
+        raise ValueError(f"{what} {path}: the vertex element has no properties")
+    dtype = np.dtype([(n, order + code) for n, code in vertex.props])
+    if ascii_:
+        return _read_ascii_rows(path, what, elements[:k], vertex, dtype, body)
+    size = path.stat().st_size - body
+    offset = 0
+    for e in elements[:k]:
+        if any(code is None for _, code in e.props):
+            raise ValueError(f"{what} {path}: element {e.name!r} before 'vertex' has list "
+                             f"properties; cannot locate the vertex data in a binary file")
+        offset += e.count * sum(np.dtype(code).itemsize for _, code in e.props)
+    need = offset + vertex.count * dtype.itemsize
+    if need > size:
+        raise ValueError(f"{what} {path}: early end-of-file: the header declares "
+                         f"{vertex.count} vertices ({need} bytes with the elements before them) "
+                         f"but only {max(size, 0)} bytes follow the header (truncated file or "
+                         f"corrupt count)")
+    with open(path, "rb") as f:
+        f.seek(body + offset)
+        buf = f.read(vertex.count * dtype.itemsize)
+    return np.frombuffer(buf, dtype=dtype).copy()
+
+
+def _read_ascii_rows(path: Path, what: str, before: List[_Element], vertex: _Element,
+                     dtype: np.dtype, body: int) -> np.ndarray:
+    """Vertex rows of an ASCII PLY (one row per line, after the rows of the elements before)."""
+    with open(path, "rb") as f:
+        f.seek(body)
+        raw = f.read()
+    try:
+        text = raw.decode("ascii")
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{what} {path}: ASCII PLY body is not ASCII text ({e})") from e
+    lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
+    start = sum(e.count for e in before)
+    # Each row needs at least one character per property plus a separator or line break.
+    if start + vertex.count > len(lines) or 2 * len(vertex.props) * vertex.count > len(raw):
+        raise ValueError(f"{what} {path}: early end-of-file: the header declares "
+                         f"{vertex.count} vertices after {start} other rows but the body has "
+                         f"only {len(lines)} lines ({len(raw)} bytes)")
+    rows = [ln.split() for ln in lines[start:start + vertex.count]]
+    width = len(vertex.props)
+    for i, r in enumerate(rows):
+        if len(r) != width:
+            raise ValueError(f"{what} {path}: vertex row {i} has {len(r)} values, expected "
+                             f"{width} (one per property)")
+    out = np.empty(vertex.count, dtype=dtype)
+    for j, (name, code) in enumerate(vertex.props):
+        col = [r[j] for r in rows]
+        try:
+            if code[0] == "f":
+                with np.errstate(over="ignore"):  # out-of-range -> Inf, rejected by the callers
+                    out[name] = np.array(col, dtype=np.float64)
+            else:
+                vals = [int(v) for v in col]
+                info = np.iinfo(np.dtype(code))
+                if any(v < info.min or v > info.max for v in vals):
+                    raise ValueError(f"out of range for {np.dtype(code).name}")
+                out[name] = vals
+        except ValueError as e:
+            raise ValueError(f"{what} {path}: vertex property {name!r}: malformed ASCII values "
+                             f"({e})") from e
+    return out
 
 
 def read_gaussian_ply(path: PathLike) -> GaussianModel:
@@ -86,13 +235,14 @@ def read_gaussian_ply(path: PathLike) -> GaussianModel:
 
     Raises:
         ValueError: naming the file and the problem: missing file, not a PLY / unparsable or
-            truncated, no ``vertex`` element, missing properties (named), an ``f_rest`` count that
-            matches no SH degree, non-float32 properties, NaN/Inf values (count and fields).
+            truncated (also a vertex count larger than the file holds), no ``vertex`` element,
+            missing properties (named), an ``f_rest`` count that matches no SH degree,
+            non-float32 properties, NaN/Inf values (count and fields).
     """
     path = Path(path)
     what = "Gaussian PLY"
-    el = _vertex(_read_ply(path, what), path, what)
-    types = {p.name: np.dtype(p.val_dtype) for p in el.properties}
+    data = _read_vertex(path, what)
+    types = {n: data.dtype[n] for n in data.dtype.names}
 
     missing = [n for n in _FIXED if n not in types]
     if missing:
@@ -125,7 +275,6 @@ def read_gaussian_ply(path: PathLike) -> GaussianModel:
     if extra:
         log.info("%s %s: ignoring extra vertex properties %s", what, path, extra)
 
-    data = el.data
     P = len(data)
     cols = {n: np.asarray(data[n], dtype=np.float32) for n in used}
     bad = {n: int((~np.isfinite(v)).sum()) for n, v in cols.items()}
@@ -241,23 +390,34 @@ def read_points_ply(path: PathLike) -> Tuple[np.ndarray, Optional[np.ndarray]]:
     """Read a point cloud PLY (e.g. ``input.ply``/``points3d.ply``) as upstream ``fetchPly``.
 
     Returns:
-        ``(xyz [N, 3] float64, rgb [N, 3] float64 in [0, 1] or None if no colour properties)``.
+        ``(xyz [N, 3] float64, rgb [N, 3] float64 in [0, 1] or None if no colour properties)``;
+        colours are the stored 0..255 values divided by 255, as upstream.
 
     Raises:
-        ValueError: naming the file for a missing/unparsable file or missing x, y, z.
+        ValueError: naming the file for a missing/unparsable/truncated file, missing x, y, z,
+            non-finite points or colours outside 0..255.
     """
     path = Path(path)
     what = "point PLY"
-    el = _vertex(_read_ply(path, what), path, what)
-    names = [p.name for p in el.properties]
+    d = _read_vertex(path, what)
+    names = list(d.dtype.names)
     missing = [n for n in ("x", "y", "z") if n not in names]
     if missing:
         raise ValueError(f"{what} {path}: missing vertex properties {missing} (found {names})")
-    d = el.data
     xyz = np.stack([np.asarray(d[n], np.float64) for n in ("x", "y", "z")], 1).reshape(-1, 3)
+    n_bad = int((~np.isfinite(xyz)).sum())
+    if n_bad:
+        raise ValueError(f"{what} {path}: {n_bad} non-finite (NaN/Inf) x/y/z values in "
+                         f"{len(xyz)} points")
     rgb = None
     if all(n in names for n in ("red", "green", "blue")):
-        rgb = np.stack([np.asarray(d[n], np.float64) for n in ("red", "green", "blue")], 1) / 255.0
+        rgb = np.stack([np.asarray(d[n], np.float64) for n in ("red", "green", "blue")],
+                       1).reshape(-1, 3)
+        out = ~((rgb >= 0) & (rgb <= 255))  # also NaN
+        if out.any():
+            raise ValueError(f"{what} {path}: {int(out.sum())} red/green/blue values outside "
+                             f"0..255 (or NaN)")
+        rgb = rgb / 255.0
     return xyz, rgb
 
 

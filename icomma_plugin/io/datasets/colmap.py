@@ -164,14 +164,16 @@ def camera_intrinsics(cam: ColmapCamera, where: str = "") -> Tuple[Intrinsics, O
             f"{where}: camera {cam.id} uses COLMAP model {m}, which is not supported (supported: "
             f"{', '.join(SUPPORTED_MODELS)}); undistort the dataset with `colmap image_undistorter`"
         )
+    if dist is not None and not all(np.isfinite(dist)):
+        raise DatasetError(f"{where}: camera {cam.id} ({m}) has non-finite distortion {dist}")
     if dist is not None and not any(dist):
         dist = None
-    cx, cy = cx - 0.5, cy - 0.5
-    if abs(cx - (cam.width - 1) / 2.0) < 1e-9 and abs(cy - (cam.height - 1) / 2.0) < 1e-9:
-        cx = cy = None
-    try:
+    try:  # OverflowError: a width too large for a float (corrupt text file)
+        cx, cy = cx - 0.5, cy - 0.5
+        if abs(cx - (cam.width - 1) / 2.0) < 1e-9 and abs(cy - (cam.height - 1) / 2.0) < 1e-9:
+            cx = cy = None
         intr = Intrinsics(int(cam.width), int(cam.height), fx, fy, cx, cy)
-    except ValueError as e:
+    except (ValueError, OverflowError) as e:
         raise DatasetError(f"{where}: camera {cam.id} ({m}) has invalid intrinsics: {e}") from e
     return intr, dist
 
@@ -278,6 +280,7 @@ def read_points3D_binary(path: PathLike) -> Tuple[np.ndarray, np.ndarray]:
         (tl,) = r.read("Q", f"point {vals[0]} track length")
         r.skip(8 * tl, f"point {vals[0]} track")
     r.finish()
+    _check_points(xyz, path)
     return xyz, rgb / 255.0
 
 
@@ -287,7 +290,11 @@ def _text_lines(path: Path):
     """(line number, stripped line) of non-comment lines; empty lines kept (images.txt needs them)."""
     if not path.is_file():
         raise DatasetError(f"COLMAP text file not found: {path}")
-    for no, line in enumerate(path.read_text().splitlines(), start=1):
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise DatasetError(f"COLMAP text file {path} is not UTF-8 text: {e}") from None
+    for no, line in enumerate(text.splitlines(), start=1):
         s = line.strip()
         if s.startswith("#"):
             continue
@@ -357,9 +364,20 @@ def read_points3D_text(path: PathLike) -> Tuple[np.ndarray, np.ndarray]:
             raise DatasetError(f"{path}:{no}: expected 'POINT3D_ID X Y Z R G B ERROR TRACK...', got {s!r}")
         xyz.append([_parse(float, t, path, no, "X/Y/Z") for t in el[1:4]])
         rgb.append([_parse(int, t, path, no, "R/G/B") for t in el[4:7]])
+        if not all(0 <= c <= 255 for c in rgb[-1]):
+            raise DatasetError(f"{path}:{no}: R/G/B must be in 0..255, got {el[4:7]}")
     if not xyz:
         return np.zeros((0, 3)), np.zeros((0, 3))
+    _check_points(np.array(xyz, dtype=np.float64), path)
     return np.array(xyz, dtype=np.float64), np.array(rgb, dtype=np.float64) / 255.0
+
+
+def _check_points(xyz: np.ndarray, path) -> None:
+    """Refuse NaN/Inf point coordinates (they would become NaN Gaussians)."""
+    bad = ~np.isfinite(xyz).all(axis=1)
+    if bad.any():
+        raise DatasetError(f"{path}: {int(bad.sum())} of {len(xyz)} points have non-finite "
+                           f"(NaN/Inf) coordinates (first: point #{int(np.argmax(bad))})")
 
 
 # ----------------------------------------------------------------------------- scene
@@ -431,7 +449,12 @@ def read_colmap(path: PathLike, images: str = "images", eval: bool = True, llffh
         if im.camera_id not in intr_cache:
             intr_cache[im.camera_id] = camera_intrinsics(cams[im.camera_id], where=str(sparse))
         image_path = img_dir / im.name
-        if not image_path.is_file():
+        try:
+            found = image_path.is_file()
+        except OSError as e:  # e.g. a corrupt name too long for the file system
+            raise DatasetError(f"{sparse}: image {im.id} has an unusable name "
+                               f"{im.name[:80]!r}...: {e.strerror}") from None
+        if not found:
             alt = img_dir / os.path.basename(im.name)
             if not alt.is_file():
                 raise DatasetError(f"image file of registered COLMAP image {im.name!r} not found: {image_path}")

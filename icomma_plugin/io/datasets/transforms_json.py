@@ -90,9 +90,9 @@ def load_transforms(path: Path) -> Dict[str, Any]:
     if not path.is_file():
         raise DatasetError(f"transforms file not found: {path}")
     try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise DatasetError(f"malformed JSON in {path}: {e}") from e
+        data = json.loads(path.read_bytes())
+    except (ValueError, RecursionError) as e:  # also too deep, or an int of > 4300 digits
+        raise DatasetError(f"malformed JSON in {path}: {type(e).__name__}: {str(e)[:200]}") from e
     if not isinstance(data, dict):
         raise DatasetError(f"{path}: expected a JSON object with key 'frames', got "
                            f"{type(data).__name__}")
@@ -120,7 +120,11 @@ class _Keys:
         v, level = self.raw(key)
         if v is None:
             return None
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        try:
+            ok = not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v)
+        except OverflowError:  # an int beyond the float range
+            ok = False
+        if not ok:
             raise DatasetError(f"{self.where}: key {key!r} ({level}) must be a finite number, "
                                f"got {v!r}")
         return float(v)
@@ -136,7 +140,7 @@ def frame_pose(frame: Dict[str, Any], where: str) -> np.ndarray:
         raise DatasetError(f"{where}: missing key 'transform_matrix' (camera-to-world 4x4)")
     try:
         m = np.array(frame["transform_matrix"], dtype=np.float64)
-    except (TypeError, ValueError) as e:
+    except (TypeError, ValueError, OverflowError) as e:  # OverflowError: an int beyond float
         raise DatasetError(f"{where}: key 'transform_matrix' is not a numeric matrix: {e}") from e
     if m.shape not in ((4, 4), (3, 4)):
         raise DatasetError(f"{where}: key 'transform_matrix' must be 4x4 (or 3x4), got shape "
@@ -386,6 +390,9 @@ def read_transforms_json(path: PathLike, white_background: bool = False, eval: b
     else:
         centre, half = camera_box([e[2] for e in entries])
         points, colors = random_points(random_init_points, seed=seed, extent=half, center=centre)
+        if not np.isfinite(points).all():
+            raise DatasetError(f"{tf}: camera centres (key 'transform_matrix') are too large to "
+                               f"place random initial points around (box half-size {half:g})")
         init_box = (tuple(float(c) for c in centre), half)
     logger.info("transforms.json dataset %s: %d train, %d test views, %d %s points", root,
                 len(train), len(test), len(points), "random" if init_box else "PLY")

@@ -1,0 +1,160 @@
+"""Valid seed files for the reader fuzz tests, small enough to read hundreds of times a second.
+
+PLY, cameras.json and cfg_args seeds come from the library's writers. COLMAP files are packed
+here (layouts of COLMAP's ``scripts/python/read_write_model.py``, as the writers in
+tests/plugin/test_datasets.py) because the fuzzer needs the offset of every binary field.
+"""
+from __future__ import annotations
+
+import io
+import math
+import struct
+from typing import Dict, List, Optional, Tuple
+
+import torch
+from plyfile import PlyData
+
+from icomma_plugin.gaussians import GaussianModel
+from icomma_plugin.io.cameras_json import CameraEntry
+from icomma_plugin.io.datasets.colmap import CAMERA_MODELS
+from icomma_plugin.pose.convert import look_at_c2w
+
+CFG = {"data_device": "cuda", "eval": True, "images": "images", "model_path": "./output/x",
+       "resolution": -1, "sh_degree": 1, "source_path": "/data/lego", "white_background": True}
+
+
+def gaussians(P: int, degree: int, seed: int = 0) -> GaussianModel:
+    """``P`` random Gaussians of SH degree ``degree``."""
+    g = torch.Generator().manual_seed(seed)
+    K = (degree + 1) ** 2 - 1
+    r = lambda *s: torch.randn(*s, generator=g)  # noqa: E731
+    return GaussianModel(r(P, 3), r(P, 1, 3), r(P, K, 3), r(P, 1), r(P, 3), r(P, 4), degree)
+
+
+def as_ascii(binary_ply: bytes) -> bytes:
+    """The same PLY in ASCII format (plyfile's writer)."""
+    ply = PlyData.read(io.BytesIO(binary_ply))
+    ply.text = True
+    out = io.BytesIO()
+    ply.write(out)
+    return out.getvalue()
+
+
+def cameras(n: int) -> List[CameraEntry]:
+    """``n`` cameras on a ring looking at the origin, 80x60 pixels."""
+    out = []
+    for i in range(n):
+        a = 2 * math.pi * i / max(n, 1)
+        c2w = look_at_c2w([4 * math.cos(a), 4 * math.sin(a), 1.0], [0, 0, 0], up=[0, 0, 1])
+        out.append(CameraEntry(i, f"r_{i}", 80, 60, c2w, 111.1 + i, 110.5))
+    return out
+
+
+# ----------------------------------------------------------------------------- COLMAP
+
+# cameras: (id, model id, w, h, params); images: (id, qvec, tvec, camera id, name, n points2D);
+# points: (id, xyz, rgb, error, track length).
+COLMAP_CAMERAS = [(1, 1, 32, 24, [30.0, 28.0, 18.0, 11.0]),  # PINHOLE, off-centre
+                  (2, 2, 20, 16, [22.0, 10.0, 8.0, 0.01])]   # SIMPLE_RADIAL (distorted)
+COLMAP_IMAGES = [(10, (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 4.0), 1, "img_00.png", 2),
+                 (11, (0.9, 0.1, 0.3, 0.3), (0.5, -0.2, 3.0), 2, "img_01.png", 0),
+                 (12, (0.5, 0.5, -0.5, 0.5), (0.1, 0.2, 5.0), 1, "sub/img_02.png", 1)]
+COLMAP_POINTS = [(1, (0.1, 0.2, 0.3), (255, 128, 0), 0.5, 2),
+                 (2, (1.0, -2.0, 3.0), (0, 0, 255), 0.1, 0),
+                 (3, (0.0, 0.0, 0.0), (7, 7, 7), 1.5, 1)]
+
+
+def colmap_binary() -> Tuple[Dict[str, bytes], Dict[str, List[Tuple[int, str]]]]:
+    """The seed scene as ``cameras/images/points3D.bin`` bytes and, per file, the
+    ``(offset, struct fmt)`` of every count, id and value field."""
+    files, slots = {}, {}
+
+    def put(buf, sl, fmt, *vals):
+        sl.extend((len(buf) + struct.calcsize("<" + fmt[:k]), f) for k, f in enumerate(fmt))
+        buf += struct.pack("<" + fmt, *vals)
+
+    buf, sl = bytearray(), []
+    put(buf, sl, "Q", len(COLMAP_CAMERAS))
+    for cid, mid, w, h, params in COLMAP_CAMERAS:
+        put(buf, sl, "iiQQ", cid, mid, w, h)
+        put(buf, sl, "d" * len(params), *params)
+    files["cameras.bin"], slots["cameras.bin"] = bytes(buf), sl
+
+    buf, sl = bytearray(), []
+    put(buf, sl, "Q", len(COLMAP_IMAGES))
+    for iid, q, t, cid, name, npts in COLMAP_IMAGES:
+        put(buf, sl, "idddddddi", iid, *q, *t, cid)
+        buf += name.encode() + b"\x00"
+        put(buf, sl, "Q", npts)
+        for k in range(npts):
+            put(buf, sl, "ddq", 1.0 + k, 2.0, -1)
+    files["images.bin"], slots["images.bin"] = bytes(buf), sl
+
+    buf, sl = bytearray(), []
+    put(buf, sl, "Q", len(COLMAP_POINTS))
+    for pid, xyz, rgb, err, tl in COLMAP_POINTS:
+        put(buf, sl, "QdddBBBd", pid, *xyz, *rgb, err)
+        put(buf, sl, "Q", tl)
+        for k in range(tl):
+            put(buf, sl, "ii", 1, k)
+    files["points3D.bin"], slots["points3D.bin"] = bytes(buf), sl
+    return files, slots
+
+
+def colmap_text() -> Dict[str, Optional[bytes]]:
+    """The seed scene as COLMAP ``.txt`` bytes, with the ``.bin`` names mapped to None (absent,
+    so that the reader reads the text files)."""
+    name = {k: v[0] for k, v in CAMERA_MODELS.items()}
+    cam = ["# Camera list with one line of data per camera:"]
+    cam += [" ".join([str(c[0]), name[c[1]], str(c[2]), str(c[3])]
+                     + [repr(float(p)) for p in c[4]]) for c in COLMAP_CAMERAS]
+    img = ["# Image list with two lines of data per image:"]
+    for iid, q, t, cid, fname, npts in COLMAP_IMAGES:
+        img.append(" ".join([str(iid)] + [repr(float(v)) for v in (*q, *t)] + [str(cid), fname]))
+        img.append(" ".join(f"{1.0 + k!r} 2.0 -1" for k in range(npts)))
+    pts = ["# 3D point list with one line of data per point:"]
+    for pid, xyz, rgb, err, tl in COLMAP_POINTS:
+        pts.append(" ".join([str(pid)] + [repr(float(v)) for v in xyz] + [str(c) for c in rgb]
+                            + [repr(float(err))] + [f"1 {k}" for k in range(tl)]))
+    files: Dict[str, Optional[bytes]] = {
+        "cameras.txt": ("\n".join(cam) + "\n").encode(),
+        "images.txt": ("\n".join(img) + "\n").encode(),
+        "points3D.txt": ("\n".join(pts) + "\n").encode()}
+    files.update({n.replace(".txt", ".bin"): None for n in list(files)})
+    return files
+
+
+def write_colmap_files(sparse, files, name=None, bad=None) -> None:
+    """``files`` into ``sparse``, ``bad`` in place of ``name``; a None entry is removed."""
+    for n, b in files.items():
+        b = bad if n == name else b
+        if b is None:
+            (sparse / n).unlink(missing_ok=True)
+        else:
+            (sparse / n).write_bytes(b)
+
+
+# ----------------------------------------------------------------------------- transforms.json
+
+def _gl_look_at(centre):
+    """OpenGL camera-to-world (x right, y up, z back) at ``centre`` looking at the origin."""
+    c2w = look_at_c2w(centre, [0, 0, 0], up=[0, 0, 1])
+    c2w[:3, 1:3] *= -1.0
+    return c2w
+
+
+def transforms(variant: int) -> dict:
+    """A 3-frame ``transforms.json`` object (images ``images/f_<k>.png``, 8x6):
+    0: nerfstudio, pinhole + OpenCV lens, points from ``points.ply``; 1: instant-ngp, field of
+    view, one frame with its own fisheye camera; 2: one focal length only."""
+    frames = [{"file_path": f"images/f_{k}" + (".png" if k % 2 else ""),
+               "transform_matrix": _gl_look_at([4 * math.cos(k), 4 * math.sin(k), 1.0]).tolist()}
+              for k in range(3)]
+    if variant == 0:
+        return {"camera_model": "OPENCV", "fl_x": 9.0, "fl_y": 9.5, "cx": 4.2, "cy": 3.1,
+                "w": 8, "h": 6, "k1": 0.01, "k2": 0.0, "p1": 0.001, "p2": 0.0,
+                "ply_file_path": "points.ply", "frames": frames}
+    if variant == 1:
+        frames[1].update({"camera_model": "OPENCV_FISHEYE", "k1": 0.02, "fl_x": 8.0})
+        return {"camera_angle_x": 0.9, "frames": frames}
+    return {"fl_x": 9.0, "w": 8, "h": 6, "frames": frames}
