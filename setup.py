@@ -46,9 +46,13 @@ def _name(requirement: str) -> str:
     return re.split(r"[\s\[<>=!~;]", requirement, maxsplit=1)[0].lower()
 
 
+# Lines of requirements.txt that only the test suite needs: extras 'test', not install_requires.
+_TEST_ONLY = {"pytest", "hypothesis"}
+
+
 def _install_requires() -> list:
-    """requirements.txt less the test runner (extras 'test'); the torch line is kept as a range."""
-    return [r for r in _requirements("requirements.txt") if _name(r) != "pytest"]
+    """requirements.txt less the test-only lines; the torch line is kept as a range."""
+    return [r for r in _requirements("requirements.txt") if _name(r) not in _TEST_ONLY]
 
 
 def _check_torch() -> None:
@@ -143,7 +147,8 @@ setup(
         "icomma-bench = icomma_tools.bench_rasterizer:main",
     ]},
     install_requires=_install_requires(),
-    extras_require={"test": [r for r in _requirements("requirements.txt") if _name(r) == "pytest"]},
+    extras_require={"test": [r for r in _requirements("requirements.txt")
+                             if _name(r) in _TEST_ONLY]},
     python_requires=">=3.9",
     ext_modules=get_extensions(),
     cmdclass=get_cmdclass(),
