@@ -59,7 +59,8 @@ def _cli(args, timeout=600):
 def test_run_writes_every_output(small_demo, tmp_path):
     tool = _tool()
     cfg = _compose(_demo_overrides(small_demo) + [
-        "optimizer.max_iterations=4", "output.progress=false", "output.gif=true", "output.gif_every=2"])
+        "optimizer=icomma", "optimizer.max_iterations=4", "output.progress=false", "output.gif=true",
+        "output.gif_every=2"])
     out = tmp_path / "out"
     res = tool.run(cfg, out)
     for name in ("result.json", "trace.json", "trace.csv", "overlay_initial.png", "overlay_final.png",
@@ -89,7 +90,7 @@ def test_init_override_and_compare_only(small_demo, tmp_path):
     tool = _tool()
     cfg = _compose(_demo_overrides(small_demo) + [
         "optimizer=compare_only", "matcher=none", "optimizer.max_iterations=2", "output.progress=false",
-        "data.init_rot_deg=5", "output.overlays=false", "output.convergence_plot=false",
+        "data.init.rot_deg=5", "output.overlays=false", "output.convergence_plot=false",
         "output.trace_format=csv"])
     res = tool.run(cfg, tmp_path)
     assert abs(res["initial_rotation_error_deg"] - 5.0) < 1e-6
@@ -99,14 +100,15 @@ def test_init_override_and_compare_only(small_demo, tmp_path):
 
 def test_cli_single_run_and_multirun(small_demo, tmp_path):
     run_dir = tmp_path / "single"
-    p = _cli(_demo_overrides(small_demo) + ["optimizer.max_iterations=2", "output.progress=false",
-                                            f"hydra.run.dir={run_dir}"])
+    p = _cli(_demo_overrides(small_demo) + ["optimizer=icomma", "optimizer.max_iterations=2",
+                                            "output.progress=false", f"hydra.run.dir={run_dir}"])
     assert p.returncode == 0, p.stderr[-2000:]
     assert (run_dir / "result.json").is_file() and (run_dir / "convergence.png").is_file()
     assert "rotation" in p.stdout and "deg" in p.stdout
 
     sweep_dir = tmp_path / "sweep"
-    p = _cli(["-m", *_demo_overrides(small_demo), "optimizer.max_iterations=1", "output.progress=false",
+    p = _cli(["-m", *_demo_overrides(small_demo), "optimizer=icomma", "optimizer.max_iterations=1",
+              "output.progress=false",
               "output.overlays=false", "output.match_lines=false", "output.convergence_plot=false",
               "optimizer.lr=0.02,0.05", f"hydra.sweep.dir={sweep_dir}"])
     assert p.returncode == 0, p.stderr[-2000:]
@@ -169,13 +171,14 @@ def test_model_folder_query_image_and_c2w_file(small_demo, tmp_path):
 
 
 def test_demo_converges_from_20_degrees(tmp_path):
-    """The acceptance run at reduced resolution: 20 degrees off -> < 0.5 deg, < 1% of the scene scale."""
+    """The paper's method, acceptance run at reduced resolution: 20 degrees off -> < 0.5 deg, < 1%
+    of the scene scale."""
     tool = _tool()
     # The demo built at 100x100 (a query rendered at the working size: resizing a 200 px query
     # instead biases the photometric optimum by a few tenths of a degree).
     cfg = _compose([f"data.path={tmp_path / 'demo100'}", "data.width=100", "data.height=100",
-                    "data.init_rot_deg=20", "data.init_seed=1", "output.progress=false", "output.overlays=false", "output.match_lines=false",
-                    "output.convergence_plot=false"])
+                    "optimizer=icomma", "data.init.rot_deg=20", "data.init.seed=1", "output.progress=false",
+                    "output.overlays=false", "output.match_lines=false", "output.convergence_plot=false"])
     res = tool.run(cfg, tmp_path / "out")
     assert abs(res["initial_rotation_error_deg"] - 20.0) < 1e-6
     assert res["final_rotation_error_deg"] < 0.5, res["final_rotation_error_deg"]

@@ -52,13 +52,13 @@ from __future__ import annotations
 
 from typing import Callable, Dict, Optional
 
-from .base import Matcher, Matches, check_image
+from .base import Features, Matcher, Matches, check_image, mutual_nn_count
 from .refine import refine_render_keypoints
 from .weights import MissingWeightsError, weights_status
 
 __all__ = [
-    "Matcher", "Matches", "MissingWeightsError", "available_matchers", "check_image", "make_matcher",
-    "refine_render_keypoints",
+    "Features", "Matcher", "Matches", "MissingWeightsError", "available_matchers", "check_image",
+    "make_matcher", "mutual_nn_count", "refine_render_keypoints",
 ]
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Any, Dict, Optional
+from typing import Any, Dict, Optional, Tuple
 
 import torch
 
@@ -90,6 +90,38 @@ class Matches:
                        self.confidence.to(device=device, dtype=dtype))
 
 
+@dataclass(frozen=True)
+class Features:
+    """Keypoints and descriptors of one image, from `Matcher.extract` (detector-based matchers).
+
+    kpts: [K, 2] float (x, y) pixels, integer pixel centres.
+    desc: [K, D] float descriptors.
+    size: (width, height) of the image they were detected in.
+    """
+
+    kpts: torch.Tensor
+    desc: torch.Tensor
+    size: Tuple[int, int]
+
+    def __len__(self) -> int:
+        return int(self.kpts.shape[0])
+
+
+def mutual_nn_count(f0: Features, f1: Features, min_cosine: float = 0.8) -> int:
+    """Number of mutual nearest neighbours between two descriptor sets (cosine above
+    `min_cosine`): a cheap similarity of two images, used to rank candidate views."""
+    if len(f0) == 0 or len(f1) == 0:
+        return 0
+    d0 = torch.nn.functional.normalize(f0.desc.float(), dim=-1)
+    d1 = torch.nn.functional.normalize(f1.desc.float(), dim=-1)
+    sim = d0 @ d1.T
+    best1 = sim.argmax(1)
+    best0 = sim.argmax(0)
+    idx0 = torch.arange(len(f0), device=sim.device)
+    ok = (best0[best1] == idx0) & (sim[idx0, best1] > min_cosine)
+    return int(ok.sum())
+
+
 def check_image(image: Any, name: str) -> torch.Tensor:
     """Validate a `[3, H, W]` float image in [0, 1] (see `RANGE_TOLERANCE`); raise ValueError naming `name`."""
     if not isinstance(image, torch.Tensor):
@@ -127,6 +159,9 @@ class Matcher:
 
     name: str = "base"
     supports_image_gradient: bool = True
+    #: `extract` / `match_features` work (keypoints and descriptors can be computed once per image
+    #: and reused, e.g. the query's across the iterations of a localization).
+    supports_features: bool = False
 
     def __init__(self, *, min_confidence: float = 0.0, max_matches: Optional[int] = None,
                  refine: Optional[Dict[str, Any]] = None):
@@ -145,15 +180,55 @@ class Matcher:
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r})"
 
-    def _match(self, image0: torch.Tensor, image1: torch.Tensor) -> Matches:
-        """Match two detached images `[3, H, W]` in [0, 1]; keypoints in the module's convention."""
+    def _extract(self, image: torch.Tensor) -> Features:
+        """Keypoints and descriptors of a detached, clamped image (detector-based matchers)."""
         raise NotImplementedError
 
-    def match(self, image0: torch.Tensor, image1: torch.Tensor, differentiable: bool = False) -> Matches:
+    def _match_features(self, f0: Features, f1: Features) -> Matches:
+        """Match two feature sets (detector-based matchers)."""
+        raise NotImplementedError
+
+    def _match(self, image0: torch.Tensor, image1: torch.Tensor) -> Matches:
+        """Match two detached images `[3, H, W]` in [0, 1]; keypoints in the module's convention.
+        Detector-based matchers implement `_extract` and `_match_features` instead."""
+        return self._match_features(self._extract(image0), self._extract(image1))
+
+    def extract(self, image: torch.Tensor) -> Features:
+        """Keypoints and descriptors of `image` ([3, H, W] in [0, 1]), for `match(...,
+        features1=...)` and `match_features`. Only where `supports_features`."""
+        if not self.supports_features:
+            raise ValueError(f"the {self.name!r} matcher cannot extract features on their own "
+                             "(supports_features is False); call match() on the images")
+        check_image(image, "image")
+        with torch.no_grad():
+            return self._extract(image.detach().clamp(0.0, 1.0))
+
+    def _finish(self, m: Matches, device, dtype) -> Matches:
+        m = Matches(m.kpts0.to(device, dtype), m.kpts1.to(device, dtype), m.confidence.to(device, dtype))
+        if self.min_confidence > 0:
+            m = m.filter(self.min_confidence)
+        if self.max_matches is not None and len(m) > self.max_matches:
+            m = m.select(torch.argsort(m.confidence, descending=True)[: self.max_matches])
+        return m
+
+    def match_features(self, features0: Features, features1: Features) -> Matches:
+        """Match two feature sets from `extract` (no gradients)."""
+        if not self.supports_features:
+            raise ValueError(f"the {self.name!r} matcher has no match_features (supports_features is False)")
+        for name, f in (("features0", features0), ("features1", features1)):
+            if not isinstance(f, Features):
+                raise ValueError(f"{name} must be a Features (from extract()), got {type(f).__name__}")
+        with torch.no_grad():
+            m = self._match_features(features0, features1)
+            return self._finish(m, features0.kpts.device, torch.float32)
+
+    def match(self, image0: torch.Tensor, image1: torch.Tensor, differentiable: bool = False,
+              features1: Optional[Features] = None) -> Matches:
         """Match `image0` (render) with `image1` (query).
 
         With `differentiable=True`, `kpts0` is re-estimated by `refine_render_keypoints` so that it
-        carries gradients back to `image0`; `kpts1` and `confidence` never do.
+        carries gradients back to `image0`; `kpts1` and `confidence` never do. `features1` (from
+        `extract(image1)`, where `supports_features`) skips detecting the query again.
         """
         check_image(image0, "image0")
         check_image(image1, "image1")
@@ -161,15 +236,19 @@ class Matcher:
             raise ValueError(f"differentiable must be a bool, got {differentiable!r}")
         if differentiable and not self.supports_image_gradient:
             raise ValueError(f"differentiable=True is not supported by the {self.name!r} matcher")
+        if features1 is not None:
+            if not self.supports_features or not isinstance(features1, Features):
+                raise ValueError("features1 must be the Features of image1 from this matcher's extract(), "
+                                 f"got {type(features1).__name__} for matcher {self.name!r}")
+            if tuple(features1.size) != (int(image1.shape[2]), int(image1.shape[1])):
+                raise ValueError(f"features1 were extracted from a {features1.size[0]}x{features1.size[1]} "
+                                 f"image, but image1 is {image1.shape[2]}x{image1.shape[1]}")
         with torch.no_grad():
-            m = self._match(image0.detach().clamp(0.0, 1.0), image1.detach().clamp(0.0, 1.0))
-            dtype = image0.dtype
-            m = Matches(m.kpts0.to(image0.device, dtype), m.kpts1.to(image0.device, dtype),
-                        m.confidence.to(image0.device, dtype))
-            if self.min_confidence > 0:
-                m = m.filter(self.min_confidence)
-            if self.max_matches is not None and len(m) > self.max_matches:
-                m = m.select(torch.argsort(m.confidence, descending=True)[: self.max_matches])
+            if features1 is not None:
+                m = self._match_features(self._extract(image0.detach().clamp(0.0, 1.0)), features1)
+            else:
+                m = self._match(image0.detach().clamp(0.0, 1.0), image1.detach().clamp(0.0, 1.0))
+            m = self._finish(m, image0.device, image0.dtype)
         if differentiable and len(m) > 0:
             kpts0 = refine_render_keypoints(image0, image1.detach(), m.kpts0, m.kpts1, **self.refine)
             m = Matches(kpts0, m.kpts1, m.confidence)

@@ -13,7 +13,7 @@ from typing import Optional
 import torch
 import torch.nn.functional as F
 
-from .base import Matcher, Matches
+from .base import Features, Matcher, Matches
 from .weights import resolve
 
 logger = logging.getLogger(__name__)
@@ -90,6 +90,7 @@ def pad_to_multiple(image: torch.Tensor, multiple: int) -> torch.Tensor:
 
 class _LightGlueMatcher(Matcher):
     features = ""
+    supports_features = True
 
     def __init__(self, max_keypoints: int = 1024, filter_threshold: float = 0.1,
                  glue_weights: Optional[str] = None, **kwargs):
@@ -106,16 +107,18 @@ class _LightGlueMatcher(Matcher):
         """image [3, H, W] -> (kpts [K, 2] integer-centre pixels, descriptors [K, D])."""
         raise NotImplementedError
 
-    def _match(self, image0: torch.Tensor, image1: torch.Tensor) -> Matches:
-        dev = image0.device
+    def _extract(self, image: torch.Tensor) -> Features:
+        k, d = self._detect(image)
+        return Features(k, d, (int(image.shape[2]), int(image.shape[1])))
+
+    def _match_features(self, f0: Features, f1: Features) -> Matches:
+        k0, d0, k1, d1 = f0.kpts, f0.desc, f1.kpts, f1.desc
+        dev = k0.device
         self.glue.to(dev)
-        k0, d0 = self._detect(image0)
-        k1, d1 = self._detect(image1)
         if len(k0) == 0 or len(k1) == 0:
             return Matches.empty(dev)
-        size0 = (image0.shape[2], image0.shape[1])
-        size1 = (image1.shape[2], image1.shape[1])
-        i0, i1, sc = run_lightglue(self.glue, k0.float(), d0.float(), size0, k1.float(), d1.float(), size1)
+        i0, i1, sc = run_lightglue(self.glue, k0.float(), d0.float(), f0.size, k1.float(), d1.float(),
+                                   f1.size)
         return Matches(k0[i0].float(), k1[i1].float(), sc.float())
 
 

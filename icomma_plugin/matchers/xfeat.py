@@ -11,7 +11,7 @@ from typing import Optional
 
 import torch
 
-from .base import Matcher, Matches
+from .base import Features, Matcher, Matches
 from .lightglue import _check_missing, build_lightglue, load_checkpoint, pad_to_multiple, run_lightglue
 from .weights import resolve
 
@@ -31,6 +31,7 @@ class XFeatMatcher(Matcher):
     """
 
     name = "xfeat"
+    supports_features = True
 
     def __init__(self, glue: Optional[bool] = None, max_keypoints: int = 4096, detection_threshold: float = 0.05,
                  min_cossim: float = 0.82, filter_threshold: float = 0.1, weights: Optional[str] = None,
@@ -68,17 +69,19 @@ class XFeatMatcher(Matcher):
         keep = (k[:, 0] <= w - 1) & (k[:, 1] <= h - 1)
         return k[keep].clone(), d[keep].clone()
 
-    def _match(self, image0: torch.Tensor, image1: torch.Tensor) -> Matches:
-        dev = image0.device
-        self.model.to(dev)
-        k0, d0 = self._detect(image0)
-        k1, d1 = self._detect(image1)
+    def _extract(self, image: torch.Tensor) -> Features:
+        self.model.to(image.device)
+        k, d = self._detect(image)
+        return Features(k, d, (int(image.shape[2]), int(image.shape[1])))
+
+    def _match_features(self, f0: Features, f1: Features) -> Matches:
+        k0, d0, k1, d1 = f0.kpts, f0.desc, f1.kpts, f1.desc
+        dev = k0.device
         if len(k0) == 0 or len(k1) == 0:
             return Matches.empty(dev)
         if self.glue is not None:
             self.glue.to(dev)
-            i0, i1, sc = run_lightglue(self.glue, k0, d0, (image0.shape[2], image0.shape[1]),
-                                       k1, d1, (image1.shape[2], image1.shape[1]))
+            i0, i1, sc = run_lightglue(self.glue, k0, d0, f0.size, k1, d1, f1.size)
             return Matches(k0[i0].float(), k1[i1].float(), sc.float())
         sim = d0 @ d1.t()
         best1 = sim.argmax(dim=1)

@@ -29,6 +29,7 @@ __all__ = [
     "rotation_error_deg",
     "translation_error",
     "perturb_pose",
+    "cameras_extent",
 ]
 
 
@@ -309,3 +310,21 @@ def perturb_pose(
     if isinstance(c2w, torch.Tensor):
         return torch.as_tensor(out, dtype=c2w.dtype, device=c2w.device)
     return out.astype(c2w.dtype if np.issubdtype(c2w.dtype, np.floating) else np.float64)
+
+
+def cameras_extent(c2ws) -> float:
+    """The scene scale of the project (3DGS ``getNerfppNorm`` radius): 1.1 x the largest distance
+    of the camera centres from their mean. Every success criterion that is relative to the scene
+    uses this, computed on the cameras the model was fitted from.
+
+    Args:
+        c2ws: sequence of ``[4, 4]`` (or ``[3, 4]``) camera-to-world matrices, at least one.
+
+    Raises:
+        ValueError: on an empty sequence.
+    """
+    c2ws = list(c2ws)
+    if not c2ws:
+        raise ValueError("cameras_extent needs at least one camera-to-world matrix, got none")
+    c = np.stack([_to_np64(T)[:3, 3] for T in c2ws])
+    return float(1.1 * np.linalg.norm(c - c.mean(0), axis=1).max())

@@ -1,0 +1,151 @@
+"""Candidate views: where to start when the given start pose is unusable, or when there is none.
+
+Candidates are the model's cameras (``cameras.json``: the views the model was fitted from) plus
+views sampled on a sphere around the scene, looking at its centre. They are ranked by how many
+mutual-nearest-neighbour descriptor matches their render shares with the query, at low resolution;
+the renders and their features are computed once per model (:class:`CandidateSet`) and reused for
+every query of a batch.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import List, Optional, Sequence
+
+import numpy as np
+
+from ..camera import Intrinsics
+from ..gaussians import GaussianModel
+from ..matchers.base import mutual_nn_count
+from ..pose.convert import look_at_c2w
+from .state import LocalizationState
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["CandidateConfig", "CandidateSet", "rank_scale", "sample_views", "scene_frame", "usable"]
+
+
+@dataclass
+class CandidateConfig:
+    """Constants of the candidate search.
+
+    num_sampled: views sampled on a sphere around the scene (Fibonacci lattice), besides the
+        model's cameras.
+    rank_side: the longer side of the images used for ranking [px].
+    top_k: best-ranked candidates the geometric stage is run from.
+    min_cosine: descriptor cosine for a ranking match.
+    """
+
+    num_sampled: int = 60
+    rank_side: int = 128
+    top_k: int = 4
+    min_cosine: float = 0.8
+
+
+def scene_frame(model: GaussianModel, cameras_c2w: Sequence[np.ndarray]):
+    """(centre [3], radius, up [3]) of the scene: from the cameras when there are any (the point
+    their optical axes pass closest to, their median distance to it, their mean 'up'), else from
+    the Gaussians (median position, 3x their spread, +z)."""
+    means = model.means.detach().double().cpu().numpy()
+    if len(cameras_c2w) >= 2:
+        C = np.stack([c[:3, 3] for c in cameras_c2w])
+        D = np.stack([c[:3, 2] for c in cameras_c2w])
+        # least-squares point nearest to all optical axes
+        A = np.zeros((3, 3))
+        b = np.zeros(3)
+        for c, d in zip(C, D):
+            P = np.eye(3) - np.outer(d, d)
+            A += P
+            b += P @ c
+        try:
+            centre = np.linalg.solve(A, b)
+        except np.linalg.LinAlgError:
+            centre = np.median(means, 0)
+        if not np.all(np.isfinite(centre)) or np.linalg.cond(A) > 1e6:
+            centre = np.median(means, 0)
+        radius = float(np.median(np.linalg.norm(C - centre, axis=1)))
+        up = -np.mean([c[:3, 1] for c in cameras_c2w], 0)  # OpenCV y points down
+        up = up / np.linalg.norm(up) if np.linalg.norm(up) > 1e-6 else np.array([0.0, 0.0, 1.0])
+        return centre, radius, up
+    centre = np.median(means, 0)
+    spread = float(np.median(np.linalg.norm(means - centre, axis=1))) if len(means) else 1.0
+    return centre, 3.0 * max(spread, 1e-3), np.array([0.0, 0.0, 1.0])
+
+
+def sample_views(centre: np.ndarray, radius: float, up: np.ndarray, n: int) -> List[np.ndarray]:
+    """``n`` c2w poses on a sphere of ``radius`` about ``centre`` (Fibonacci lattice), looking at
+    the centre with image 'up' towards ``up``; directions too close to ``up`` are skipped."""
+    out = []
+    if n <= 0:
+        return out
+    golden = math.pi * (3.0 - math.sqrt(5.0))
+    # an orthonormal frame with z = up
+    z = up / np.linalg.norm(up)
+    x = np.cross(z, [1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    for i in range(n):
+        h = 1.0 - 2.0 * (i + 0.5) / n
+        r = math.sqrt(max(0.0, 1.0 - h * h))
+        d = r * math.cos(golden * i) * x + r * math.sin(golden * i) * y + h * z
+        if abs(h) > 0.97:
+            continue  # looking straight along 'up': the image's up is undefined
+        out.append(look_at_c2w(centre + radius * d, centre, up))
+    return out
+
+
+@dataclass
+class CandidateSet:
+    """Candidate poses with their low-resolution renders' features (built once per model and
+    query camera; reusable across queries with the same intrinsics)."""
+
+    c2w: List[np.ndarray]
+    source: List[str]
+    intrinsics: Intrinsics
+    features: List = field(default_factory=list)
+
+    @classmethod
+    def build(cls, state: LocalizationState, cameras_c2w: Sequence[np.ndarray], cfg: CandidateConfig,
+              names: Optional[Sequence[str]] = None) -> "CandidateSet":
+        """Candidates from ``cameras_c2w`` (the model's cameras) plus ``cfg.num_sampled`` sampled
+        views, rendered with the query's intrinsics at ``cfg.rank_side``."""
+        cams = [np.asarray(c, np.float64) for c in cameras_c2w]
+        centre, radius, up = scene_frame(state.model, cams)
+        sampled = sample_views(centre, radius, up, cfg.num_sampled)
+        c2w = cams + sampled
+        names = list(names) if names is not None else [f"camera_{i}" for i in range(len(cams))]
+        source = names[: len(cams)] + [f"sampled_{i}" for i in range(len(sampled))]
+        scale = rank_scale(state.query.intrinsics, cfg.rank_side)
+        intr = state.intrinsics_at(scale)
+        feats = []
+        with state.timed("candidates"):
+            for T in c2w:
+                obs = state.observe(np.linalg.inv(T), scale, match=False)
+                if float(obs.alpha.mean()) < 0.01:
+                    feats.append(None)  # sees nothing of the scene
+                    continue
+                feats.append(state.matcher.extract(obs.color))
+        logger.debug("candidate set: %d cameras + %d sampled views at %dx%d", len(cams), len(sampled),
+                     intr.width, intr.height)
+        return cls(c2w, source, intr, feats)
+
+    def rank(self, state: LocalizationState, cfg: CandidateConfig) -> List[int]:
+        """Candidate indices, best first (most mutual-NN matches with the query)."""
+        scale = rank_scale(state.query.intrinsics, cfg.rank_side)
+        with state.timed("candidates"):
+            fq = state.query_features(scale)
+            counts = [(-1 if f is None else mutual_nn_count(f, fq, cfg.min_cosine)) for f in self.features]
+        order = sorted(range(len(counts)), key=lambda i: -counts[i])
+        self.last_counts = counts
+        return order
+
+
+def rank_scale(intrinsics: Intrinsics, side: int) -> float:
+    return min(1.0, float(side) / max(intrinsics.width, intrinsics.height))
+
+
+def usable(matcher) -> bool:
+    """Candidates need a matcher that extracts features on their own."""
+    return matcher is not None and bool(getattr(matcher, "supports_features", False))
+

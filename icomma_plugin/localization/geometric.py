@@ -1,0 +1,164 @@
+"""The geometric stage: render colour, depth and alpha at the current pose, match the render against
+the query, lift the render keypoints to world points with the rendered depth, and solve PnP for the
+query camera. Repeated from the new pose while it gets better.
+
+Each round renders and matches at a pose, which both scores that pose (``verify.score_observation``:
+how many matches agree with it) and proposes the next one (PnP). A proposal is accepted only when its
+own render scores better than the pose it came from; otherwise the stage keeps the better pose and
+stops. It also stops when a proposal barely moves the pose (then that last, tiny step is taken: the
+photometric refinement and the final verification that follow check it).
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import List, Optional
+
+import numpy as np
+
+from ..pose.convert import rotation_error_deg
+from .geometry import PnPResult, lift_keypoints, solve_pnp
+from .state import LocalizationState, Observation
+from .types import Stage
+from .verify import PoseScore, score_observation
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["GeometricConfig", "GeometricOutcome", "pnp_from_observation", "run_geometric"]
+
+
+@dataclass
+class GeometricConfig:
+    """Constants of the geometric stage.
+
+    max_rounds: render-match-PnP rounds at most (usually 2-4 are used).
+    ransac_px: RANSAC inlier threshold [px at the working resolution].
+    min_pnp_inliers: a PnP with fewer inliers is no proposal.
+    min_alpha: lift only keypoints where the rendered alpha exceeds this.
+    max_depth_jump: drop keypoints next to depth discontinuities (relative depth range of the 3x3
+        neighbourhood above this); None keeps them.
+    subpixel: refine the render keypoints to sub-pixel positions against the query patch (NCC)
+        before lifting them, once the pose agrees with at least ``subpixel_inliers`` matches (far
+        from the answer integer keypoints are precise enough, and refining costs time).
+    inlier_px: displacement below which a match agrees with a pose (the score; see verify.py).
+    stop_rot_deg, stop_trans_rel: a proposal that moves the pose less than this (rotation, and
+        centre motion relative to the scene depth) ends the stage.
+    """
+
+    max_rounds: int = 4
+    ransac_px: float = 3.0
+    min_pnp_inliers: int = 12
+    min_alpha: float = 0.5
+    max_depth_jump: Optional[float] = 0.05
+    subpixel: bool = True
+    subpixel_inliers: int = 30
+    inlier_px: float = 2.0
+    stop_rot_deg: float = 0.05
+    stop_trans_rel: float = 1e-3
+
+
+@dataclass
+class GeometricOutcome:
+    """Result of :func:`run_geometric` from one start.
+
+    w2c: the pose the stage ends on. observation/score: the render-and-match that scored the best
+    pose (at ``w2c``, or at the pose one tiny step before it when the stage converged).
+    first_pnp_inliers: PnP inliers of the first round (0: the start gave no usable proposal).
+    start_coverage: share of the photo the render at the start pose covered.
+    """
+
+    w2c: np.ndarray
+    observation: Optional[Observation]
+    score: Optional[PoseScore]
+    rounds: int
+    converged: bool
+    first_pnp_inliers: int
+    start_coverage: float
+    pnp_inliers: List[int] = field(default_factory=list)
+
+
+def _motion(w2c_a: np.ndarray, w2c_b: np.ndarray):
+    ca, cb = np.linalg.inv(w2c_a), np.linalg.inv(w2c_b)
+    return float(rotation_error_deg(ca, cb)), float(np.linalg.norm(ca[:3, 3] - cb[:3, 3]))
+
+
+def pnp_from_observation(state: LocalizationState, obs: Observation, cfg: GeometricConfig,
+                         seed: int = 0, subpixel: Optional[bool] = None) -> Optional[PnPResult]:
+    """A PnP estimate of the query pose from the matches of ``obs``, or None."""
+    subpixel = cfg.subpixel if subpixel is None else subpixel
+    m = obs.matches
+    if m is None or len(m) < cfg.min_pnp_inliers:
+        return None
+    intr = state.intrinsics_at(obs.scale)
+    kpts0, kpts1 = m.kpts0.detach(), m.kpts1.detach()
+    if subpixel:
+        from ..matchers.refine import refine_render_keypoints
+
+        with state.timed("pnp"):
+            kpts0 = refine_render_keypoints(obs.color, state.query_at(obs.scale).rgb.to(obs.color.dtype),
+                                            kpts0.to(obs.color.dtype), kpts1.to(obs.color.dtype),
+                                            window=1).detach()
+    with state.timed("pnp"):
+        c2w = np.linalg.inv(obs.w2c)
+        import torch
+
+        pts, keep = lift_keypoints(kpts0, obs.depth, obs.alpha, intr, torch.as_tensor(c2w),
+                                   cfg.min_alpha, cfg.max_depth_jump)
+        if int(keep.sum()) < cfg.min_pnp_inliers:
+            return None
+        pix = kpts1[keep].double().cpu().numpy()
+        return solve_pnp(pts.cpu().numpy(), pix, intr, cfg.ransac_px, min_inliers=cfg.min_pnp_inliers,
+                         seed=seed)
+
+
+def run_geometric(state: LocalizationState, w2c_start: np.ndarray, cfg: GeometricConfig,
+                  scale: float = 1.0, scene_depth: Optional[float] = None,
+                  hypothesis: Optional[int] = None) -> GeometricOutcome:
+    """Render-match-PnP rounds from ``w2c_start`` (see the module docstring)."""
+    w2c = np.asarray(w2c_start, np.float64)
+    best_w2c, best_obs, best_score = w2c, None, None
+    first_inliers, start_cov, converged = 0, 0.0, False
+    inliers_per_round: List[int] = []
+    rounds = 0
+    for r in range(cfg.max_rounds):
+        rounds = r + 1
+        obs = state.observe(w2c, scale)
+        sc = score_observation(obs, state, cfg.inlier_px)
+        if r == 0:
+            start_cov = sc.coverage
+        accepted = sc.better_than(best_score)
+        rec = state.new_record(Stage.GEOMETRIC, w2c, matches=0 if obs.matches is None else len(obs.matches),
+                               inliers=sc.inliers, accepted=accepted, hypothesis=hypothesis, scale=scale)
+        if not accepted:
+            state.record(rec)
+            logger.debug("geometric round %d: %d inliers, worse than %d: keep the previous pose", r,
+                         sc.inliers, best_score.inliers)
+            break
+        best_w2c, best_obs, best_score = w2c, obs, sc
+        pnp = pnp_from_observation(state, obs, cfg, seed=r,
+                                   subpixel=cfg.subpixel and sc.inliers >= cfg.subpixel_inliers)
+        n_pnp = 0 if pnp is None else pnp.num_inliers
+        inliers_per_round.append(n_pnp)
+        rec.matches_used = n_pnp
+        state.record(rec)
+        if r == 0:
+            first_inliers = n_pnp
+        if pnp is None:
+            break
+        drot, dtrans = _motion(w2c, pnp.w2c)
+        depth = scene_depth if scene_depth else _median_depth(obs)
+        w2c = pnp.w2c
+        if drot < cfg.stop_rot_deg and dtrans < cfg.stop_trans_rel * depth:
+            converged = True
+            best_w2c = w2c  # the last, tiny step (checked by the refinement and verification)
+            break
+    return GeometricOutcome(best_w2c, best_obs, best_score, rounds, converged, first_inliers, start_cov,
+                            inliers_per_round)
+
+
+def _median_depth(obs: Observation) -> float:
+    sel = obs.alpha > 0.5
+    if bool(sel.any()):
+        return float(obs.depth[sel].median())
+    return 1.0 if not math.isfinite(float(obs.depth.max())) else max(float(obs.depth.max()), 1.0)

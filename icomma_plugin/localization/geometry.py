@@ -1,0 +1,180 @@
+"""2D-3D geometry of the localizer: sample an image at keypoints, lift render keypoints to world
+points with the rendered depth, and solve PnP with RANSAC.
+
+Conventions (docs/CONTRACTS.md): pixel centres at integer coordinates, OpenCV camera axes; OpenCV's
+``solvePnP`` uses the same pixel convention (``u = fx x / z + cx``), so our ``Intrinsics.K()`` is
+passed to it unchanged.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Optional, Tuple
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..camera import Intrinsics
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["PnPResult", "depth_edges", "lift_keypoints", "project", "sample_bilinear", "solve_pnp"]
+
+
+def sample_bilinear(img: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
+    """Sample ``img [C, H, W]`` at pixel coordinates ``xy [N, 2]`` (pixel centres at integers,
+    3DGS convention) bilinearly; points outside get 0. Returns ``[N, C]``."""
+    C, H, W = img.shape
+    gx = 2.0 * xy[:, 0] / max(W - 1, 1) - 1.0
+    gy = 2.0 * xy[:, 1] / max(H - 1, 1) - 1.0
+    grid = torch.stack([gx, gy], -1).to(img.dtype).view(1, -1, 1, 2)
+    out = F.grid_sample(img[None], grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+    return out[0, :, :, 0].T
+
+
+def depth_edges(depth: torch.Tensor, rel: float) -> torch.Tensor:
+    """``[1, H, W]`` bool: pixels whose 3x3 neighbourhood spans more than ``rel`` times their depth.
+
+    The expected depth of a pixel on an occlusion boundary mixes the near and the far surface, so a
+    keypoint there lifts to a point that lies on neither.
+    """
+    d = depth[None]
+    hi = F.max_pool2d(d, 3, stride=1, padding=1)
+    lo = -F.max_pool2d(-d, 3, stride=1, padding=1)
+    return ((hi - lo) > rel * d.clamp_min(1e-12))[0]
+
+
+def lift_keypoints(
+    kpts: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor, intrinsics: Intrinsics,
+    c2w: torch.Tensor, min_alpha: float = 0.5, max_depth_jump: Optional[float] = None,
+) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Back-project render keypoints ``[N, 2]`` with the rendered expected depth ``[1, H, W]``.
+
+    Args:
+        kpts: ``[N, 2]`` pixel positions in the render.
+        depth: ``[1, H, W]`` expected view depth (``RasterOutput.depth``).
+        alpha: ``[1, H, W]`` rendered alpha.
+        intrinsics: the render's camera.
+        c2w: ``[4, 4]`` camera-to-world of the render.
+        min_alpha: a keypoint is kept when its bilinearly sampled alpha exceeds this.
+        max_depth_jump: also drop keypoints next to a depth discontinuity (see
+            :func:`depth_edges`); None keeps them.
+
+    Returns:
+        ``(points_world [M, 3] float64, keep [N] bool)``; everything is detached.
+    """
+    with torch.no_grad():
+        k = kpts.detach().to(torch.float64)
+        dep = depth.detach().to(torch.float64)
+        alp = alpha.detach().to(torch.float64)
+        # Coverage-weighted bilinear depth: a plain bilinear sample next to an alpha edge would
+        # mix in the zero depth of empty pixels, so interpolate depth * alpha and divide.
+        a = sample_bilinear(alp, k)[:, 0]
+        d = sample_bilinear(dep * alp, k)[:, 0] / a.clamp_min(1e-12)
+        W, H = intrinsics.width, intrinsics.height
+        inside = (k[:, 0] >= 0) & (k[:, 0] <= W - 1) & (k[:, 1] >= 0) & (k[:, 1] <= H - 1)
+        keep = inside & (a > min_alpha) & (d > 0)
+        if max_depth_jump is not None and bool(keep.any()):
+            edge = depth_edges(dep, max_depth_jump).to(torch.float64)
+            near_edge = sample_bilinear(edge, k)[:, 0] > 0
+            keep &= ~near_edge
+        x = (k[keep, 0] - intrinsics.cx_px) / intrinsics.fx
+        y = (k[keep, 1] - intrinsics.cy_px) / intrinsics.fy
+        z = d[keep]
+        pc = torch.stack([x * z, y * z, z, torch.ones_like(z)], -1)
+        pw = (c2w.detach().to(torch.float64).to(pc.device) @ pc.T).T[:, :3]
+    return pw, keep
+
+
+def project(points_world: np.ndarray, w2c: np.ndarray, intrinsics: Intrinsics) -> Tuple[np.ndarray, np.ndarray]:
+    """Pixel positions ``[N, 2]`` and camera depths ``[N]`` of world points under ``w2c``."""
+    pc = points_world @ w2c[:3, :3].T + w2c[:3, 3]
+    z = pc[:, 2]
+    zs = np.where(np.abs(z) < 1e-12, 1e-12, z)
+    u = intrinsics.fx * pc[:, 0] / zs + intrinsics.cx_px
+    v = intrinsics.fy * pc[:, 1] / zs + intrinsics.cy_px
+    return np.stack([u, v], -1), z
+
+
+@dataclass
+class PnPResult:
+    """A PnP estimate: the world-to-camera pose and the RANSAC inliers.
+
+    w2c: ``[4, 4]`` float64, OpenCV axes.
+    inliers: ``[N]`` bool over the input correspondences.
+    median_error_px: median reprojection error of the inliers after refinement [px].
+    """
+
+    w2c: np.ndarray
+    inliers: np.ndarray
+    median_error_px: float
+
+    @property
+    def num_inliers(self) -> int:
+        return int(self.inliers.sum())
+
+
+def solve_pnp(
+    points_world: np.ndarray,
+    pixels: np.ndarray,
+    intrinsics: Intrinsics,
+    threshold_px: float,
+    iterations: int = 2000,
+    confidence: float = 0.9999,
+    min_inliers: int = 6,
+    seed: int = 0,
+) -> Optional[PnPResult]:
+    """Camera pose from 2D-3D correspondences: RANSAC with USAC-MAGSAC (OpenCV), then
+    Levenberg-Marquardt on the inliers; the inliers are re-selected after refinement.
+
+    Args:
+        points_world: ``[N, 3]`` world points.
+        pixels: ``[N, 2]`` their observations in the image [px].
+        intrinsics: the image's camera.
+        threshold_px: RANSAC inlier threshold on the reprojection error [px].
+        iterations, confidence: RANSAC budget.
+        min_inliers: fewer inliers than this is a failure (None is returned).
+        seed: RANSAC seed (OpenCV's RNG), for repeatable results.
+
+    Returns:
+        :class:`PnPResult`, or None when fewer than ``min_inliers`` correspondences agree.
+    """
+    import cv2
+
+    X = np.ascontiguousarray(points_world, dtype=np.float64).reshape(-1, 3)
+    x = np.ascontiguousarray(pixels, dtype=np.float64).reshape(-1, 2)
+    if X.shape[0] != x.shape[0]:
+        raise ValueError(f"points_world and pixels must have the same length, got {X.shape[0]} and {x.shape[0]}")
+    n = X.shape[0]
+    if n < max(min_inliers, 6):
+        return None
+    K = intrinsics.K().numpy()
+    cv2.setRNGSeed(int(seed))
+    params = cv2.UsacParams()
+    params.sampler = cv2.SAMPLING_UNIFORM
+    params.score = cv2.SCORE_METHOD_MAGSAC
+    params.loMethod = cv2.LOCAL_OPTIM_SIGMA
+    params.threshold = float(threshold_px)
+    params.confidence = float(confidence)
+    params.maxIterations = int(iterations)
+    params.final_polisher = cv2.LSQ_POLISHER
+    try:
+        # The USAC overload returns (ok, cameraMatrix, rvec, tvec, inliers).
+        ok, _, rvec, tvec, inl = cv2.solvePnPRansac(X, x, K, None, params=params)
+    except cv2.error as e:  # degenerate samples (e.g. all points collinear)
+        logger.debug("solvePnPRansac failed: %s", e)
+        return None
+    if not ok or inl is None or len(inl) < min_inliers:
+        return None
+    idx = np.asarray(inl).reshape(-1)
+    rvec, tvec = cv2.solvePnPRefineLM(X[idx], x[idx], K, None, rvec, tvec)
+    w2c = np.eye(4)
+    w2c[:3, :3] = cv2.Rodrigues(rvec)[0]
+    w2c[:3, 3] = np.asarray(tvec).reshape(3)
+    uv, z = project(X, w2c, intrinsics)
+    err = np.linalg.norm(uv - x, axis=1)
+    inliers = (err < threshold_px) & (z > 0)
+    if int(inliers.sum()) < min_inliers:
+        return None
+    return PnPResult(w2c=w2c, inliers=inliers, median_error_px=float(np.median(err[inliers])))

@@ -1,0 +1,360 @@
+"""The paper's method (iComMa, ECCV 2024), kept exactly for reproduction and the benchmark's paper
+rows: Adam on an se(3) twist, a matching stage and then a comparing stage.
+
+Pose parametrisation (docs/CONTRACTS.md): a twist ``xi = (rho, phi)`` in se(3), translation part
+first, optimised by Adam. The pose is the LEFT perturbation of world-to-camera,
+
+    w2c_t = se3_exp(xi_t) @ w2c_0,
+
+so ``xi`` is an increment in the CAMERA frame (its rotation turns the camera about its own
+centre). ``xi`` starts at exactly 0 and accumulates (iComMa keeps its twist relative to the fixed
+start pose too, but perturbs c2w on the left, i.e. in the world frame; the optimum is the same).
+
+Loss and schedule (iComMa ``run.py``; defaults in :class:`LocalizerConfig`):
+
+- Stage 1 ("match", :func:`match_step`): ``L = (1 - lambda) L_compare + lambda L_match`` with
+  ``lambda = 0.8``, Adam lr 0.05 (constant), betas (0.9, 0.999). ``L_compare`` is the MSE between
+  render and query (``losses.compare_loss``); ``L_match`` the mean squared distance of matched
+  keypoints in coordinates normalised by the image size. Matches below ``confidence_threshold``
+  are dropped; with fewer than ``min_matches`` left, that step compares alone (``L = L_compare``,
+  weight 1, as iComMa does) and stage 1 goes on.
+- The switch: once ``L_match < switch_threshold`` (1e-3), stage 2 starts at the NEXT iteration.
+- Stage 2 ("compare"): ``L = L_compare``, ``lr = lr0 * lr_decay_base ** (t / lr_decay_steps)``
+  with ``t = k - k_switch + 1`` (1 at the first stage-2 iteration ``k_switch``), i.e.
+  ``0.05 * 0.6 ** (t / 50)``.
+- Stop: after ``max_iterations`` (iComMa: always 500), or earlier when the pose has stopped
+  moving: over the last ``converge_patience`` iterations it turned by less than
+  ``converge_rot_deg`` and its centre moved by less than ``converge_trans_rel`` times the mean
+  rendered depth (an addition; set ``converge_patience = 0`` to disable).
+
+Matching gradient modes (``gradient_mode``):
+
+- ``"image"`` (the paper's): ``matcher.match(render, query, differentiable=True)``; the
+  render-side keypoints are refined differentiably from the rendered image, so ``d L_match / d
+  pose`` flows through the image and the rasterizer.
+- ``"depth"``: the render-side keypoints are lifted to 3D with the rendered expected depth at the
+  current pose (detached bilinear sample of ``RasterOutput.depth``; only where alpha > 0.5), and
+  their normalised reprojection error in the query is minimised
+  (``losses.reprojection_match_loss``): the gradient flows through the projection alone, so any
+  matcher works. At the current pose the value equals the image-mode ``L_match`` of the same
+  matches, so the switch threshold means the same in both modes.
+
+``gradient_mode="image"`` is the default, by measurement on the demo scene (docs/BENCHMARK.md,
+"Gradient modes"): it was more robust at 40 degrees, the depth mode's stage-1 iterations are
+cheaper.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import Any, Dict, List, Optional, Tuple
+
+import numpy as np
+import torch
+
+from ..losses import compare_loss, match_loss, reprojection_match_loss
+from ..pose.convert import invert_rigid, rotation_error_deg
+from ..pose.se3 import se3_exp
+from .geometry import lift_keypoints
+from .state import LocalizationState
+from .types import Stage, TraceRecord
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["GRADIENT_MODES", "IcommaOutcome", "LocalizerConfig", "run_icomma"]
+
+GRADIENT_MODES = ("image", "depth")
+STAGE_MATCH = Stage.MATCH
+STAGE_COMPARE = Stage.COMPARE
+
+
+def _is_num(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+@dataclass
+class LocalizerConfig:
+    """Every constant of the paper's method. Defaults are iComMa's (``run.py`` / ``iComMaParams``).
+
+    Attributes:
+        lr: Adam learning rate on the twist (iComMa ``camera_pose_lr`` 0.05). Units: the twist
+            is (translation in world units, rotation in radians).
+        betas: Adam betas.
+        adam_eps: Adam epsilon.
+        use_matching: False = compare-only (iComMa ``deprecate_matching``): stage 2 from the start.
+        lambda_match: weight of L_match in stage 1, ``L = (1-l) L_compare + l L_match`` (0.8).
+        switch_threshold: leave stage 1 once L_match < this (normalised squared px, 1e-3).
+        max_stage1_iterations: force the switch after this many stage-1 iterations (None = never,
+            as iComMa).
+        lr_decay_base, lr_decay_steps: stage-2 lr = lr * base ** (t / steps) (0.6, 50).
+        confidence_threshold: matches with a confidence below this are dropped (0.5).
+        min_matches: with fewer usable matches the step compares alone (5).
+        max_iterations: hard cap on iterations (iComMa: 500, no other stop).
+        converge_patience: window (iterations) of the "pose stopped moving" stop; 0 disables it.
+        converge_rot_deg: rotation change over the window below which the pose counts as still.
+        converge_trans_rel: centre displacement over the window, relative to the mean rendered
+            depth at the initial pose, below which the pose counts as still.
+        min_iterations: never stop for convergence before this many iterations.
+        gradient_mode: "image" (paper: through the matcher's differentiable refinement and the
+            rendered image) or "depth" (lift render keypoints with the rendered depth, minimise
+            reprojection error).
+        depth_min_alpha: depth mode keeps keypoints whose rendered alpha exceeds this.
+        use_query_mask: use the query's alpha (when given) as the mask of L_compare.
+        image_scale: working scale; query and intrinsics are resized by it before optimising.
+        sh_degree: SH degree used for rendering (None = the model's).
+        antialiasing: rasterizer antialiasing flag (upstream 3DGS ``--antialiasing``).
+        record_trace: keep the per-iteration trace in the result.
+    """
+
+    lr: float = 0.05
+    betas: Tuple[float, float] = (0.9, 0.999)
+    adam_eps: float = 1e-8
+    use_matching: bool = True
+    lambda_match: float = 0.8
+    switch_threshold: float = 1e-3
+    max_stage1_iterations: Optional[int] = None
+    lr_decay_base: float = 0.6
+    lr_decay_steps: float = 50.0
+    confidence_threshold: float = 0.5
+    min_matches: int = 5
+    max_iterations: int = 500
+    converge_patience: int = 20
+    converge_rot_deg: float = 0.02
+    converge_trans_rel: float = 2e-4
+    min_iterations: int = 0
+    gradient_mode: str = "image"
+    depth_min_alpha: float = 0.5
+    use_query_mask: bool = True
+    image_scale: float = 1.0
+    sh_degree: Optional[int] = None
+    antialiasing: bool = False
+    record_trace: bool = True
+
+    def __post_init__(self):
+        self.validate()
+
+    def validate(self) -> "LocalizerConfig":
+        """Raise ValueError naming the field when a value is out of range."""
+        def bad(name, want):
+            raise ValueError(f"LocalizerConfig.{name} must be {want}, got {getattr(self, name)!r}")
+
+        if isinstance(self.betas, list):
+            self.betas = tuple(self.betas)
+        for name in ("lr", "lr_decay_steps", "image_scale"):
+            v = getattr(self, name)
+            if not (_is_num(v) and v > 0):
+                bad(name, "a positive finite number")
+        for name in ("switch_threshold", "converge_rot_deg", "converge_trans_rel", "adam_eps",
+                     "confidence_threshold", "depth_min_alpha"):
+            v = getattr(self, name)
+            if not (_is_num(v) and v >= 0):
+                bad(name, "a non-negative finite number")
+        if not (_is_num(self.lambda_match) and 0.0 <= self.lambda_match <= 1.0):
+            bad("lambda_match", "a number in [0, 1]")
+        if not (_is_num(self.lr_decay_base) and 0.0 < self.lr_decay_base <= 1.0):
+            bad("lr_decay_base", "a number in (0, 1]")
+        if not (isinstance(self.betas, tuple) and len(self.betas) == 2
+                and all(_is_num(b) and 0.0 <= b < 1.0 for b in self.betas)):
+            bad("betas", "a pair of numbers in [0, 1)")
+        for name in ("min_matches", "max_iterations", "converge_patience", "min_iterations"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
+                bad(name, "a non-negative int")
+        if self.max_iterations < 1:
+            bad("max_iterations", "a positive int")
+        if self.max_stage1_iterations is not None and not (
+            isinstance(self.max_stage1_iterations, int) and self.max_stage1_iterations >= 0
+        ):
+            bad("max_stage1_iterations", "a non-negative int or None")
+        if self.gradient_mode not in GRADIENT_MODES:
+            bad("gradient_mode", f"one of {GRADIENT_MODES}")
+        if self.sh_degree is not None and self.sh_degree not in (0, 1, 2, 3):
+            bad("sh_degree", "0..3 or None")
+        for name in ("use_matching", "use_query_mask", "antialiasing", "record_trace"):
+            if not isinstance(getattr(self, name), bool):
+                bad(name, "a bool")
+        return self
+
+    @classmethod
+    def from_dict(cls, d: Dict[str, Any]) -> "LocalizerConfig":
+        """Build from a plain mapping (e.g. a Hydra config converted to a container); unknown
+        keys raise ValueError listing the known ones."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        d = {k: v for k, v in d.items() if k not in ("_target_", "_convert_", "_recursive_", "_partial_")}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise ValueError(f"unknown LocalizerConfig keys {unknown}; known keys: {sorted(names)}")
+        kw = dict(d)
+        if "betas" in kw and kw["betas"] is not None:
+            kw["betas"] = tuple(float(b) for b in kw["betas"])
+        for name in ("lr", "lr_decay_steps", "image_scale", "switch_threshold", "lambda_match"):
+            if isinstance(kw.get(name), int) and not isinstance(kw.get(name), bool):
+                kw[name] = float(kw[name])
+        return cls(**kw)
+
+    def to_dict(self) -> Dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["betas"] = list(self.betas)
+        return d
+
+    def stage2_lr(self, t: int) -> float:
+        """Stage-2 learning rate at its ``t``-th iteration (t = 1 at the first)."""
+        return self.lr * self.lr_decay_base ** (t / self.lr_decay_steps)
+
+
+@dataclass
+class IcommaOutcome:
+    w2c: np.ndarray
+    iterations: int
+    stop_reason: str
+    switch_iteration: Optional[int]
+    match_counts: Dict[str, Any]
+    final_loss: Optional[float]
+    scene_depth: Optional[float]
+
+
+def match_step(state: LocalizationState, cfg: LocalizerConfig, image, out, query, w2c, intr,
+               l_compare) -> Tuple[torch.Tensor, Optional[torch.Tensor], int, int, bool]:
+    """One stage-1 loss: (loss, L_match or None, raw matches, matches used, switch now)."""
+    image_mode = cfg.gradient_mode == "image"
+    W, H = intr.width, intr.height
+    with state.timed("matcher"):
+        m = state.matcher.match(image if image_mode else image.detach(), query, differentiable=image_mode)
+    n_raw = len(m)
+    if cfg.confidence_threshold > 0 and n_raw:
+        m = m.filter(cfg.confidence_threshold)
+    l_match, n_used = None, 0
+    if image_mode:
+        if len(m) >= cfg.min_matches:
+            l_match = match_loss(m.kpts0, m.kpts1, (W, H), (W, H))
+            n_used = len(m)
+    elif len(m) >= cfg.min_matches:
+        c2w_now = invert_rigid(w2c.detach())
+        pts, keep = lift_keypoints(m.kpts0, out.depth, out.alpha, intr, c2w_now, cfg.depth_min_alpha)
+        n_used = int(keep.sum())
+        if n_used >= cfg.min_matches:
+            l_match = reprojection_match_loss(pts, m.kpts1[keep].detach().to(torch.float64), w2c, intr)
+        if l_match is None:
+            n_used = 0
+    if l_match is None:
+        return l_compare, None, n_raw, n_used, False
+    lam = cfg.lambda_match
+    loss = (1.0 - lam) * l_compare + lam * l_match.to(l_compare.dtype)
+    return loss, l_match, n_raw, n_used, float(l_match.detach()) < cfg.switch_threshold
+
+
+def run_icomma(state: LocalizationState, init_w2c: np.ndarray, cfg: LocalizerConfig) -> IcommaOutcome:
+    """The paper's loop from ``init_w2c`` (module docstring); appends to ``state.trace``."""
+    matcher = state.matcher
+    use_matching = cfg.use_matching and matcher is not None and getattr(matcher, "name", None) != "none"
+    if use_matching and cfg.gradient_mode == "image" and not getattr(matcher, "supports_image_gradient", False):
+        raise ValueError(
+            f"gradient_mode='image' needs a matcher whose keypoints carry image gradients; "
+            f"matcher {getattr(matcher, 'name', matcher)!r} does not: use gradient_mode='depth'"
+        )
+    q = state.query_at(cfg.image_scale)
+    intr = q.intrinsics
+    query = q.rgb
+    mask = q.alpha if cfg.use_query_mask else None
+    w2c0 = torch.as_tensor(np.asarray(init_w2c, np.float64))
+
+    xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
+    opt = torch.optim.Adam([xi], lr=cfg.lr, betas=cfg.betas, eps=cfg.adam_eps)
+
+    def current_w2c() -> torch.Tensor:
+        return se3_exp(xi) @ w2c0
+
+    stage = STAGE_MATCH if use_matching else STAGE_COMPARE
+    switch_iteration: Optional[int] = None if use_matching else 0
+    stage1_iters = 0
+    counts: List[int] = []
+    n_compare_alone = 0
+    history: deque = deque(maxlen=max(cfg.converge_patience, 0) + 1)
+    history.append(w2c0.numpy())
+    scene_depth: Optional[float] = None
+    stop_reason = "max_iterations"
+    last_loss = None
+    it = 0
+    for it in range(cfg.max_iterations):
+        t_it = time.perf_counter()
+        lr = cfg.stage2_lr(it - switch_iteration + 1) if stage == STAGE_COMPARE else cfg.lr
+        for g in opt.param_groups:
+            g["lr"] = lr
+
+        xi_now = [float(v) for v in xi.detach()]
+        w2c = current_w2c()
+        w2c_np = w2c.detach().numpy().copy()
+        out = state.render(w2c, cfg.image_scale)
+        image = out.color
+        if scene_depth is None:
+            with torch.no_grad():
+                sel = out.alpha > 0.5
+                scene_depth = float(out.depth[sel].mean()) if bool(sel.any()) else float(
+                    torch.linalg.norm(state.model.means.detach().mean(0).double().cpu()
+                                      - invert_rigid(w2c0)[:3, 3]))
+        l_compare = compare_loss(image, query, mask)
+        l_match = None
+        n_raw = n_used = 0
+        switch_now = False
+        if stage == STAGE_MATCH:
+            stage1_iters += 1
+            loss, l_match, n_raw, n_used, switch_now = match_step(state, cfg, image, out, query, w2c, intr,
+                                                                  l_compare)
+            counts.append(n_used)
+            if l_match is None:
+                n_compare_alone += 1
+            if cfg.max_stage1_iterations is not None and stage1_iters >= cfg.max_stage1_iterations:
+                switch_now = True
+        else:
+            loss = l_compare
+
+        opt.zero_grad(set_to_none=True)
+        with state.timed("backward"):
+            loss.backward()
+        opt.step()
+        last_loss = float(loss.detach())
+
+        with torch.no_grad():
+            new_w2c = current_w2c().numpy()
+        history.append(new_w2c)
+        rot_err, trans_err = state.errors(w2c_np)
+        state.record(TraceRecord(
+            iteration=it, stage=stage, seconds=time.perf_counter() - t_it, lr=lr, loss=last_loss,
+            loss_compare=float(l_compare.detach()),
+            loss_match=None if l_match is None else float(l_match.detach()),
+            matches=n_raw, matches_used=n_used, rot_err_deg=rot_err, trans_err=trans_err,
+            xi=xi_now,  # the twist rendered at this iteration: w2c = se3_exp(xi) @ init_w2c
+        ))
+
+        if switch_now and stage == STAGE_MATCH:
+            stage = STAGE_COMPARE
+            switch_iteration = it + 1
+            logger.debug("switch to stage 2 at iteration %d", it + 1)
+
+        # Convergence: the pose barely moved over the last `converge_patience` iterations.
+        P = cfg.converge_patience
+        if P > 0 and len(history) == P + 1 and it + 1 >= max(cfg.min_iterations, P):
+            a, b = np.linalg.inv(history[0]), np.linalg.inv(history[-1])
+            drot = float(rotation_error_deg(a, b))
+            dtrans = float(np.linalg.norm(a[:3, 3] - b[:3, 3]))
+            if drot < cfg.converge_rot_deg and dtrans < cfg.converge_trans_rel * max(scene_depth, 1e-12):
+                stop_reason = "converged"
+                break
+
+    with torch.no_grad():
+        final_w2c = current_w2c().numpy()
+    match_counts = {
+        "stage1_iterations": stage1_iters,
+        "compare_alone_steps": n_compare_alone,
+        "first": counts[0] if counts else None,
+        "last": counts[-1] if counts else None,
+        "mean": float(np.mean(counts)) if counts else None,
+        "min": int(min(counts)) if counts else None,
+        "max": int(max(counts)) if counts else None,
+    }
+    sw = switch_iteration if (use_matching and stage == STAGE_COMPARE) else (None if use_matching else 0)
+    return IcommaOutcome(final_w2c, it + 1, stop_reason, sw, match_counts, last_loss, scene_depth)

@@ -1,0 +1,196 @@
+"""What the stages of a localization share: the scene, the query at each working scale, the
+matcher (with the query's features computed once), the trace and the time spent per kind of work.
+
+A stage reads and writes a :class:`LocalizationState`; the pose it works on is passed and returned
+explicitly (``w2c``, float64 numpy), so that a stage can be run and tested on its own.
+"""
+from __future__ import annotations
+
+import contextlib
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from typing import Any, Callable, Dict, List, Optional, Tuple
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..camera import Intrinsics
+from ..gaussians import GaussianModel
+from ..pose.convert import rotation_error_deg, translation_error
+from .types import Query, Stage, TraceRecord
+
+__all__ = ["LocalizationState", "Observation", "resize_image"]
+
+#: Kinds of work timed separately (issue: where does a pose's time go).
+TIMED = ("render", "backward", "matcher", "pnp", "verify", "candidates")
+
+
+def resize_image(img: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """``[C, H, W]`` resized to ``h x w`` (bilinear, antialiased when shrinking)."""
+    if tuple(img.shape[-2:]) == (h, w):
+        return img
+    return F.interpolate(img[None], size=(h, w), mode="bilinear", align_corners=False,
+                         antialias=True)[0]
+
+
+@dataclass
+class Observation:
+    """A render at one pose and what was matched against the query there (detached).
+
+    w2c: the pose rendered. scale: working scale of the render (its intrinsics are
+    ``state.intrinsics_at(scale)``). color/depth/alpha: the render. matches: render (kpts0) vs
+    query (kpts1) at that scale, or None if not matched.
+    """
+
+    w2c: np.ndarray
+    scale: float
+    color: torch.Tensor
+    depth: torch.Tensor
+    alpha: torch.Tensor
+    matches: Any = None
+
+
+@dataclass
+class LocalizationState:
+    """Scene, query and bookkeeping of one localization.
+
+    model: Gaussians (detached); bg: background ``[3]``; backend: rasterizer backend.
+    query: the photo at full resolution. matcher: the keypoint matcher (or None).
+    gt_c2w: ground truth, used ONLY to fill the errors of trace records.
+    progress: called with every trace record as it is added.
+    """
+
+    model: GaussianModel
+    query: Query
+    bg: torch.Tensor
+    backend: str = "auto"
+    matcher: Any = None
+    sh_degree: Optional[int] = None
+    antialiasing: bool = False
+    gt_c2w: Optional[np.ndarray] = None
+    progress: Optional[Callable[[TraceRecord], Any]] = None
+    record_trace: bool = True
+    trace: List[TraceRecord] = field(default_factory=list)
+    seconds: Dict[str, float] = field(default_factory=lambda: defaultdict(float))
+    _queries: Dict[float, Query] = field(default_factory=dict)
+    _features: Dict[float, Any] = field(default_factory=dict)
+    steps: int = 0  # trace records made so far (also when the trace is not kept)
+
+    def __post_init__(self):
+        self.model = self.model.detach()
+        if self.sh_degree is None and self.model.sh_degree > 0 and not bool(self.model.sh_rest.any()):
+            # Higher SH bands all zero: degree 0 renders the same image (and gradients), faster.
+            self.model = self.model.with_sh_degree(0)
+        dev, dt = self.model.device, self.model.dtype
+        self.bg = torch.as_tensor(self.bg, device=dev, dtype=dt).reshape(3)
+        self._t0 = time.perf_counter()
+
+    # ------------------------------------------------------------------ time
+    @contextlib.contextmanager
+    def timed(self, kind: str):
+        """Add the time spent in the block to ``seconds[kind]``."""
+        t = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[kind] += time.perf_counter() - t
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self._t0
+
+    def stage_seconds(self) -> Dict[str, float]:
+        """Seconds per kind of work, plus ``other`` (Python, losses, bookkeeping) and ``total``."""
+        total = self.elapsed()
+        out = {k: float(self.seconds.get(k, 0.0)) for k in TIMED}
+        out["other"] = max(0.0, total - sum(out.values()))
+        out["total"] = total
+        return out
+
+    # ------------------------------------------------------------------ query
+    def intrinsics_at(self, scale: float) -> Intrinsics:
+        intr = self.query.intrinsics
+        return intr if scale == 1.0 else intr.scaled(scale)
+
+    def query_at(self, scale: float) -> Query:
+        """The query resized to ``scale`` (masks kept conservative: a pixel of ``valid`` stays
+        valid only if all of its source was)."""
+        q = self._queries.get(scale)
+        if q is None:
+            intr = self.intrinsics_at(scale)
+            H, W = intr.height, intr.width
+            dev, dt = self.model.device, self.model.dtype
+            rgb = resize_image(self.query.rgb.detach().to(dev, dt), H, W).clamp(0.0, 1.0)
+            alpha = valid = None
+            if self.query.alpha is not None:
+                alpha = resize_image(self.query.alpha.detach().to(dev, dt), H, W).clamp(0.0, 1.0)
+            if self.query.valid is not None:
+                valid = (resize_image(self.query.valid.detach().to(dev, dt), H, W) > 0.999).to(dt)
+            q = Query(rgb, intr, alpha, valid, self.query.name)
+            self._queries[scale] = q
+        return q
+
+    def query_features(self, scale: float):
+        """The matcher's features of the query at ``scale`` (computed once), or None when the
+        matcher cannot extract features on their own."""
+        if self.matcher is None or not getattr(self.matcher, "supports_features", False):
+            return None
+        f = self._features.get(scale)
+        if f is None:
+            with self.timed("matcher"):
+                f = self.matcher.extract(self.query_at(scale).rgb)
+            self._features[scale] = f
+        return f
+
+    # ------------------------------------------------------------------ render / match
+    def render(self, w2c, scale: float = 1.0):
+        """Render at ``w2c`` (a [4, 4] float64 numpy pose, or a torch tensor that may require
+        grad) at working ``scale``; returns the rasterizer's ``RasterOutput``."""
+        from ..render import render
+
+        if isinstance(w2c, np.ndarray):
+            w2c = torch.as_tensor(w2c, dtype=torch.float64)
+        dev, dt = self.model.device, self.model.dtype
+        with self.timed("render"):
+            return render(self.model, self.intrinsics_at(scale), w2c.to(device=dev, dtype=dt), self.bg,
+                          backend=self.backend, sh_degree=self.sh_degree, antialiasing=self.antialiasing)
+
+    def observe(self, w2c: np.ndarray, scale: float = 1.0, match: bool = True) -> Observation:
+        """Render at ``w2c`` and (optionally) match the render against the query."""
+        with torch.no_grad():
+            out = self.render(w2c, scale)
+        color = out.color.clamp(0.0, 1.0)  # matchers take images in [0, 1]
+        obs = Observation(np.asarray(w2c, np.float64).copy(), scale, color, out.depth, out.alpha)
+        if match and self.matcher is not None:
+            obs.matches = self.match(color, scale)
+        return obs
+
+    def match(self, render_rgb: torch.Tensor, scale: float, differentiable: bool = False):
+        """Matches between a render at ``scale`` (kpts0) and the query at ``scale`` (kpts1)."""
+        q = self.query_at(scale)
+        feats = None if differentiable else self.query_features(scale)
+        with self.timed("matcher"):
+            return self.matcher.match(render_rgb, q.rgb, differentiable=differentiable, features1=feats)
+
+    # ------------------------------------------------------------------ trace
+    def errors(self, w2c: np.ndarray) -> Tuple[Optional[float], Optional[float]]:
+        """(rotation error deg, camera-centre distance) against the ground truth, if known."""
+        if self.gt_c2w is None:
+            return None, None
+        c2w = np.linalg.inv(w2c)
+        return float(rotation_error_deg(c2w, self.gt_c2w)), float(translation_error(c2w, self.gt_c2w))
+
+    def record(self, rec: TraceRecord) -> TraceRecord:
+        self.steps += 1
+        if self.record_trace:
+            self.trace.append(rec)
+        if self.progress is not None:
+            self.progress(rec)
+        return rec
+
+    def new_record(self, stage: Stage, w2c: np.ndarray, **kw) -> TraceRecord:
+        """A trace record of a step that rendered ``w2c`` (errors filled from the ground truth)."""
+        rot, trans = self.errors(w2c)
+        return TraceRecord(iteration=self.steps, stage=stage, rot_err_deg=rot, trans_err=trans,
+                           w2c=np.asarray(w2c).tolist(), **kw)

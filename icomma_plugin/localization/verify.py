@@ -1,0 +1,197 @@
+"""Check a pose without ground truth: render there, match the render against the query, and
+measure how well the two agree; turn the measurements into a verdict.
+
+The central signal needs no 3D reasoning: at the right pose the render and the photo show the
+same thing at the same place, so a match between them has (almost) no displacement. A match is an
+*inlier* of the pose when its render and query keypoints lie within ``inlier_px`` of each other.
+The other signals (share of inliers, their median displacement and spread, the photometric
+residual on the covered area, how much of the photo the render covers, whether the optimiser
+stopped moving) catch what the inlier count alone misses.
+
+Thresholds of :class:`VerdictConfig` were calibrated on the benchmark (docs/BENCHMARK.md): the
+poses called ``ok`` there were right (< 5 deg, < 0.05).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any, Dict, Optional
+
+import numpy as np
+import torch
+
+from .state import LocalizationState, Observation
+from .types import Verdict
+
+__all__ = ["PoseScore", "VerdictConfig", "coverage_mask", "decide", "score_observation"]
+
+
+@dataclass
+class PoseScore:
+    """What a render-and-match at one pose says about that pose (see the module docstring).
+
+    matches: matches found; inliers: those with a displacement below ``inlier_px``.
+    median_px, mean_px: median and mean displacement of the inliers, in pixels of the matched
+        images (the working resolution: matchers are about equally precise in their own pixels
+        at any resolution). Detectors that return integer pixels make the median 0 at a good
+        pose; the mean still resolves sub-pixel differences.
+    spread: fraction of the image's bounding box spanned by the inliers (0 when < 3 inliers).
+    coverage: fraction of the query's valid pixels where the render has alpha > 0.5 (or, with a
+        query alpha, the intersection-over-union of the two silhouettes).
+    photometric_rmse: RMS colour difference on the covered, valid pixels.
+    """
+
+    matches: int
+    inliers: int
+    median_px: float
+    mean_px: float
+    spread: float
+    coverage: float
+    photometric_rmse: float
+
+    @property
+    def inlier_ratio(self) -> float:
+        return self.inliers / self.matches if self.matches else 0.0
+
+    def better_than(self, other: Optional["PoseScore"], tie: float = 0.02) -> bool:
+        """The stated score: more inliers than ``other`` by more than a share ``tie``, or about as
+        many (within that share) with a smaller mean displacement."""
+        if other is None:
+            return True
+        if self.inliers > other.inliers * (1.0 + tie):
+            return True
+        return self.inliers >= other.inliers * (1.0 - tie) and self.inliers > 0 \
+            and self.mean_px < other.mean_px
+
+    def to_json(self) -> Dict[str, Any]:
+        d = asdict(self)
+        d["inlier_ratio"] = self.inlier_ratio
+        return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.items()}
+
+
+def coverage_mask(obs: Observation, state: LocalizationState) -> torch.Tensor:
+    """``[1, H, W]`` float mask of the pixels the comparing loss uses at this observation: valid
+    query pixels where the render or the query (its alpha, when given) shows the scene."""
+    q = state.query_at(obs.scale)
+    cover = obs.alpha > 0.5
+    if q.alpha is not None:
+        cover = cover | (q.alpha > 0.5)
+    m = cover.to(obs.alpha.dtype)
+    if q.valid is not None:
+        m = m * q.valid
+    return m
+
+
+def score_observation(obs: Observation, state: LocalizationState, inlier_px: float) -> PoseScore:
+    """Score the pose of ``obs`` (which must hold matches) against the query.
+
+    ``inlier_px`` is in pixels of the observation's (working) resolution.
+    """
+    q = state.query_at(obs.scale)
+    W, H = q.intrinsics.width, q.intrinsics.height
+    n_matches, inliers, median, mean, spread = 0, 0, float("inf"), float("inf"), 0.0
+    m = obs.matches
+    if m is not None and len(m) > 0:
+        k0 = m.kpts0.detach().double().cpu().numpy()
+        k1 = m.kpts1.detach().double().cpu().numpy()
+        disp = np.linalg.norm(k0 - k1, axis=1)
+        n_matches = len(disp)
+        inl = disp < inlier_px
+        inliers = int(inl.sum())
+        if inliers:
+            median = float(np.median(disp[inl]))
+            mean = float(np.mean(disp[inl]))
+        if inliers >= 3:
+            pts = k1[inl]
+            span = (pts.max(0) - pts.min(0)) / np.array([max(W - 1, 1), max(H - 1, 1)])
+            spread = float(np.clip(span[0] * span[1], 0.0, 1.0))
+    with torch.no_grad():
+        rend_cover = obs.alpha > 0.5
+        valid = q.valid > 0.5 if q.valid is not None else torch.ones_like(rend_cover)
+        if q.alpha is not None:
+            qa = (q.alpha > 0.5) & valid
+            ra = rend_cover & valid
+            union = float((qa | ra).sum())
+            coverage = float((qa & ra).sum()) / union if union > 0 else 0.0
+        else:
+            coverage = float((rend_cover & valid).sum()) / max(float(valid.sum()), 1.0)
+        mask = coverage_mask(obs, state)
+        msum = float(mask.sum())
+        if msum > 0:
+            d2 = ((obs.color - q.rgb.to(obs.color.dtype)) ** 2 * mask).sum() / (3.0 * msum)
+            rmse = float(torch.sqrt(d2))
+        else:
+            rmse = float("inf")
+    return PoseScore(n_matches, inliers, median, mean, spread, coverage, rmse)
+
+
+@dataclass
+class VerdictConfig:
+    """Thresholds of the verdict (calibrated on the benchmark, docs/BENCHMARK.md).
+
+    ok_inliers / ok_ratio / ok_median_px / ok_spread / ok_coverage: all must hold for ``ok``.
+    fail_inliers: fewer inliers than this is ``failed``; fail_coverage: a render covering less of
+        the photo than this is ``failed`` (the pose sees almost none of the scene).
+    inlier_px: displacement below which a match is an inlier [px at the working resolution].
+    """
+
+    inlier_px: float = 2.0
+    ok_inliers: int = 30
+    ok_ratio: float = 0.5
+    ok_median_px: float = 1.0
+    ok_spread: float = 0.04
+    ok_coverage: float = 0.3
+    fail_inliers: int = 8
+    fail_coverage: float = 0.02
+
+    def __post_init__(self):
+        for name in ("inlier_px", "ok_median_px"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"VerdictConfig.{name} must be a positive number, got {v!r}")
+        for name in ("ok_ratio", "ok_spread", "ok_coverage", "fail_coverage"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and 0.0 <= v <= 1.0):
+                raise ValueError(f"VerdictConfig.{name} must be in [0, 1], got {v!r}")
+        for name in ("ok_inliers", "fail_inliers"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
+                raise ValueError(f"VerdictConfig.{name} must be a non-negative int, got {v!r}")
+
+
+def decide(score: Optional[PoseScore], cfg: VerdictConfig, converged: Optional[bool] = None,
+           extra: Optional[Dict[str, Any]] = None) -> Verdict:
+    """The verdict for a pose from its score (None: the pose could not be checked)."""
+    signals: Dict[str, Any] = dict(extra or {})
+    signals["converged"] = converged
+    if score is None:
+        return Verdict("uncertain", "the pose could not be checked (no matcher to compare the render "
+                       "with the photo); pass a matcher to get a verdict", signals)
+    signals.update(score.to_json())
+    if score.coverage < cfg.fail_coverage:
+        return Verdict("failed", f"the render at the estimated pose covers {100 * score.coverage:.1f}% "
+                       "of the photo: the pose sees almost none of the scene; start from another pose "
+                       "or without one (init=none)", signals)
+    if score.inliers < cfg.fail_inliers:
+        return Verdict("failed", f"only {score.inliers} of {score.matches} matches agree with the "
+                       "estimated pose: it is wrong, or the photo does not show this scene", signals)
+    problems = []
+    if score.inliers < cfg.ok_inliers:
+        problems.append(f"{score.inliers} agreeing matches (< {cfg.ok_inliers})")
+    if score.inlier_ratio < cfg.ok_ratio:
+        problems.append(f"{100 * score.inlier_ratio:.0f}% of the matches agree (< {100 * cfg.ok_ratio:.0f}%)")
+    if not score.median_px <= cfg.ok_median_px:
+        problems.append(f"median displacement {score.median_px:.2f} px (> {cfg.ok_median_px:g})")
+    if score.spread < cfg.ok_spread:
+        problems.append(f"agreeing matches span {100 * score.spread:.1f}% of the image (< "
+                        f"{100 * cfg.ok_spread:.0f}%)")
+    if score.coverage < cfg.ok_coverage:
+        problems.append(f"the render covers {100 * score.coverage:.0f}% of the photo (< "
+                        f"{100 * cfg.ok_coverage:.0f}%)")
+    if converged is False:
+        problems.append("the optimisation had not stopped moving")
+    if problems:
+        return Verdict("uncertain", "check this pose: " + "; ".join(problems), signals)
+    return Verdict("ok", f"{score.inliers} of {score.matches} matches agree within "
+                   f"{score.median_px:.2f} px (median), render covers {100 * score.coverage:.0f}% of "
+                   "the photo", signals)
