@@ -130,8 +130,32 @@ class CandidateSet:
                      intr.width, intr.height)
         return cls(c2w, source, intr, feats)
 
+    @classmethod
+    def for_model(cls, model: GaussianModel, intrinsics: Intrinsics, matcher, bg, cameras_c2w: Sequence[np.ndarray],
+                  cfg: Optional[CandidateConfig] = None, backend: str = "auto",
+                  names: Optional[Sequence[str]] = None) -> "CandidateSet":
+        """A candidate set for photos taken with ``intrinsics`` (build once, pass it to every
+        ``localize(..., candidate_set=...)`` of a batch)."""
+        import torch
+
+        from .types import Query
+
+        if not usable(matcher):
+            raise ValueError(f"candidate views need a matcher that extracts features, got {matcher!r}")
+        blank = torch.zeros(3, intrinsics.height, intrinsics.width)
+        state = LocalizationState(model, Query(blank, intrinsics), bg, backend=backend, matcher=matcher)
+        return cls.build(state, cameras_c2w, cfg or CandidateConfig(), names)
+
+    def compatible(self, intrinsics: Intrinsics, cfg: CandidateConfig) -> bool:
+        """Whether this set was rendered for photos with ``intrinsics`` (ranked at ``cfg.rank_side``)."""
+        return self.intrinsics == intrinsics.scaled(rank_scale(intrinsics, cfg.rank_side)) \
+            if rank_scale(intrinsics, cfg.rank_side) != 1.0 else self.intrinsics == intrinsics
+
     def rank(self, state: LocalizationState, cfg: CandidateConfig) -> List[int]:
         """Candidate indices, best first (most mutual-NN matches with the query)."""
+        if not self.compatible(state.query.intrinsics, cfg):
+            raise ValueError("this candidate set was built for photos of another size or camera "
+                             f"({self.intrinsics}); build one for {state.query.intrinsics}")
         scale = rank_scale(state.query.intrinsics, cfg.rank_side)
         with state.timed("candidates"):
             fq = state.query_features(scale)
