@@ -1,12 +1,12 @@
-"""Native (compiled) backend: an autograd.Function around `gaussian_renderer_pose._C`.
+"""Native (compiled) backend: an autograd.Function around the ops `torch.ops.grp.*` (`_ops.py`).
 
 `rasterize_gaussians_native` follows the internal backend contract of docs/CONTRACTS.md and has the
 same signature as `gaussian_renderer_pose.reference.rasterize_gaussians_reference`. The forward and
 the complete backward (every tensor input, including viewmatrix / projmatrix / campos) run in C++
-(csrc/cpu/rasterize_cpu.cpp) for CPU tensors, or in CUDA (csrc/cuda/, same functions with a `_cuda`
-suffix, present when `_C.WITH_CUDA`) for CUDA tensors; the camera gradient is only computed when one
-of the camera tensors requires grad. Arguments are assumed validated (`_validate.py`); C++
-TORCH_CHECKs are a second line of defence and raise RuntimeError.
+(csrc/cpu/rasterize_cpu.cpp) for CPU tensors, or in CUDA (csrc/cuda/, present when `_C.WITH_CUDA`)
+for CUDA tensors, chosen by the dispatcher; the camera gradient is only computed when one of the
+camera tensors requires grad. Arguments are assumed validated (`_validate.py`); C++ TORCH_CHECKs
+are a second line of defence and raise RuntimeError.
 """
 from __future__ import annotations
 
@@ -18,18 +18,22 @@ from . import _backend
 
 __all__ = ["rasterize_gaussians_native", "mark_visible"]
 
-_NUM_TENSOR_INPUTS = 12  # means3D .. campos
+
+_ops_module = None
+
+
+def _native_ops():
+    """The `_ops` module (loads `_C` on first use; NativeUnavailable when it is not built)."""
+    global _ops_module
+    if _ops_module is None:
+        from . import _ops
+
+        _ops_module = _ops
+    return _ops_module
 
 
 def _f32c(t: Optional[torch.Tensor]) -> Optional[torch.Tensor]:
     return None if t is None else t.contiguous()
-
-
-def _kernels(C, device: torch.device):
-    """(forward, backward) entry points of `_C` for tensors on `device` (cpu or cuda)."""
-    if device.type == "cuda":
-        return C.forward_cuda, C.backward_cuda
-    return C.forward, C.backward
 
 
 class _RasterizeGaussians(torch.autograd.Function):
@@ -50,60 +54,41 @@ class _RasterizeGaussians(torch.autograd.Function):
         campos,  # [3]
         settings,  # tuple (H, W, tanfovx, tanfovy, scale_modifier, sh_degree, prefiltered, aa)
     ):
-        C = _backend.load_native()
-        H, W, tanfovx, tanfovy, scale_modifier, sh_degree, prefiltered, antialiasing = settings
-        args = [
-            _f32c(means3D),
-            _f32c(opacities),
-            _f32c(shs),
-            _f32c(colors_precomp),
-            _f32c(scales),
-            _f32c(rotations),
-            _f32c(cov3D_precomp),
-            _f32c(bg),
-            _f32c(viewmatrix),
-            _f32c(projmatrix),
-            _f32c(campos),
+        tensors = [
+            _f32c(t) for t in (means3D, opacities, shs, colors_precomp, scales, rotations,
+                               cov3D_precomp, bg, viewmatrix, projmatrix, campos)
         ]
-        outs = _kernels(C, means3D.device)[0](
-            *args, int(H), int(W), float(tanfovx), float(tanfovy), float(scale_modifier),
-            int(sh_degree), bool(prefiltered), bool(antialiasing),
-        )
-        color, radii, invdepth, depth_acc, alpha = outs[:5]
-        state = outs[5:]
+        # The op's arguments are the tensors then the settings (csrc/ops.h GRP_RASTER_INPUTS).
+        outs = _native_ops().rasterize_forward(*tensors, *settings)
+        color, invdepth, depth_acc, alpha, *state = outs
+        radii = state[0]
         ctx.settings = settings
-        ctx.has = [a is not None for a in args]
-        ctx.save_for_backward(*[a for a in args if a is not None], radii, *state)
+        ctx.has = [t is not None for t in tensors]
+        ctx.save_for_backward(*[t for t in tensors if t is not None], *state)
         ctx.mark_non_differentiable(radii)
         return color, radii, invdepth, depth_acc, alpha
 
     @staticmethod
     def backward(ctx, grad_color, _grad_radii, grad_invdepth, grad_depth_acc, grad_alpha):
-        C = _backend.load_native()
-        H, W, tanfovx, tanfovy, scale_modifier, sh_degree, _prefiltered, antialiasing = ctx.settings
+        H, W = ctx.settings[:2]
         saved = list(ctx.saved_tensors)
-        args = [saved.pop(0) if present else None for present in ctx.has]
-        radii = saved.pop(0)
-        geom, binning, tile_ranges, offsets, final_T, last_contrib = saved
-        device = args[0].device  # means3D: every saved tensor lives there
+        tensors = [saved.pop(0) if present else None for present in ctx.has]
+        state = saved  # radii, geom, binning, tile_ranges, offsets, final_T, last_contrib
+        device = tensors[0].device  # means3D: every saved tensor lives there
         need = ctx.needs_input_grad
         want_camera = bool(need[9] or need[10] or need[11])
 
         def g(t, shape):
             return torch.zeros(shape, dtype=torch.float32, device=device) if t is None else t.contiguous()
 
-        grads = _kernels(C, device)[1](
-            *args, int(H), int(W), float(tanfovx), float(tanfovy), float(scale_modifier),
-            int(sh_degree), bool(antialiasing),
-            radii, geom, binning, tile_ranges, offsets, final_T, last_contrib,
+        grads = _native_ops().rasterize_backward(
+            *tensors, *ctx.settings, *state,
             g(grad_color, (3, H, W)), g(grad_invdepth, (1, H, W)), g(grad_depth_acc, (1, H, W)),
             g(grad_alpha, (1, H, W)), want_camera,
         )
-        (d_means3D, d_means2D, d_opac, d_shs, d_colors, d_scales, d_rots, d_cov, d_bg,
-         d_view, d_proj, d_campos) = grads
-        out = [d_means3D, d_means2D, d_opac, d_shs, d_colors, d_scales, d_rots, d_cov, d_bg,
-               d_view, d_proj, d_campos]
-        out = [o if need[i] else None for i, o in enumerate(out)]
+        # grads: means3D, means2D, opacities, shs, colors_precomp, scales, rotations,
+        # cov3D_precomp, bg, viewmatrix, projmatrix, campos (the order of forward's inputs).
+        out = [o if need[i] else None for i, o in enumerate(grads)]
         return (*out, None)
 
 
@@ -153,14 +138,13 @@ def rasterize_gaussians_native(
 
 def mark_visible(means3D: torch.Tensor, viewmatrix: torch.Tensor, projmatrix: torch.Tensor) -> torch.Tensor:
     """bool [P]: view-space z > 0.2 (upstream markVisible)."""
-    C = _backend.load_native()
+    ops = _native_ops()
     if means3D.device.type == "cuda":
         ok, why = _backend.native_status("cuda")
         if not ok:
             raise _backend.NativeUnavailable(why)
-    fn = C.mark_visible_cuda if means3D.device.type == "cuda" else C.mark_visible
     with torch.no_grad():
-        return fn(
+        return ops.mark_visible(
             means3D.detach().contiguous(), viewmatrix.detach().contiguous(),
             projmatrix.detach().contiguous(),
         )

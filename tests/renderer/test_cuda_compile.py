@@ -10,7 +10,7 @@ device-compatible: every helper GRP_HD, no namespace-scope constexpr arrays) sto
 - `rasterize_cuda.cpp` (torch-facing wrapper): compiled by the host compiler through nvcc (which
   supplies the CUDA include path) against this torch's headers with -DGRP_WITH_CUDA. A CPU build of
   torch lacks the generated `c10/cuda/impl/cuda_cmake_macros.h`; a stub is supplied for the check.
-- `ext.cpp` with -DGRP_WITH_CUDA (the CUDA bindings): syntax-checked by the host C++ compiler.
+- `ext.cpp` with -DGRP_WITH_CUDA (schemas, WITH_CUDA): syntax-checked by the host C++ compiler.
 
 Skipped cleanly when nvcc is not on PATH. The compilations run in parallel (under a minute on 2
 cores).
@@ -95,7 +95,7 @@ def _wrapper_cmd(tmp_path: Path) -> list[str] | None:
 
 
 def _bindings_cmd() -> list[str] | None:
-    """Host-compiler syntax check of ext.cpp with the CUDA bindings enabled, or None."""
+    """Host-compiler syntax check of ext.cpp with -DGRP_WITH_CUDA, or None."""
     cxx = os.environ.get("CXX") or shutil.which("c++") or shutil.which("g++")
     if cxx is None:
         return None

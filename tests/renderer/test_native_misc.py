@@ -20,12 +20,15 @@ def _native():
     return rasterize_gaussians_native
 
 
-def _C():
-    return _backend.load_native()
+def _ops():
+    from gaussian_renderer_pose import _ops
+
+    return _ops
 
 
 def _direct_args(scene):
-    """Positional args of _C.forward for a scene (float32, contiguous)."""
+    """Leading args of the grp ops for a scene (float32, contiguous): the tensors, and the settings
+    up to sh_degree (prefiltered and antialiasing follow)."""
     cam = camera_matrices(scene.w2c, scene.fx, scene.fy, scene.width, scene.height)
     tensors = [scene.means3D, scene.opacities, scene.shs, scene.colors_precomp, scene.scales,
                scene.rotations, scene.cov3D_precomp, scene.bg, cam.viewmatrix.contiguous(),
@@ -118,14 +121,17 @@ def test_no_camera_gradient_when_not_requested():
         assert torch.equal(g_p[name], g_n[name]), f"{name} depends on whether a pose grad was asked"
     # The C++ backward returns no camera gradient at all when not asked (nothing computed).
     tensors, settings = _direct_args(scene)
-    C = _C()
-    outs = C.forward(*tensors, *settings, False, False)
+    ops = _ops()
+    outs = ops.rasterize_forward(*tensors, *settings, False, False)
     H, W = scene.height, scene.width
-    grads = C.backward(*tensors, *settings, False, outs[1], *outs[5:], torch.ones(3, H, W),
-                       torch.zeros(1, H, W), torch.zeros(1, H, W), torch.zeros(1, H, W), False)
+    state = outs[4:]  # radii and the saved state
+    grads = ops.rasterize_backward(*tensors, *settings, False, False, *state, torch.ones(3, H, W),
+                                   torch.zeros(1, H, W), torch.zeros(1, H, W),
+                                   torch.zeros(1, H, W), False)
     assert grads[9] is None and grads[10] is None and grads[11] is None
-    grads_cam = C.backward(*tensors, *settings, False, outs[1], *outs[5:], torch.ones(3, H, W),
-                           torch.zeros(1, H, W), torch.zeros(1, H, W), torch.zeros(1, H, W), True)
+    grads_cam = ops.rasterize_backward(*tensors, *settings, False, False, *state,
+                                       torch.ones(3, H, W), torch.zeros(1, H, W),
+                                       torch.zeros(1, H, W), torch.zeros(1, H, W), True)
     assert all(t is not None for t in grads_cam[9:])
     for a, b in zip(grads[:9], grads_cam[:9]):
         assert (a is None and b is None) or torch.equal(a, b)
@@ -172,22 +178,24 @@ def _bad_calls(scene):
 
 def test_torch_check_errors_are_runtime_errors():
     scene = make_scene(20, sh_degree=3, seed=61)
-    C = _C()
+    ops = _ops()
     for what, tensors, settings in _bad_calls(scene):
         with pytest.raises(RuntimeError):
-            C.forward(*tensors, *settings, False, False)
+            ops.rasterize_forward(*tensors, *settings, False, False)
             pytest.fail(f"no error for {what}")
     # backward with saved state that does not belong to the inputs
     tensors, settings = _direct_args(scene)
-    outs = C.forward(*tensors, *settings, False, False)
+    outs = ops.rasterize_forward(*tensors, *settings, False, False)
     H, W = scene.height, scene.width
     g = [torch.zeros(3, H, W), torch.zeros(1, H, W), torch.zeros(1, H, W), torch.zeros(1, H, W)]
+    radii, state = outs[4], outs[5:]
     with pytest.raises(RuntimeError):
-        C.backward(*tensors, *settings, False, outs[1][:-1], *outs[5:], *g, True)
+        ops.rasterize_backward(*tensors, *settings, False, False, radii[:-1], *state, *g, True)
     with pytest.raises(RuntimeError):
-        C.backward(*tensors, *settings, False, outs[1], *outs[5:], torch.zeros(3, H + 1, W), *g[1:], True)
+        ops.rasterize_backward(*tensors, *settings, False, False, radii, *state,
+                               torch.zeros(3, H + 1, W), *g[1:], True)
     with pytest.raises(RuntimeError):
-        C.mark_visible(scene.means3D.double(), tensors[8], tensors[9])
+        ops.mark_visible(scene.means3D.double(), tensors[8], tensors[9])
 
 
 # ------------------------------------------------------------------------------------------------

@@ -89,22 +89,29 @@ GRP_FORCE_INLINE Sym3 gaussian_cov3d(const RasterArgs& a, int64_t g) {
   return compute_cov3d(load3(a.scales + 3 * g), a.scale_modifier, {q[0], q[1], q[2], q[3]});
 }
 
-// Result of preprocess_gaussian: radius 0 = culled (nothing written to the record).
+// Result of preprocess_gaussian: radius 0 = culled (the record is all zeros).
 struct PreprocessResult {
   int32_t radius;
   int64_t area;  // tiles touched
   int rect[4];   // minx, miny, maxx, maxy (tiles)
 };
 
+// The record of a culled Gaussian: all zeros.
+GRP_FORCE_INLINE PreprocessResult culled_record(float* gd) {
+  for (int k = 0; k < kGStride; ++k) gd[k] = 0.f;
+  return {0, 0, {0, 0, 0, 0}};
+}
+
 // Preprocess of Gaussian g (cull, project, cov2D/conic, radius, tile rect, colour) with V / Pm the
-// view / projection matrices (a.viewmatrix / a.projmatrix or copies of them). Writes the geom record
-// gd[kGStride] when the Gaussian is visible.
+// view / projection matrices (a.viewmatrix / a.projmatrix or copies of them). Writes the whole geom
+// record gd[kGStride], zeros where culled and in the padding, so that the saved state is a
+// function of the inputs (never uninitialised memory).
 GRP_FORCE_INLINE PreprocessResult preprocess_gaussian(const RasterArgs& a, int64_t g,
                                                       const float* V, const float* Pm, float* gd) {
   PreprocessResult res = {0, 0, {0, 0, 0, 0}};
   const Vec3 m = load3(a.means + 3 * g);
   const Vec3 t = transform_point_4x3(V, m);
-  if (!(t.z > kNearPlane)) return res;  // also culls NaN
+  if (!(t.z > kNearPlane)) return culled_record(gd);  // also culls NaN
   const Vec4 ph = transform_point_4x4(Pm, m);
   const float p_w = 1.0f / (ph.w + kProjEps);
   const Vec3 ndc = {ph.x * p_w, ph.y * p_w, ph.z * p_w};
@@ -112,16 +119,16 @@ GRP_FORCE_INLINE PreprocessResult preprocess_gaussian(const RasterArgs& a, int64
   Cov2DCtx ctx;
   const Sym2 cov2 = compute_cov2d(t, a.focal_x, a.focal_y, a.tanfovx, a.tanfovy, cov3, V, ctx);
   const ConicResult cr = dilate_and_invert(cov2, a.antialiasing);
-  if (cr.det == 0.0f) return res;
+  if (cr.det == 0.0f) return culled_record(gd);
   const float radius = screen_radius(cr.dilated, cr.det);
   const Vec2 pix = {ndc2pix(ndc.x, a.W), ndc2pix(ndc.y, a.H)};
   // !(|v| <= 1e9) also rejects NaN and +-inf.
   if (!(radius >= 1.f) || radius > 1e9f || !(fabsf(pix.x) <= 1e9f) || !(fabsf(pix.y) <= 1e9f))
-    return res;
+    return culled_record(gd);
   int minx, miny, maxx, maxy;
   get_rect(pix, (int)radius, a.grid_x, a.grid_y, minx, miny, maxx, maxy);
   const int64_t area = (int64_t)(maxx - minx) * (maxy - miny);
-  if (area == 0) return res;
+  if (area == 0) return culled_record(gd);
   Vec3 rgb;
   if (a.colors != nullptr) {
     rgb = load3(a.colors + 3 * g);
@@ -157,6 +164,7 @@ GRP_FORCE_INLINE PreprocessResult preprocess_gaussian(const RasterArgs& a, int64
   }
   gd[kGBoxX] = bx;
   gd[kGBoxY] = by;
+  for (int k = kGBoxY + 1; k < kGStride; ++k) gd[k] = 0.f;  // padding
   res.radius = (int32_t)radius;
   res.area = area;
   res.rect[0] = minx;

@@ -1,21 +1,19 @@
-// Host-only (torch/ATen): checks of the input tensors and filling of RasterArgs (raster.h), shared
-// by the CPU wrapper (../cpu/rasterize_cpu.cpp) and the CUDA wrapper (../cuda/rasterize_cuda.cpp).
-// The backends differ only in the device check, passed in as a callable.
+// Host-only (torch/ATen): checks of the op arguments (../ops.h structs), filling of RasterArgs
+// (raster.h) and allocation of the op outputs, shared by the CPU wrapper (../cpu/rasterize_cpu.cpp)
+// and the CUDA wrapper (../cuda/rasterize_cuda.cpp). The backends differ only in the device check,
+// passed in as a callable.
 #pragma once
 
 #include <ATen/ATen.h>
 
 #include <cstdint>
 #include <initializer_list>
-#include <optional>
-#include <vector>
 
+#include "../ops.h"
 #include "config.h"
 #include "raster.h"
 
 namespace grp {
-
-inline bool present(const std::optional<at::Tensor>& t) { return t.has_value() && t->defined(); }
 
 // float32, contiguous, given shape (-1 = any); device_check(t, name) checks the device.
 template <typename DeviceCheck>
@@ -35,72 +33,65 @@ void check_float_tensor(const at::Tensor& t, const char* name, std::initializer_
   }
 }
 
-// Checks the forward's inputs with check(tensor, name, shape) and returns the RasterArgs pointing
-// into them.
-template <typename Check>
-RasterArgs fill_raster_args(const Check& check, const at::Tensor& means3D,
-                            const at::Tensor& opacities, const std::optional<at::Tensor>& shs,
-                            const std::optional<at::Tensor>& colors_precomp,
-                            const std::optional<at::Tensor>& scales,
-                            const std::optional<at::Tensor>& rotations,
-                            const std::optional<at::Tensor>& cov3D_precomp, const at::Tensor& bg,
-                            const at::Tensor& viewmatrix, const at::Tensor& projmatrix,
-                            const at::Tensor& campos, int64_t H, int64_t W, double tanfovx,
-                            double tanfovy, double scale_modifier, int64_t sh_degree,
-                            bool antialiasing) {
+// Checks the rasterization inputs (the RasterInputs fields of ../ops.h, which BackwardInputs
+// shares) with check(tensor, name, shape) and returns the RasterArgs pointing into them.
+template <typename Check, typename Inputs>
+RasterArgs fill_raster_args(const Check& check, const Inputs& in) {
+  const at::Tensor& means3D = in.means3D;
+  const int64_t H = in.image_height, W = in.image_width, sh_degree = in.sh_degree;
   check(means3D, "means3D", {-1, 3});
   RasterArgs a;
   a.P = means3D.size(0);
   const int64_t P = a.P;
-  check(opacities, "opacities", {P, 1});
-  check(bg, "bg", {3});
-  check(viewmatrix, "viewmatrix", {4, 4});
-  check(projmatrix, "projmatrix", {4, 4});
-  check(campos, "campos", {3});
+  check(in.opacities, "opacities", {P, 1});
+  check(in.bg, "bg", {3});
+  check(in.viewmatrix, "viewmatrix", {4, 4});
+  check(in.projmatrix, "projmatrix", {4, 4});
+  check(in.campos, "campos", {3});
   TORCH_CHECK(H > 0 && W > 0 && H < (1 << 20) && W < (1 << 20), "image size must be positive, got ",
               H, "x", W);
   TORCH_CHECK(sh_degree >= 0 && sh_degree <= 3, "sh_degree must be in 0..3, got ", sh_degree);
-  TORCH_CHECK(tanfovx > 0 && tanfovy > 0, "tanfovx/tanfovy must be positive");
-  const bool has_colors = present(colors_precomp);
-  TORCH_CHECK(has_colors || present(shs), "either shs or colors_precomp must be given");
+  TORCH_CHECK(in.tanfovx > 0 && in.tanfovy > 0, "tanfovx/tanfovy must be positive");
+  const bool has_colors = in.colors_precomp.defined();
+  TORCH_CHECK(has_colors || in.shs.defined(), "either shs or colors_precomp must be given");
   if (has_colors) {
-    check(*colors_precomp, "colors_precomp", {P, 3});
-    a.colors = colors_precomp->data_ptr<float>();
+    check(in.colors_precomp, "colors_precomp", {P, 3});
+    a.colors = in.colors_precomp.template data_ptr<float>();
   } else {
-    check(*shs, "shs", {P, -1, 3});
-    a.M = shs->size(1);
+    check(in.shs, "shs", {P, -1, 3});
+    a.M = in.shs.size(1);
     TORCH_CHECK(a.M >= (sh_degree + 1) * (sh_degree + 1), "shs has ", a.M,
                 " coefficients, sh_degree ", sh_degree, " needs ", (sh_degree + 1) * (sh_degree + 1));
-    a.shs = shs->data_ptr<float>();
+    a.shs = in.shs.template data_ptr<float>();
   }
-  if (present(cov3D_precomp)) {
-    check(*cov3D_precomp, "cov3D_precomp", {P, 6});
-    a.cov3d = cov3D_precomp->data_ptr<float>();
+  if (in.cov3D_precomp.defined()) {
+    check(in.cov3D_precomp, "cov3D_precomp", {P, 6});
+    a.cov3d = in.cov3D_precomp.template data_ptr<float>();
   } else {
-    TORCH_CHECK(present(scales) && present(rotations),
+    TORCH_CHECK(in.scales.defined() && in.rotations.defined(),
                 "either cov3D_precomp or scales and rotations must be given");
-    check(*scales, "scales", {P, 3});
-    check(*rotations, "rotations", {P, 4});
-    a.scales = scales->data_ptr<float>();
-    a.rots = rotations->data_ptr<float>();
+    check(in.scales, "scales", {P, 3});
+    check(in.rotations, "rotations", {P, 4});
+    a.scales = in.scales.template data_ptr<float>();
+    a.rots = in.rotations.template data_ptr<float>();
   }
   a.H = (int)H;
   a.W = (int)W;
   a.grid_x = (a.W + kBlockX - 1) / kBlockX;
   a.grid_y = (a.H + kBlockY - 1) / kBlockY;
-  a.tanfovx = (float)tanfovx;
-  a.tanfovy = (float)tanfovy;
+  a.tanfovx = (float)in.tanfovx;
+  a.tanfovy = (float)in.tanfovy;
   a.focal_x = a.W / (2.0f * a.tanfovx);
   a.focal_y = a.H / (2.0f * a.tanfovy);
-  a.scale_modifier = (float)scale_modifier;
+  a.scale_modifier = (float)in.scale_modifier;
   a.sh_degree = (int)sh_degree;
-  a.antialiasing = antialiasing;
-  a.means = means3D.data_ptr<float>();
-  a.opac = opacities.data_ptr<float>();
-  a.bg = bg.data_ptr<float>();
-  a.viewmatrix = viewmatrix.data_ptr<float>();
-  a.projmatrix = projmatrix.data_ptr<float>();
-  a.campos = campos.data_ptr<float>();
+  a.antialiasing = in.antialiasing;
+  a.means = means3D.template data_ptr<float>();
+  a.opac = in.opacities.template data_ptr<float>();
+  a.bg = in.bg.template data_ptr<float>();
+  a.viewmatrix = in.viewmatrix.template data_ptr<float>();
+  a.projmatrix = in.projmatrix.template data_ptr<float>();
+  a.campos = in.campos.template data_ptr<float>();
   return a;
 }
 
@@ -110,87 +101,73 @@ RasterArgs fill_raster_args(const Check& check, const at::Tensor& means3D,
 // CUDA backend does not synchronise).
 template <typename Check, typename CheckState>
 void check_backward_inputs(const Check& check, const CheckState& check_state, const RasterArgs& a,
-                           const at::Tensor& radii, const at::Tensor& geom,
-                           const at::Tensor& binning, const at::Tensor& tile_ranges,
-                           const at::Tensor& offsets, const at::Tensor& final_T,
-                           const at::Tensor& last_contrib, const at::Tensor& grad_color,
-                           const at::Tensor& grad_invdepth, const at::Tensor& grad_depth_acc,
-                           const at::Tensor& grad_alpha) {
+                           const BackwardInputs& b) {
   const int64_t P = a.P;
   const int64_t num_tiles = (int64_t)a.grid_x * a.grid_y;
-  check(grad_color, "grad_color", {3, a.H, a.W});
-  check(grad_invdepth, "grad_invdepth", {1, a.H, a.W});
-  check(grad_depth_acc, "grad_depth_acc", {1, a.H, a.W});
-  check(grad_alpha, "grad_alpha", {1, a.H, a.W});
-  check(geom, "geom", {P, kGStride});
-  check(final_T, "final_T", {a.H, a.W});
-  check_state(radii, "radii", at::kInt);
-  check_state(binning, "binning", at::kInt);
-  check_state(tile_ranges, "tile_ranges", at::kInt);
-  check_state(offsets, "offsets", at::kLong);
-  check_state(last_contrib, "last_contrib", at::kInt);
-  TORCH_CHECK(radii.numel() == P && offsets.numel() == P + 1 && tile_ranges.numel() == num_tiles + 1 &&
-                  last_contrib.numel() == (int64_t)a.H * a.W,
+  check(b.grad_color, "grad_color", {3, a.H, a.W});
+  check(b.grad_invdepth, "grad_invdepth", {1, a.H, a.W});
+  check(b.grad_depth_acc, "grad_depth_acc", {1, a.H, a.W});
+  check(b.grad_alpha, "grad_alpha", {1, a.H, a.W});
+  check(b.geom, "geom", {P, kGStride});
+  check(b.final_T, "final_T", {a.H, a.W});
+  check_state(b.radii, "radii", at::kInt);
+  check_state(b.binning, "binning", at::kInt);
+  check_state(b.tile_ranges, "tile_ranges", at::kInt);
+  check_state(b.offsets, "offsets", at::kLong);
+  check_state(b.last_contrib, "last_contrib", at::kInt);
+  TORCH_CHECK(b.radii.numel() == P && b.offsets.numel() == P + 1 &&
+                  b.tile_ranges.numel() == num_tiles + 1 &&
+                  b.last_contrib.numel() == (int64_t)a.H * a.W,
               "saved forward state does not match the inputs");
 }
 
-// Outputs and saved state of the forward (ops.h), allocated uninitialised; binning and
-// tile_ranges are sized by the binning step and filled in by the backend.
-struct ForwardTensors {
-  at::Tensor color, radii, invdepth, depth_acc, alpha, geom, binning, tile_ranges, offsets,
-      final_T, last_contrib;
+// The forward's outputs and saved state (ops.h), allocated uninitialised; binning and tile_ranges
+// are sized by the binning step and filled in by the backend.
+inline ForwardOutputs allocate_forward_outputs(const RasterArgs& a, const at::TensorOptions& fopt) {
+  const auto iopt = fopt.dtype(at::kInt);
+  ForwardOutputs f;
+  f.color = at::empty({3, a.H, a.W}, fopt);
+  f.invdepth = at::empty({1, a.H, a.W}, fopt);
+  f.depth_acc = at::empty({1, a.H, a.W}, fopt);
+  f.alpha = at::empty({1, a.H, a.W}, fopt);
+  f.final_T = at::empty({a.H, a.W}, fopt);
+  f.last_contrib = at::empty({a.H, a.W}, iopt);
+  f.radii = at::empty({a.P}, iopt);
+  f.geom = at::empty({a.P, kGStride}, fopt);
+  f.offsets = at::empty({a.P + 1}, fopt.dtype(at::kLong));
+  return f;
+}
 
-  explicit ForwardTensors(const RasterArgs& a, const at::TensorOptions& fopt) {
-    const auto iopt = fopt.dtype(at::kInt);
-    color = at::empty({3, a.H, a.W}, fopt);
-    invdepth = at::empty({1, a.H, a.W}, fopt);
-    depth_acc = at::empty({1, a.H, a.W}, fopt);
-    alpha = at::empty({1, a.H, a.W}, fopt);
-    final_T = at::empty({a.H, a.W}, fopt);
-    last_contrib = at::empty({a.H, a.W}, iopt);
-    radii = at::empty({a.P}, iopt);
-    geom = at::empty({a.P, kGStride}, fopt);
-    offsets = at::empty({a.P + 1}, fopt.dtype(at::kLong));
-  }
+inline RenderOutputs render_outputs(ForwardOutputs& f) {
+  return {f.color.data_ptr<float>(), f.invdepth.data_ptr<float>(), f.depth_acc.data_ptr<float>(),
+          f.alpha.data_ptr<float>(), f.final_T.data_ptr<float>(),
+          f.last_contrib.data_ptr<int32_t>()};
+}
 
-  RenderOutputs render_outputs() {
-    return {color.data_ptr<float>(),   invdepth.data_ptr<float>(), depth_acc.data_ptr<float>(),
-            alpha.data_ptr<float>(),   final_T.data_ptr<float>(),  last_contrib.data_ptr<int32_t>()};
-  }
-
-  // The 11 tensors returned by rasterize_forward_* (ops.h order).
-  std::vector<at::Tensor> list() const {
-    return {color, radii, invdepth, depth_acc, alpha, geom, binning, tile_ranges, offsets, final_T,
-            last_contrib};
-  }
-};
-
-// Zero-filled per-Gaussian gradient tensors (undefined where the input is absent).
-struct GradTensors {
-  at::Tensor means3D, means2D, opac, shs, colors, scales, rots, cov3d;
-
-  GaussianGrads ptrs() {
-    auto ptr = [](at::Tensor& t) { return t.defined() ? t.data_ptr<float>() : nullptr; };
-    return {ptr(means3D), ptr(means2D), ptr(opac), ptr(shs),
-            ptr(colors),  ptr(scales),  ptr(rots), ptr(cov3d)};
-  }
-};
-
-inline GradTensors zero_gaussian_grads(const RasterArgs& a, const at::TensorOptions& fopt) {
+// The backward's outputs with zero-filled per-Gaussian gradients (undefined where the input is
+// absent); grad_bg and the camera gradients are left to the backend.
+inline BackwardOutputs zero_gaussian_grads(const RasterArgs& a, const at::TensorOptions& fopt) {
   const int64_t P = a.P;
-  GradTensors g;
-  g.means3D = at::zeros({P, 3}, fopt);
-  g.means2D = at::zeros({P, 3}, fopt);
-  g.opac = at::zeros({P, 1}, fopt);
-  if (a.colors != nullptr) g.colors = at::zeros({P, 3}, fopt);
-  else g.shs = at::zeros({P, a.M, 3}, fopt);
+  BackwardOutputs g;
+  g.grad_means3D = at::zeros({P, 3}, fopt);
+  g.grad_means2D = at::zeros({P, 3}, fopt);
+  g.grad_opacities = at::zeros({P, 1}, fopt);
+  if (a.colors != nullptr) g.grad_colors_precomp = at::zeros({P, 3}, fopt);
+  else g.grad_shs = at::zeros({P, a.M, 3}, fopt);
   if (a.cov3d != nullptr) {
-    g.cov3d = at::zeros({P, 6}, fopt);
+    g.grad_cov3D_precomp = at::zeros({P, 6}, fopt);
   } else {
-    g.scales = at::zeros({P, 3}, fopt);
-    g.rots = at::zeros({P, 4}, fopt);
+    g.grad_scales = at::zeros({P, 3}, fopt);
+    g.grad_rotations = at::zeros({P, 4}, fopt);
   }
   return g;
+}
+
+inline GaussianGrads gaussian_grad_ptrs(BackwardOutputs& g) {
+  auto ptr = [](at::Tensor& t) { return t.defined() ? t.data_ptr<float>() : nullptr; };
+  return {ptr(g.grad_means3D),   ptr(g.grad_means2D),        ptr(g.grad_opacities),
+          ptr(g.grad_shs),       ptr(g.grad_colors_precomp), ptr(g.grad_scales),
+          ptr(g.grad_rotations), ptr(g.grad_cov3D_precomp)};
 }
 
 }  // namespace grp

@@ -405,24 +405,14 @@ void backward_tile(const RasterArgs& in, int64_t tile, const float* geom, const 
 // ------------------------------------------------------------------------------------------------
 // Forward
 // ------------------------------------------------------------------------------------------------
-std::vector<at::Tensor> rasterize_forward_cpu(
-    const at::Tensor& means3D, const at::Tensor& opacities, const std::optional<at::Tensor>& shs,
-    const std::optional<at::Tensor>& colors_precomp, const std::optional<at::Tensor>& scales,
-    const std::optional<at::Tensor>& rotations, const std::optional<at::Tensor>& cov3D_precomp,
-    const at::Tensor& bg, const at::Tensor& viewmatrix, const at::Tensor& projmatrix,
-    const at::Tensor& campos, int64_t image_height, int64_t image_width, double tanfovx,
-    double tanfovy, double scale_modifier, int64_t sh_degree, bool prefiltered, bool antialiasing) {
-  (void)prefiltered;
-  const RasterArgs in = fill_raster_args(check_tensor, means3D, opacities, shs, colors_precomp,
-                                         scales, rotations, cov3D_precomp, bg, viewmatrix,
-                                         projmatrix, campos, image_height, image_width, tanfovx,
-                                         tanfovy, scale_modifier, sh_degree, antialiasing);
+ForwardOutputs rasterize_forward_cpu(const RasterInputs& args) {
+  const RasterArgs in = fill_raster_args(check_tensor, args);
   const int64_t P = in.P;
-  const auto fopt = means3D.options();
+  const auto fopt = args.means3D.options();
   const auto iopt = fopt.dtype(at::kInt);
   const int64_t num_tiles = (int64_t)in.grid_x * in.grid_y;
 
-  ForwardTensors fw(in, fopt);
+  ForwardOutputs fw = allocate_forward_outputs(in, fopt);
   std::vector<int32_t> rects(4 * P);
 
   int64_t* off = fw.offsets.data_ptr<int64_t>();
@@ -470,72 +460,59 @@ std::vector<at::Tensor> rasterize_forward_cpu(
   }
 
   // 3. Render.
-  const RenderOutputs out = fw.render_outputs();
+  const RenderOutputs out = render_outputs(fw);
   const int32_t* bin = fw.binning.data_ptr<int32_t>();
   const int32_t* tr = fw.tile_ranges.data_ptr<int32_t>();
   parallel_dynamic(num_tiles, [&](int64_t t) { render_tile(in, t, gm, bin, tr, out); });
 
-  return fw.list();
+  return fw;
 }
 
 // ------------------------------------------------------------------------------------------------
 // Backward
 // ------------------------------------------------------------------------------------------------
-std::vector<at::Tensor> rasterize_backward_cpu(
-    const at::Tensor& means3D, const at::Tensor& opacities, const std::optional<at::Tensor>& shs,
-    const std::optional<at::Tensor>& colors_precomp, const std::optional<at::Tensor>& scales,
-    const std::optional<at::Tensor>& rotations, const std::optional<at::Tensor>& cov3D_precomp,
-    const at::Tensor& bg, const at::Tensor& viewmatrix, const at::Tensor& projmatrix,
-    const at::Tensor& campos, int64_t image_height, int64_t image_width, double tanfovx,
-    double tanfovy, double scale_modifier, int64_t sh_degree, bool antialiasing,
-    const at::Tensor& radii, const at::Tensor& geom, const at::Tensor& binning,
-    const at::Tensor& tile_ranges, const at::Tensor& offsets, const at::Tensor& final_T,
-    const at::Tensor& last_contrib, const at::Tensor& grad_color, const at::Tensor& grad_invdepth,
-    const at::Tensor& grad_depth_acc, const at::Tensor& grad_alpha, bool compute_camera_grad) {
-  const RasterArgs in = fill_raster_args(check_tensor, means3D, opacities, shs, colors_precomp,
-                                         scales, rotations, cov3D_precomp, bg, viewmatrix,
-                                         projmatrix, campos, image_height, image_width, tanfovx,
-                                         tanfovy, scale_modifier, sh_degree, antialiasing);
+BackwardOutputs rasterize_backward_cpu(const BackwardInputs& b) {
+  const RasterArgs in = fill_raster_args(check_tensor, b);
   const int64_t P = in.P;
   const int64_t num_tiles = (int64_t)in.grid_x * in.grid_y;
-  check_backward_inputs(check_tensor, check_int_tensor, in, radii, geom, binning, tile_ranges,
-                        offsets, final_T, last_contrib, grad_color, grad_invdepth, grad_depth_acc,
-                        grad_alpha);
-  const int64_t num_rendered = offsets.data_ptr<int64_t>()[P];
-  TORCH_CHECK(binning.dim() == 2 && binning.size(0) == num_rendered && binning.size(1) == 2 &&
-                  tile_ranges.data_ptr<int32_t>()[num_tiles] == num_rendered,
+  check_backward_inputs(check_tensor, check_int_tensor, in, b);
+  const int64_t num_rendered = b.offsets.data_ptr<int64_t>()[P];
+  TORCH_CHECK(b.binning.dim() == 2 && b.binning.size(0) == num_rendered &&
+                  b.binning.size(1) == 2 &&
+                  b.tile_ranges.data_ptr<int32_t>()[num_tiles] == num_rendered,
               "saved binning state does not match the inputs");
 
-  const auto fopt = means3D.options();
-  GradTensors grads = zero_gaussian_grads(in, fopt);
+  const auto fopt = b.means3D.options();
+  BackwardOutputs grads = zero_gaussian_grads(in, fopt);
   // 4. Per-tile backward into per-entry slots.
   // Every slot is written by exactly one tile (no zero-fill needed).
   std::unique_ptr<float[]> slots(new float[(size_t)std::max<int64_t>(num_rendered, 1) * kSlot]);
   std::vector<double> dbg_tiles((size_t)num_tiles * 3);
-  const float* gm = geom.data_ptr<float>();
-  const int32_t* bin = binning.data_ptr<int32_t>();
-  const int32_t* tr = tile_ranges.data_ptr<int32_t>();
-  const GradImages gin{grad_color.data_ptr<float>(), grad_invdepth.data_ptr<float>(),
-                   grad_depth_acc.data_ptr<float>(), grad_alpha.data_ptr<float>()};
-  const float* fT = final_T.data_ptr<float>();
-  const int32_t* lc = last_contrib.data_ptr<int32_t>();
+  const float* gm = b.geom.data_ptr<float>();
+  const int32_t* bin = b.binning.data_ptr<int32_t>();
+  const int32_t* tr = b.tile_ranges.data_ptr<int32_t>();
+  const GradImages gin{b.grad_color.data_ptr<float>(), b.grad_invdepth.data_ptr<float>(),
+                       b.grad_depth_acc.data_ptr<float>(), b.grad_alpha.data_ptr<float>()};
+  const float* fT = b.final_T.data_ptr<float>();
+  const int32_t* lc = b.last_contrib.data_ptr<int32_t>();
   parallel_dynamic(num_tiles, [&](int64_t t) {
     backward_tile(in, t, gm, bin, tr, fT, lc, gin, slots.get(), dbg_tiles.data() + 3 * t);
   });
-  at::Tensor dL_dbg = at::empty({3}, fopt);
+  grads.grad_bg = at::empty({3}, fopt);
   {
     double s[3] = {0, 0, 0};
     for (int64_t t = 0; t < num_tiles; ++t)
       for (int k = 0; k < 3; ++k) s[k] += dbg_tiles[3 * t + k];
-    for (int k = 0; k < 3; ++k) dL_dbg.data_ptr<float>()[k] = (float)s[k];
+    for (int k = 0; k < 3; ++k) grads.grad_bg.data_ptr<float>()[k] = (float)s[k];
   }
 
   // 5. Per-Gaussian backward.
   const int64_t nblocks = (P + kGaussBlock - 1) / kGaussBlock;
+  const bool compute_camera_grad = b.compute_camera_grad;
   std::vector<double> cam_blocks(compute_camera_grad ? (size_t)nblocks * kCamGrad : 0, 0.0);
-  const int32_t* rad = radii.data_ptr<int32_t>();
-  const int64_t* off = offsets.data_ptr<int64_t>();
-  const GaussianGrads gout = grads.ptrs();
+  const int32_t* rad = b.radii.data_ptr<int32_t>();
+  const int64_t* off = b.offsets.data_ptr<int64_t>();
+  const GaussianGrads gout = gaussian_grad_ptrs(grads);
   const Vec3 cpos = load3(in.campos);
   at::parallel_for(0, nblocks, 1, [&](int64_t b0, int64_t b1) {
     for (int64_t blk = b0; blk < b1; ++blk) {
@@ -555,36 +532,43 @@ std::vector<at::Tensor> rasterize_backward_cpu(
       }
     }
   });
-  at::Tensor dL_dV, dL_dP, dL_dcampos;
   if (compute_camera_grad) {
     double sum[kCamGrad] = {0};
-    for (int64_t b = 0; b < nblocks; ++b)
-      for (int k = 0; k < kCamGrad; ++k) sum[k] += cam_blocks[b * kCamGrad + k];
-    dL_dV = at::empty({4, 4}, fopt);
-    dL_dP = at::empty({4, 4}, fopt);
-    dL_dcampos = at::empty({3}, fopt);
-    for (int k = 0; k < 16; ++k) dL_dV.data_ptr<float>()[k] = (float)sum[k];
-    for (int k = 0; k < 16; ++k) dL_dP.data_ptr<float>()[k] = (float)sum[16 + k];
-    for (int k = 0; k < 3; ++k) dL_dcampos.data_ptr<float>()[k] = (float)sum[32 + k];
+    for (int64_t blk = 0; blk < nblocks; ++blk)
+      for (int k = 0; k < kCamGrad; ++k) sum[k] += cam_blocks[blk * kCamGrad + k];
+    grads.grad_viewmatrix = at::empty({4, 4}, fopt);
+    grads.grad_projmatrix = at::empty({4, 4}, fopt);
+    grads.grad_campos = at::empty({3}, fopt);
+    float* dV = grads.grad_viewmatrix.data_ptr<float>();
+    float* dP = grads.grad_projmatrix.data_ptr<float>();
+    float* dC = grads.grad_campos.data_ptr<float>();
+    for (int k = 0; k < 16; ++k) dV[k] = (float)sum[k];
+    for (int k = 0; k < 16; ++k) dP[k] = (float)sum[16 + k];
+    for (int k = 0; k < 3; ++k) dC[k] = (float)sum[32 + k];
   }
-  return {grads.means3D, grads.means2D, grads.opac,  grads.shs, grads.colors, grads.scales,
-          grads.rots,    grads.cov3d,   dL_dbg,      dL_dV,     dL_dP,        dL_dcampos};
+  return grads;
 }
 
-at::Tensor mark_visible_cpu(const at::Tensor& means3D, const at::Tensor& viewmatrix,
-                            const at::Tensor& projmatrix) {
-  check_tensor(means3D, "means3D", {-1, 3});
-  check_tensor(viewmatrix, "viewmatrix", {4, 4});
-  check_tensor(projmatrix, "projmatrix", {4, 4});
-  const int64_t P = means3D.size(0);
-  at::Tensor out = at::empty({P}, means3D.options().dtype(at::kBool));
-  const float* m = means3D.data_ptr<float>();
-  const float* V = viewmatrix.data_ptr<float>();
-  bool* o = out.data_ptr<bool>();
+VisibilityOutputs mark_visible_cpu(const VisibilityInputs& args) {
+  check_tensor(args.means3D, "means3D", {-1, 3});
+  check_tensor(args.viewmatrix, "viewmatrix", {4, 4});
+  check_tensor(args.projmatrix, "projmatrix", {4, 4});
+  const int64_t P = args.means3D.size(0);
+  VisibilityOutputs out;
+  out.visible = at::empty({P}, args.means3D.options().dtype(at::kBool));
+  const float* m = args.means3D.data_ptr<float>();
+  const float* V = args.viewmatrix.data_ptr<float>();
+  bool* o = out.visible.data_ptr<bool>();
   at::parallel_for(0, P, 4096, [&](int64_t b, int64_t e) {
     for (int64_t g = b; g < e; ++g) o[g] = transform_point_4x3(V, load3(m + 3 * g)).z > kNearPlane;
   });
   return out;
+}
+
+TORCH_LIBRARY_IMPL(grp, CPU, m) {
+  m.impl(kForwardOp, boxed_kernel<&rasterize_forward_cpu>());
+  m.impl(kBackwardOp, boxed_kernel<&rasterize_backward_cpu>());
+  m.impl(kMarkVisibleOp, boxed_kernel<&mark_visible_cpu>());
 }
 
 }  // namespace grp

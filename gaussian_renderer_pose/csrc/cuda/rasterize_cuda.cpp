@@ -1,8 +1,8 @@
 // Torch-facing wrapper of the CUDA rasterizer: checks, allocations (PyTorch caching allocator),
 // current stream, then the plain-pointer launchers of kernels.h. Compiled only in a CUDA build
-// (setup.py CUDAExtension, -DGRP_WITH_CUDA). Same signatures, returns and saved-state meaning as
-// the CPU functions of ../ops.h (rasterize_forward_cpu / rasterize_backward_cpu / mark_visible_cpu),
-// so that _native.py routes CUDA tensors here unchanged.
+// (setup.py CUDAExtension, -DGRP_WITH_CUDA). Registers the CUDA kernels of the ops of ../ops.h
+// (same arguments, returns and saved-state meaning as the CPU kernels), so that the dispatcher
+// routes CUDA tensors here.
 //
 // One host synchronisation per forward (the number of (tile, Gaussian) entries, needed to size the
 // sort buffers and the binning tensor), as upstream. The backward has none.
@@ -68,18 +68,9 @@ uint64_t* as_u64(at::Tensor& t) { return reinterpret_cast<uint64_t*>(t.data_ptr<
 // ------------------------------------------------------------------------------------------------
 // Forward
 // ------------------------------------------------------------------------------------------------
-std::vector<at::Tensor> rasterize_forward_cuda(
-    const at::Tensor& means3D, const at::Tensor& opacities, const std::optional<at::Tensor>& shs,
-    const std::optional<at::Tensor>& colors_precomp, const std::optional<at::Tensor>& scales,
-    const std::optional<at::Tensor>& rotations, const std::optional<at::Tensor>& cov3D_precomp,
-    const at::Tensor& bg, const at::Tensor& viewmatrix, const at::Tensor& projmatrix,
-    const at::Tensor& campos, int64_t image_height, int64_t image_width, double tanfovx,
-    double tanfovy, double scale_modifier, int64_t sh_degree, bool prefiltered, bool antialiasing) {
-  (void)prefiltered;
-  const RasterArgs a = fill_raster_args(CudaCheck(means3D), means3D, opacities, shs,
-                                        colors_precomp, scales, rotations, cov3D_precomp, bg,
-                                        viewmatrix, projmatrix, campos, image_height, image_width,
-                                        tanfovx, tanfovy, scale_modifier, sh_degree, antialiasing);
+ForwardOutputs rasterize_forward_cuda(const RasterInputs& args) {
+  const at::Tensor& means3D = args.means3D;
+  const RasterArgs a = fill_raster_args(CudaCheck(means3D), args);
   check_gaussian_count(a);
   const c10::cuda::CUDAGuard guard(means3D.device());
   const cudaStream_t stream = c10::cuda::getCurrentCUDAStream().stream();
@@ -89,7 +80,7 @@ std::vector<at::Tensor> rasterize_forward_cuda(
   const auto lopt = fopt.dtype(at::kLong);
   const int64_t num_tiles = (int64_t)a.grid_x * a.grid_y;
 
-  ForwardTensors fw(a, fopt);
+  ForwardOutputs fw = allocate_forward_outputs(a, fopt);
   const at::Tensor& radii = fw.radii;
   const at::Tensor& geom = fw.geom;
   const at::Tensor& offsets = fw.offsets;
@@ -131,33 +122,20 @@ std::vector<at::Tensor> rasterize_forward_cuda(
   }
 
   // 3. Render.
-  const RenderOutputs out = fw.render_outputs();
+  const RenderOutputs out = render_outputs(fw);
   C10_CUDA_CHECK(cuda::render(a, geom.data_ptr<float>(), binning.data_ptr<int32_t>(),
                               tile_ranges.data_ptr<int32_t>(), out, stream));
 
-  return fw.list();
+  return fw;
 }
 
 // ------------------------------------------------------------------------------------------------
 // Backward
 // ------------------------------------------------------------------------------------------------
-std::vector<at::Tensor> rasterize_backward_cuda(
-    const at::Tensor& means3D, const at::Tensor& opacities, const std::optional<at::Tensor>& shs,
-    const std::optional<at::Tensor>& colors_precomp, const std::optional<at::Tensor>& scales,
-    const std::optional<at::Tensor>& rotations, const std::optional<at::Tensor>& cov3D_precomp,
-    const at::Tensor& bg, const at::Tensor& viewmatrix, const at::Tensor& projmatrix,
-    const at::Tensor& campos, int64_t image_height, int64_t image_width, double tanfovx,
-    double tanfovy, double scale_modifier, int64_t sh_degree, bool antialiasing,
-    const at::Tensor& radii, const at::Tensor& geom, const at::Tensor& binning,
-    const at::Tensor& tile_ranges, const at::Tensor& offsets, const at::Tensor& final_T,
-    const at::Tensor& last_contrib, const at::Tensor& grad_color, const at::Tensor& grad_invdepth,
-    const at::Tensor& grad_depth_acc, const at::Tensor& grad_alpha, bool compute_camera_grad) {
-  const RasterArgs a = fill_raster_args(CudaCheck(means3D), means3D, opacities, shs,
-                                        colors_precomp, scales, rotations, cov3D_precomp, bg,
-                                        viewmatrix, projmatrix, campos, image_height, image_width,
-                                        tanfovx, tanfovy, scale_modifier, sh_degree, antialiasing);
+BackwardOutputs rasterize_backward_cuda(const BackwardInputs& b) {
+  const RasterArgs a = fill_raster_args(CudaCheck(b.means3D), b);
   check_gaussian_count(a);
-  const at::Device dev = means3D.device();
+  const at::Device dev = b.means3D.device();
   const int64_t P = a.P;
   const int64_t num_tiles = (int64_t)a.grid_x * a.grid_y;
   check_backward_inputs(
@@ -167,72 +145,79 @@ std::vector<at::Tensor> rasterize_backward_cuda(
       [&dev](const at::Tensor& t, const char* name, at::ScalarType st) {
         check_cuda_state(t, name, st, dev);
       },
-      a, radii, geom, binning, tile_ranges, offsets, final_T, last_contrib, grad_color,
-      grad_invdepth, grad_depth_acc, grad_alpha);
-  TORCH_CHECK(binning.dim() == 2 && binning.size(1) == 2, "saved binning state must be [R, 2], got ",
-              binning.sizes());
-  const int64_t num_rendered = binning.size(0);  // no host sync (the CPU also checks offsets[P])
+      a, b);
+  TORCH_CHECK(b.binning.dim() == 2 && b.binning.size(1) == 2,
+              "saved binning state must be [R, 2], got ", b.binning.sizes());
+  const int64_t num_rendered = b.binning.size(0);  // no host sync (the CPU also checks offsets[P])
 
   const c10::cuda::CUDAGuard guard(dev);
   const cudaStream_t stream = c10::cuda::getCurrentCUDAStream().stream();
-  const auto fopt = means3D.options();
+  const auto fopt = b.means3D.options();
   const auto dopt = fopt.dtype(at::kDouble);
-  GradTensors grads = zero_gaussian_grads(a, fopt);
+  BackwardOutputs grads = zero_gaussian_grads(a, fopt);
 
   // 4. Per-tile backward into per-entry slots (zero-filled: unvisited entries contribute 0).
   at::Tensor slots = at::zeros({num_rendered * kSlot}, fopt);
   at::Tensor dbg_tiles = at::empty({num_tiles * 3}, dopt);
-  const GradImages gin{grad_color.data_ptr<float>(), grad_invdepth.data_ptr<float>(),
-                             grad_depth_acc.data_ptr<float>(), grad_alpha.data_ptr<float>()};
-  C10_CUDA_CHECK(cuda::render_backward(a, geom.data_ptr<float>(), binning.data_ptr<int32_t>(),
-                                       tile_ranges.data_ptr<int32_t>(), final_T.data_ptr<float>(),
-                                       last_contrib.data_ptr<int32_t>(), gin,
+  const GradImages gin{b.grad_color.data_ptr<float>(), b.grad_invdepth.data_ptr<float>(),
+                       b.grad_depth_acc.data_ptr<float>(), b.grad_alpha.data_ptr<float>()};
+  C10_CUDA_CHECK(cuda::render_backward(a, b.geom.data_ptr<float>(), b.binning.data_ptr<int32_t>(),
+                                       b.tile_ranges.data_ptr<int32_t>(),
+                                       b.final_T.data_ptr<float>(),
+                                       b.last_contrib.data_ptr<int32_t>(), gin,
                                        slots.data_ptr<float>(), dbg_tiles.data_ptr<double>(),
                                        stream));
-  at::Tensor dL_dbg = at::empty({3}, fopt);
+  grads.grad_bg = at::empty({3}, fopt);
   C10_CUDA_CHECK(cuda::reduce_partials(dbg_tiles.data_ptr<double>(), num_tiles, 3, 3,
-                                       dL_dbg.data_ptr<float>(), stream));
+                                       grads.grad_bg.data_ptr<float>(), stream));
 
   // 5. Per-Gaussian backward (+ per-block camera terms, reduced in a fixed order).
-  const GaussianGrads gout = grads.ptrs();
+  const GaussianGrads gout = gaussian_grad_ptrs(grads);
   const int64_t nblocks = cuda::gaussian_backward_blocks(P);
+  const bool compute_camera_grad = b.compute_camera_grad;
   at::Tensor cam_partials;
   if (compute_camera_grad) cam_partials = at::empty({std::max<int64_t>(nblocks, 1) * kCamGrad}, dopt);
-  C10_CUDA_CHECK(cuda::gaussian_backward(a, radii.data_ptr<int32_t>(), offsets.data_ptr<int64_t>(),
-                                         slots.data_ptr<float>(), gout,
-                                         compute_camera_grad ? cam_partials.data_ptr<double>() : nullptr,
-                                         stream));
-  at::Tensor dL_dV, dL_dP, dL_dcampos;
+  double* cam = compute_camera_grad ? cam_partials.data_ptr<double>() : nullptr;
+  C10_CUDA_CHECK(cuda::gaussian_backward(a, b.radii.data_ptr<int32_t>(),
+                                         b.offsets.data_ptr<int64_t>(), slots.data_ptr<float>(),
+                                         gout, cam, stream));
   if (compute_camera_grad) {
     // Rows of cam_partials: viewmatrix [0, 16), projmatrix [16, 32), campos [32, 35).
-    dL_dV = at::empty({4, 4}, fopt);
-    dL_dP = at::empty({4, 4}, fopt);
-    dL_dcampos = at::empty({3}, fopt);
+    grads.grad_viewmatrix = at::empty({4, 4}, fopt);
+    grads.grad_projmatrix = at::empty({4, 4}, fopt);
+    grads.grad_campos = at::empty({3}, fopt);
     const double* parts = cam_partials.data_ptr<double>();
-    C10_CUDA_CHECK(cuda::reduce_partials(parts, nblocks, kCamGrad, 16, dL_dV.data_ptr<float>(),
-                                         stream));
+    C10_CUDA_CHECK(cuda::reduce_partials(parts, nblocks, kCamGrad, 16,
+                                         grads.grad_viewmatrix.data_ptr<float>(), stream));
     C10_CUDA_CHECK(cuda::reduce_partials(parts + 16, nblocks, kCamGrad, 16,
-                                         dL_dP.data_ptr<float>(), stream));
+                                         grads.grad_projmatrix.data_ptr<float>(), stream));
     C10_CUDA_CHECK(cuda::reduce_partials(parts + 32, nblocks, kCamGrad, 3,
-                                         dL_dcampos.data_ptr<float>(), stream));
+                                         grads.grad_campos.data_ptr<float>(), stream));
   }
-  return {grads.means3D, grads.means2D, grads.opac,  grads.shs, grads.colors, grads.scales,
-          grads.rots,    grads.cov3d,   dL_dbg,      dL_dV,     dL_dP,        dL_dcampos};
+  return grads;
 }
 
-at::Tensor mark_visible_cuda(const at::Tensor& means3D, const at::Tensor& viewmatrix,
-                             const at::Tensor& projmatrix) {
+VisibilityOutputs mark_visible_cuda(const VisibilityInputs& args) {
+  const at::Tensor& means3D = args.means3D;
   TORCH_CHECK(means3D.defined() && means3D.is_cuda(), "means3D must be a CUDA tensor");
   const at::Device dev = means3D.device();
   check_cuda_tensor(means3D, "means3D", {-1, 3}, dev);
-  check_cuda_tensor(viewmatrix, "viewmatrix", {4, 4}, dev);
-  check_cuda_tensor(projmatrix, "projmatrix", {4, 4}, dev);
+  check_cuda_tensor(args.viewmatrix, "viewmatrix", {4, 4}, dev);
+  check_cuda_tensor(args.projmatrix, "projmatrix", {4, 4}, dev);
   const c10::cuda::CUDAGuard guard(dev);
   const int64_t P = means3D.size(0);
-  at::Tensor out = at::empty({P}, means3D.options().dtype(at::kBool));
-  C10_CUDA_CHECK(cuda::mark_visible(means3D.data_ptr<float>(), viewmatrix.data_ptr<float>(), P,
-                                    out.data_ptr<bool>(), c10::cuda::getCurrentCUDAStream().stream()));
+  VisibilityOutputs out;
+  out.visible = at::empty({P}, means3D.options().dtype(at::kBool));
+  C10_CUDA_CHECK(cuda::mark_visible(means3D.data_ptr<float>(), args.viewmatrix.data_ptr<float>(),
+                                    P, out.visible.data_ptr<bool>(),
+                                    c10::cuda::getCurrentCUDAStream().stream()));
   return out;
+}
+
+TORCH_LIBRARY_IMPL(grp, CUDA, m) {
+  m.impl(kForwardOp, boxed_kernel<&rasterize_forward_cuda>());
+  m.impl(kBackwardOp, boxed_kernel<&rasterize_backward_cuda>());
+  m.impl(kMarkVisibleOp, boxed_kernel<&mark_visible_cuda>());
 }
 
 }  // namespace grp
