@@ -11,6 +11,13 @@ Protocol kinds (conf/benchmark_protocol/*.yaml):
   (matcher + essential matrix between the render at the initial pose and the query).
 - ``ablation``: failure rate and the mean errors of the successes for full / w/o comparing /
   w/o matching.
+
+Every localizer run also records its verdict (ok | uncertain | failed, judged without ground
+truth); summaries report the verdict's precision (of the poses called ``ok``, how many are right)
+and recall (of the right poses, how many are called ``ok``).
+
+An interval with ``init: none`` gives no start pose at all (the default method searches the
+candidate views; methods that need a start skip it).
 """
 from __future__ import annotations
 
@@ -18,15 +25,18 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Tuple
 
-from ..localize import LocalizerConfig
+from ..localize import LocalizerConfig, RobustConfig
 from .sampling import PIVOTS, TRANSLATION_MODES
 
-__all__ = ["KINDS", "METHODS", "Interval", "ProtocolSpec", "method_config", "is_localizer_method"]
+__all__ = ["KINDS", "METHODS", "NEEDS_START", "Interval", "ProtocolSpec", "method_config",
+           "is_localizer_method"]
 
 KINDS = ("curves", "time", "relative_pose", "ablation")
 
 #: method name -> what it is (the paper's naming in brackets)
 METHODS: Dict[str, str] = {
+    "robust": "the default localizer: geometric stage (render, match, lift, PnP), candidate views when the "
+              "start is unusable or absent, photometric refinement with roll-back, verdict",
     "icomma": "full iComMa: matching + comparing, then comparing alone (the optimizer config as given)",
     "compare_only": "w/o matching: photometric comparing loss only (use_matching=false)",
     "match_only": "w/o comparing: matching loss only (lambda_match=1, never switches: switch_threshold=0)",
@@ -35,14 +45,22 @@ METHODS: Dict[str, str] = {
 }
 
 
+#: Methods that need a start pose (they are skipped in an ``init: none`` interval).
+NEEDS_START = ("icomma", "compare_only", "match_only", "essential")
+
+
 def is_localizer_method(name: str) -> bool:
-    return name in ("icomma", "compare_only", "match_only")
+    return name in ("robust", "icomma", "compare_only", "match_only")
 
 
-def method_config(name: str, base: LocalizerConfig, max_iterations: Optional[int] = None) -> LocalizerConfig:
-    """The LocalizerConfig of a localizer method, derived from ``base`` (the optimizer group)."""
+def method_config(name: str, base: LocalizerConfig, max_iterations: Optional[int] = None,
+                  robust: Optional[RobustConfig] = None):
+    """The config of a localizer method: ``robust`` (the default method's config) for
+    ``robust``, else a LocalizerConfig derived from ``base`` (the paper's optimizer group)."""
     if not is_localizer_method(name):
-        raise ValueError(f"method must be one of icomma, compare_only, match_only, got {name!r}")
+        raise ValueError(f"method must be one of robust, icomma, compare_only, match_only, got {name!r}")
+    if name == "robust":
+        return robust if robust is not None else RobustConfig()
     d = base.to_dict()
     if max_iterations is not None:
         d["max_iterations"] = int(max_iterations)
@@ -70,12 +88,19 @@ def _pair(v, name: str) -> Tuple[float, float]:
 
 @dataclass(frozen=True)
 class Interval:
+    """One row of a protocol: rotation and translation ranges of the start pose, or no start
+    (``no_start``)."""
+
     label: str
     rot_deg: Tuple[float, float]
     trans: Tuple[float, float]
+    no_start: bool = False
 
     def to_json(self) -> dict:
-        return {"label": self.label, "rot_deg": list(self.rot_deg), "trans": list(self.trans)}
+        d = {"label": self.label, "rot_deg": list(self.rot_deg), "trans": list(self.trans)}
+        if self.no_start:
+            d["init"] = "none"
+        return d
 
 
 @dataclass
@@ -98,6 +123,8 @@ class ProtocolSpec:
     paper_source: str = ""
     quick: bool = False
     essential_thresh_px: float = 1.0
+    method_poses_per_query: Dict[str, int] = field(default_factory=dict)
+    paper_dataset: str = "synthetic"
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -120,6 +147,22 @@ class ProtocolSpec:
         labels = [iv.label for iv in self.intervals]
         if len(set(labels)) != len(labels):
             raise ValueError(f"benchmark_protocol.intervals labels must be unique, got {labels}")
+        for m, k in self.method_poses_per_query.items():
+            if m not in self.methods or not isinstance(k, int) or isinstance(k, bool) or k < 1:
+                raise ValueError("benchmark_protocol.method_poses_per_query must map methods of the protocol "
+                                 f"to positive ints, got {self.method_poses_per_query!r}")
+        if self.paper_dataset not in ("synthetic", "360"):
+            raise ValueError(f"benchmark_protocol.paper_dataset must be synthetic or 360, got {self.paper_dataset!r}")
+
+    def poses_for(self, method: str) -> int:
+        """How many start poses per query ``method`` runs (the first ones: a method given fewer
+        runs a subset of the others' starts)."""
+        return min(self.poses_per_query, self.method_poses_per_query.get(method, self.poses_per_query))
+
+    def runs(self, method: str, interval: "Interval") -> int:
+        if interval.no_start and method in NEEDS_START:
+            return 0
+        return self.num_queries * self.poses_for(method)
 
     @classmethod
     def from_dict(cls, d: Dict[str, Any], quick: bool = False) -> "ProtocolSpec":
@@ -128,10 +171,10 @@ class ProtocolSpec:
         d = dict(d)
         q = d.pop("quick", None) or {}
         if quick:
-            unknown_q = sorted(set(q) - {"num_queries", "poses_per_query", "max_iterations", "intervals"})
+            allowed = {"num_queries", "poses_per_query", "max_iterations", "intervals", "method_poses_per_query"}
+            unknown_q = sorted(set(q) - allowed)
             if unknown_q:
-                raise ValueError(f"benchmark_protocol.quick may override num_queries, poses_per_query, "
-                                 f"max_iterations, intervals; got {unknown_q}")
+                raise ValueError(f"benchmark_protocol.quick may override {sorted(allowed)}; got {unknown_q}")
             d.update(q)
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(d) - names)
@@ -139,8 +182,12 @@ class ProtocolSpec:
             raise ValueError(f"unknown benchmark_protocol keys {unknown}; known: {sorted(names)}")
         ivs = []
         for i, iv in enumerate(d.get("intervals") or []):
+            if isinstance(iv, dict) and iv.get("init") == "none":
+                ivs.append(Interval(str(iv.get("label") or "no_start"), (0.0, 0.0), (0.0, 0.0), True))
+                continue
             if not isinstance(iv, dict) or "rot_deg" not in iv or "trans" not in iv:
-                raise ValueError(f"benchmark_protocol.intervals[{i}] must have rot_deg and trans, got {iv!r}")
+                raise ValueError(f"benchmark_protocol.intervals[{i}] must have rot_deg and trans (or "
+                                 f"init: none), got {iv!r}")
             rot = _pair(iv["rot_deg"], f"intervals[{i}].rot_deg")
             tr = _pair(iv["trans"], f"intervals[{i}].trans")
             label = iv.get("label") or f"r{rot[0]:g}-{rot[1]:g}"
@@ -151,6 +198,8 @@ class ProtocolSpec:
         if "auc_thresholds" in d:
             d["auc_thresholds"] = [float(x) for x in d["auc_thresholds"]]
         d["methods"] = [str(m) for m in d.get("methods", [])]
+        d["method_poses_per_query"] = {str(k): int(v) for k, v in (d.get("method_poses_per_query") or {}).items()
+                                       if str(k) in d["methods"]}
         d["quick"] = bool(quick)
         return cls(**d)
 
@@ -162,4 +211,4 @@ class ProtocolSpec:
 
     @property
     def num_runs(self) -> int:
-        return len(self.intervals) * self.num_queries * self.poses_per_query * len(self.methods)
+        return sum(self.runs(m, iv) for iv in self.intervals for m in self.methods)

@@ -19,9 +19,9 @@ from .paper import NOT_FOUND, PaperValue, paper_value
 from .protocols import METHODS, ProtocolSpec
 from .runner import threshold_key
 
-__all__ = ["summarize", "table_rows", "markdown", "save_plots", "paper_method"]
+__all__ = ["summarize", "table_rows", "markdown", "save_plots", "paper_method", "verdict_stats"]
 
-PERCENT_METRICS = ("success_rate", "failure_rate")
+PERCENT_METRICS = ("success_rate", "failure_rate", "verdict_precision", "verdict_recall", "wrong_flagged")
 
 
 def _groups(spec: ProtocolSpec, records: Sequence[Dict[str, Any]]):
@@ -51,7 +51,11 @@ def summarize(spec: ProtocolSpec, records: Sequence[Dict[str, Any]]) -> Dict[str
             cell["mean_num_matches"] = mean_or_none(r.get("num_matches") for r in rs)
         else:
             cell["mean_seconds"] = mean_or_none(r.get("seconds") for r in rs)
+            secs = [r.get("seconds") for r in rs if r.get("seconds") is not None]
+            cell["median_seconds"] = float(np.median(secs)) if secs else None
             cell["mean_iterations"] = mean_or_none(r.get("iterations") for r in rs)
+            cell.update(verdict_stats(rs, spec.thresholds[0]))
+        cell["num_errors"] = sum(1 for r in rs if r.get("error"))
         if spec.kind == "relative_pose":
             aucs = pose_auc(rot, spec.auc_thresholds) if rs else [None] * len(spec.auc_thresholds)
             for t, a in zip(spec.auc_thresholds, aucs):
@@ -87,6 +91,30 @@ def summarize(spec: ProtocolSpec, records: Sequence[Dict[str, Any]]) -> Dict[str
     return out
 
 
+def verdict_stats(records: Sequence[Dict[str, Any]], threshold) -> Dict[str, Any]:
+    """How far the verdict can be trusted, against ground truth: counts of ok / uncertain /
+    failed, precision (right among the poses called ok), recall (called ok among the right
+    poses), the share of wrong poses flagged (called uncertain or failed), and the median final
+    rotation error (all runs, and the successes)."""
+    a, b = threshold
+    rot = [r.get("final_rot_deg") for r in records]
+    trans = [r.get("final_trans") for r in records]
+    ok = success_mask(rot, trans, a, b) if records else np.zeros(0, bool)
+    verdicts = [r.get("verdict") for r in records]
+    called = np.array([v == "ok" for v in verdicts], bool)
+    out: Dict[str, Any] = {f"verdict_{k}": sum(1 for v in verdicts if v == k) for k in ("ok", "uncertain", "failed")}
+    n_called, n_right, n_wrong = int(called.sum()), int(ok.sum()), int((~ok).sum())
+    out["verdict_precision"] = float((called & ok).sum() / n_called) if n_called else None
+    out["verdict_recall"] = float((called & ok).sum() / n_right) if n_right else None
+    flagged = np.array([v in ("uncertain", "failed") for v in verdicts], bool)
+    out["wrong_flagged"] = float((flagged & ~ok).sum() / n_wrong) if n_wrong else None
+    r_all = [x for x in rot if x is not None]
+    out["median_rot_deg"] = float(np.median(r_all)) if r_all else None
+    r_ok = [x for x, s in zip(rot, ok) if s and x is not None]
+    out["median_rot_deg_success"] = float(np.median(r_ok)) if r_ok else None
+    return out
+
+
 def paper_method(method: str, matcher: Optional[str]) -> str:
     """Our method name -> the paper's row for it (the essential baseline by matcher family)."""
     if method != "essential":
@@ -100,14 +128,16 @@ def paper_method(method: str, matcher: Optional[str]) -> str:
 
 
 def _metrics_of(spec: ProtocolSpec, method: str) -> List[str]:
+    extra = [] if method == "essential" else ["median_rot_deg", "median_seconds", "verdict_precision",
+                                              "verdict_recall", "wrong_flagged", "num_errors"]
     if spec.kind == "curves":
-        return ["success_" + threshold_key(a, b) for a, b in spec.thresholds]
+        return ["success_" + threshold_key(a, b) for a, b in spec.thresholds] + extra
     if spec.kind == "time":
-        return ["success_rate", "seconds_to_success", "seconds"]
+        return ["success_rate", "seconds_to_success", "seconds"] + extra
     if spec.kind == "relative_pose":
-        return [f"auc{t:g}" for t in spec.auc_thresholds]
+        return [f"auc{t:g}" for t in spec.auc_thresholds] + extra
     if spec.kind == "ablation":
-        return ["failure_rate", "mean_rot_deg", "mean_trans"]
+        return ["failure_rate", "mean_rot_deg", "mean_trans"] + extra
     return []
 
 
@@ -126,7 +156,7 @@ def table_rows(spec: ProtocolSpec, summary: Dict[str, Any], matcher: Optional[st
             if cell["method"] == "essential" and not metric.startswith("auc"):
                 continue
             pmetric = "success_rate" if metric == "success_rate" else metric
-            pv: PaperValue = paper_value(spec.name, cell["interval"], pm, pmetric)
+            pv: PaperValue = paper_value(spec.name, cell["interval"], pm, pmetric, spec.paper_dataset)
             ours = _our_value(cell, metric)
             delta = (ours - pv.value) if (ours is not None and pv.value is not None) else None
             rows.append({"interval": cell["interval"], "method": cell["method"], "paper_method": pm,
@@ -145,7 +175,9 @@ def _fmt(v, metric: str) -> str:
     if metric.startswith("auc"):
         return f"{100.0 * v:.1f}"
     if "seconds" in metric:
-        return f"{v:.1f} s"
+        return f"{v:.2f} s"
+    if metric == "num_errors":
+        return str(int(v))
     return f"{v:.4g}"
 
 

@@ -15,10 +15,10 @@ from typing import Any, Callable, Dict, Iterable, List, Optional
 import numpy as np
 import torch
 
-from ..localize import LocalizerConfig, localize
+from ..localize import LocalizerConfig, RobustConfig, localize
 from .baselines import essential_matrix_baseline
 from .metrics import time_to_success
-from .protocols import ProtocolSpec, is_localizer_method, method_config
+from .protocols import NEEDS_START, ProtocolSpec, is_localizer_method, method_config
 from .sampling import pose_seed, sample_initial_pose
 from .scene import BenchScene
 
@@ -48,7 +48,7 @@ def _round(values: Iterable, digits: int = 6) -> List[Optional[float]]:
 
 
 def _localizer_record(res, scale: float, spec: ProtocolSpec) -> Dict[str, Any]:
-    """Curves (errors after k iterations, k = 0..n) and summary of one LocalizationResult."""
+    """Curves (errors after k steps, k = 0..n) and summary of one LocalizationResult."""
     rot = [r["rot_err_deg"] for r in res.trace] + [res.final_rotation_error_deg]
     trans_w = [r["trans_err"] for r in res.trace] + [res.final_translation_error]
     trans = [None if t is None else t / scale for t in trans_w]
@@ -56,6 +56,7 @@ def _localizer_record(res, scale: float, spec: ProtocolSpec) -> Dict[str, Any]:
     for r in res.trace:
         cum.append(cum[-1] + float(r["seconds"]))
     tts = {threshold_key(a, b): time_to_success(rot, trans, cum, a, b) for a, b in spec.thresholds}
+    v = res.verdict
     return {
         "final_rot_deg": res.final_rotation_error_deg,
         "final_trans": None if res.final_translation_error is None else res.final_translation_error / scale,
@@ -64,13 +65,24 @@ def _localizer_record(res, scale: float, spec: ProtocolSpec) -> Dict[str, Any]:
         "stop_reason": res.stop_reason,
         "switch_iteration": res.switch_iteration,
         "seconds": res.seconds,
+        "stage_seconds": res.stage_seconds,
         "time_to_success": tts,
         "match_counts": res.match_counts,
+        "verdict": None if v is None else v.status,
+        "verdict_reason": None if v is None else v.reason,
+        "verdict_signals": None if v is None else v.to_json()["signals"],
+        "hypotheses": len(res.hypotheses),
         "final_c2w": res.c2w.tolist(),
         "curve_rot_deg": _round(rot),
         "curve_trans": _round(trans),
         "curve_seconds": _round(cum, 5),
     }
+
+
+def _error_record(exc: BaseException) -> Dict[str, Any]:
+    """A run that raised: kept, counted as a failure, with what went wrong."""
+    return {"error": {"type": type(exc).__name__, "message": str(exc)[:2000]},
+            "final_rot_deg": None, "final_trans": None, "final_trans_world": None, "verdict": None}
 
 
 def run_protocol(
@@ -79,6 +91,7 @@ def run_protocol(
     base_config: LocalizerConfig,
     matcher=None,
     *,
+    robust_config: Optional[RobustConfig] = None,
     backend: str = "auto",
     on_record: Optional[Callable[[Dict[str, Any]], Any]] = None,
     done: Optional[Dict[str, Dict[str, Any]]] = None,
@@ -88,14 +101,18 @@ def run_protocol(
     """Run every (interval, query, pose, method) of ``spec`` on ``scene``.
 
     Args:
-        scene: model + queries (its first ``spec.num_queries`` queries are used).
+        scene: model + queries (its first ``spec.num_queries`` queries are used), candidate views.
         spec: the protocol.
-        base_config: the optimizer group's LocalizerConfig (methods derive theirs from it).
-        matcher: the matcher (needed by icomma, match_only and essential).
+        base_config: the paper's LocalizerConfig (icomma, compare_only, match_only derive theirs).
+        matcher: the matcher (needed by every method but compare_only).
+        robust_config: the default method's config (``robust``); None = its defaults.
         on_record: called with each new record (dict) as soon as it is finished.
         done: records already computed, keyed by :func:`record_key`; reused, not recomputed.
         progress: called with events ``{"event": "run_start"|"iteration"|"run_end", ...}``.
         store_curves: keep per-iteration curves in the records (needed by ``curves``/``time``).
+
+    A run that raises is recorded with its exception (type, message), counts as a failure, and
+    the protocol goes on.
 
     Returns:
         All records of the protocol (reused and new), in run order.
@@ -106,21 +123,30 @@ def run_protocol(
         raise ValueError(f"methods {needs_matcher} need a matcher; got matcher=None (choose e.g. matcher=xfeat)")
     queries = scene.queries[: spec.num_queries]
     scale = float(scene.translation_scale)
-    configs = {m: method_config(m, base_config, spec.max_iterations)
+    configs = {m: method_config(m, base_config, spec.max_iterations, robust_config)
                for m in spec.methods if is_localizer_method(m)}
+    pivot = spec.pivot
+    if pivot == "scene_center":
+        if scene.scene_centre is None:
+            raise ValueError("benchmark_protocol.pivot=scene_center needs the scene's centre (a model folder "
+                             "scene with cameras)")
+        pivot = np.asarray(scene.scene_centre, np.float64)
     records: List[Dict[str, Any]] = []
-    total = spec.num_runs if len(queries) == spec.num_queries else (
-        len(spec.intervals) * len(queries) * spec.poses_per_query * len(spec.methods))
+    total = sum(0 if (iv.no_start and m in NEEDS_START) else len(queries) * spec.poses_for(m)
+                for iv in spec.intervals for m in spec.methods)
     count = 0
     for ii, iv in enumerate(spec.intervals):
         for q in queries:
             gt_w2c = np.linalg.inv(q.gt_c2w)
             for k in range(spec.poses_per_query):
                 seed = pose_seed(spec.seed, ii, q.index, k)
-                init = sample_initial_pose(q.gt_c2w, iv.rot_deg, iv.trans, seed, translation_scale=scale,
-                                           translation_mode=spec.translation_mode, pivot=spec.pivot)
-                init_trans_w = float(np.linalg.norm(init.c2w[:3, 3] - q.gt_c2w[:3, 3]))
+                init = None
+                if not iv.no_start:
+                    init = sample_initial_pose(q.gt_c2w, iv.rot_deg, iv.trans, seed, translation_scale=scale,
+                                               translation_mode=spec.translation_mode, pivot=pivot)
                 for method in spec.methods:
+                    if k >= spec.poses_for(method) or (iv.no_start and method in NEEDS_START):
+                        continue
                     key = record_key(spec.name, iv.label, q.index, k, method)
                     count += 1
                     if key in done:
@@ -135,31 +161,19 @@ def run_protocol(
                     rec: Dict[str, Any] = {
                         "key": key, "protocol": spec.name, "interval": iv.label, "interval_index": ii,
                         "query": q.name, "query_index": q.index, "pose_index": k, "method": method,
-                        "seed": list(seed), "init": init.to_json(),
-                        "init_rot_deg": init.rot_deg, "init_trans": init_trans_w / scale,
-                        "init_trans_world": init_trans_w,
+                        "seed": list(seed), "init": None if init is None else init.to_json(),
                     }
+                    if init is not None:
+                        init_trans_w = float(np.linalg.norm(init.c2w[:3, 3] - q.gt_c2w[:3, 3]))
+                        rec.update({"init_rot_deg": init.rot_deg, "init_trans": init_trans_w / scale,
+                                    "init_trans_world": init_trans_w})
                     t0 = time.perf_counter()
-                    if is_localizer_method(method):
-                        def hook(r, _key=key):
-                            if progress:
-                                progress({"event": "iteration", "key": _key, "record": r})
-
-                        torch.manual_seed(int(np.random.SeedSequence(list(seed)).generate_state(1)[0]))
-                        res = localize(scene.model, q.rgb, q.intrinsics, np.linalg.inv(init.c2w),
-                                       matcher if method != "compare_only" else None, configs[method],
-                                       gt_w2c=gt_w2c, query_alpha=q.alpha, backend=backend, bg=scene.bg,
-                                       progress=hook)
-                        rec.update(_localizer_record(res, scale, spec))
-                    else:
-                        out = essential_matrix_baseline(scene.model, q.rgb, q.intrinsics, init.c2w, q.gt_c2w,
-                                                        matcher, bg=scene.bg, backend=backend,
-                                                        thresh_px=spec.essential_thresh_px,
-                                                        seed=int(seed[-1]))
-                        rec.update(out)
-                        rec["final_rot_deg"] = out["rel_rot_err_deg"]
-                        rec["final_trans"] = None
-                        rec["seconds"] = out["seconds"]
+                    try:
+                        rec.update(_run_one(scene, q, init, method, configs, matcher, backend, spec, scale,
+                                            gt_w2c, seed, key, progress))
+                    except Exception as exc:  # noqa: BLE001 - one bad run must not end the benchmark
+                        logger.warning("run %s raised %s: %s (recorded as a failure)", key, type(exc).__name__, exc)
+                        rec.update(_error_record(exc))
                     rec["wall_seconds"] = time.perf_counter() - t0
                     if not store_curves:
                         for c in ("curve_rot_deg", "curve_trans", "curve_seconds"):
@@ -172,3 +186,28 @@ def run_protocol(
                         progress({"event": "run_end", "key": key, "count": count, "total": total,
                                   "reused": False, "record": rec})
     return records
+
+
+def _run_one(scene, q, init, method, configs, matcher, backend, spec, scale, gt_w2c, seed, key, progress):
+    """One run: a localization (or the essential-matrix baseline); returns its record fields."""
+    if not is_localizer_method(method):
+        out = essential_matrix_baseline(scene.model, q.rgb, q.intrinsics, init.c2w, q.gt_c2w, matcher,
+                                        bg=scene.bg, backend=backend, thresh_px=spec.essential_thresh_px,
+                                        seed=int(seed[-1]))
+        out = dict(out)
+        out["final_rot_deg"] = out["rel_rot_err_deg"]
+        out["final_trans"] = None
+        return out
+
+    def hook(r, _key=key):
+        if progress:
+            progress({"event": "iteration", "key": _key, "record": r})
+
+    torch.manual_seed(int(np.random.SeedSequence(list(seed)).generate_state(1)[0]))
+    cfg = configs[method]
+    candidates = scene.candidate_set(q, matcher, cfg, backend) if method == "robust" else None
+    res = localize(scene.model, q.rgb, q.intrinsics, None if init is None else np.linalg.inv(init.c2w),
+                   matcher if method != "compare_only" else None, cfg, gt_w2c=gt_w2c, query_alpha=q.alpha,
+                   query_valid=q.valid, backend=backend, bg=scene.bg, progress=hook,
+                   cameras_c2w=scene.cameras_c2w, candidate_set=candidates, query_name=q.name)
+    return _localizer_record(res, scale, spec)

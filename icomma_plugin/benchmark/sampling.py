@@ -35,7 +35,9 @@ __all__ = ["InitialPose", "pose_seed", "pose_rng", "sample_axis", "sample_initia
            "rotation_matrix", "TRANSLATION_MODES", "PIVOTS"]
 
 TRANSLATION_MODES = ("per_axis", "norm")
-PIVOTS = ("origin", "camera")
+#: "scene_center": the scene's centre (the point nearest to the train cameras' optical axes);
+#: the runner passes it as a world point.
+PIVOTS = ("origin", "camera", "scene_center")
 
 PivotLike = Union[str, Sequence[float], np.ndarray]
 
@@ -148,6 +150,9 @@ def sample_initial_pose(
     if isinstance(pivot, str):
         if pivot == "origin":
             p = np.zeros(3)
+        elif pivot == "scene_center":
+            raise ValueError("pivot 'scene_center' must be passed as the world point itself "
+                             "(BenchScene.scene_centre)")
         elif pivot == "camera":
             p = T[:3, 3].copy()
         else:

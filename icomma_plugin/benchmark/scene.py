@@ -42,10 +42,15 @@ class Query:
     intrinsics: Intrinsics
     gt_c2w: np.ndarray  # [4, 4] float64, OpenCV axes
     index: int  # index of the view in its split
+    valid: Optional[torch.Tensor] = None  # [1, H, W] real image content (undistortion), or None
 
 
 @dataclass
 class BenchScene:
+    """A model, its queries and what the methods may use besides: the candidate views
+    (``cameras_c2w``: the model's cameras, never a camera of the queries' split) and the scene
+    centre (the ``scene_center`` pivot)."""
+
     model: GaussianModel
     queries: List[Query]
     bg: torch.Tensor  # [3]
@@ -53,6 +58,21 @@ class BenchScene:
     translation_unit: str
     scene_radius: float
     info: Dict[str, Any] = field(default_factory=dict)
+    cameras_c2w: List[np.ndarray] = field(default_factory=list)
+    scene_centre: Optional[np.ndarray] = None
+    _candidate_sets: Dict[Any, Any] = field(default_factory=dict)
+
+    def candidate_set(self, query: Query, matcher, cfg, backend: str = "auto"):
+        """The candidate views for photos like ``query`` (built once per camera and reused)."""
+        from ..localization.candidates import CandidateSet, usable
+
+        if not usable(matcher) or not cfg.use_candidates:
+            return None
+        key = (query.intrinsics, cfg.candidates.rank_side, cfg.candidates.num_sampled)
+        if key not in self._candidate_sets:
+            self._candidate_sets[key] = CandidateSet.for_model(
+                self.model, query.intrinsics, matcher, self.bg, self.cameras_c2w, cfg.candidates, backend)
+        return self._candidate_sets[key]
 
     def describe(self) -> Dict[str, Any]:
         q = self.queries[0].intrinsics if self.queries else None
@@ -138,6 +158,8 @@ def load_model_folder_scene(
     """
     from ..io.datasets import read_dataset
     from ..io.model_folder import load_model_folder
+    from ..localization.candidates import scene_frame
+    from ..localization.problem import query_from_view
 
     mp = Path(str(model_path)).expanduser()
     if not mp.is_dir():
@@ -168,17 +190,24 @@ def load_model_folder_scene(
     queries = []
     for i in idx:
         v = views[i]
-        rgb, alpha = v.load(scale=float(image_scale), background=bg)
-        queries.append(Query(name=v.name, rgb=rgb, alpha=alpha,
-                             intrinsics=v.intrinsics.scaled(float(image_scale)) if image_scale != 1.0
-                             else v.intrinsics, gt_c2w=np.asarray(v.c2w, np.float64), index=i))
+        q = query_from_view(v, bg, float(image_scale))
+        queries.append(Query(name=v.name, rgb=q.rgb, alpha=q.alpha, intrinsics=q.intrinsics,
+                             gt_c2w=np.asarray(v.c2w, np.float64), index=i, valid=q.valid))
     radius = sd.scene_radius() if sd.train else camera_radius([v.c2w for v in views])
+    # Candidate views: the model's cameras, never one at a pose of the queries' split (upstream's
+    # cameras.json lists the test cameras too; a query must not find its own pose there).
+    split_c2ws = [np.asarray(v.c2w, np.float64) for v in views]
+    cams = [np.asarray(e.c2w, np.float64) for e in (mf.cameras or [])]
+    if not cams:
+        cams = [np.asarray(v.c2w, np.float64) for v in (sd.train if split == "test" else sd.test)]
+    cams = [c for c in cams if not any(np.allclose(c, t, atol=1e-5) for t in split_c2ws)]
+    centre, _, _ = scene_frame(mf.model, cams)
     return BenchScene(
         model=mf.model, queries=queries, bg=bg, translation_scale=_scale_of(translation_unit, radius),
-        translation_unit=translation_unit, scene_radius=radius,
+        translation_unit=translation_unit, scene_radius=radius, cameras_c2w=cams, scene_centre=centre,
         info={"kind": "model_folder", "model_path": str(mp), "iteration": mf.iteration,
               "dataset": str(root), "split": split, "image_scale": float(image_scale),
-              "white_background": white},
+              "white_background": white, "candidate_cameras": len(cams)},
     )
 
 
@@ -228,5 +257,6 @@ def synthetic_scene(
         queries.append(Query(name=f"synthetic_{i}", rgb=img.contiguous(), alpha=None, intrinsics=intr,
                              gt_c2w=c2w, index=i))
     return BenchScene(model=model, queries=queries, bg=bg, translation_scale=_scale_of(translation_unit, r),
-                      translation_unit=translation_unit, scene_radius=r,
+                      translation_unit=translation_unit, scene_radius=r, cameras_c2w=train,
+                      scene_centre=np.zeros(3),
                       info={"kind": "synthetic", "seed": int(seed), "num_gaussians": int(num_gaussians)})

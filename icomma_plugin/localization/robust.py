@@ -22,7 +22,7 @@ from .candidates import CandidateConfig, CandidateSet, usable
 from .geometric import GeometricConfig, GeometricOutcome, run_geometric
 from .refine import RefineConfig, refine_photometric
 from .state import LocalizationState
-from .types import Stage, Verdict
+from .types import Stage, TraceRecord, Verdict
 from .verify import PoseScore, VerdictConfig, decide, score_observation
 
 logger = logging.getLogger(__name__)
@@ -174,9 +174,7 @@ def localize_robust(
         order = cs.rank(state, cfg.candidates)
         if fallback_w2c is None and order:
             fallback_w2c = np.linalg.inv(cs.c2w[order[0]])
-        rec = state.new_record(Stage.CANDIDATES, np.eye(4), matches=len(order))
-        rec.w2c = None
-        state.record(rec)
+        state.record(TraceRecord(iteration=state.steps, stage=Stage.CANDIDATES, matches=len(order)))
         for rank, idx in enumerate(order[: cfg.candidates.top_k]):
             if cs.features[idx] is None:
                 continue

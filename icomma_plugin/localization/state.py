@@ -86,6 +86,7 @@ class LocalizationState:
         dev, dt = self.model.device, self.model.dtype
         self.bg = torch.as_tensor(self.bg, device=dev, dtype=dt).reshape(3)
         self._t0 = time.perf_counter()
+        self._last_record = self._t0
 
     # ------------------------------------------------------------------ time
     @contextlib.contextmanager
@@ -147,14 +148,19 @@ class LocalizationState:
     def render(self, w2c, scale: float = 1.0):
         """Render at ``w2c`` (a [4, 4] float64 numpy pose, or a torch tensor that may require
         grad) at working ``scale``; returns the rasterizer's ``RasterOutput``."""
-        from ..render import render
+        from ..render import prepare_scene, render
 
         if isinstance(w2c, np.ndarray):
             w2c = torch.as_tensor(w2c, dtype=torch.float64)
         dev, dt = self.model.device, self.model.dtype
         with self.timed("render"):
-            return render(self.model, self.intrinsics_at(scale), w2c.to(device=dev, dtype=dt), self.bg,
-                          backend=self.backend, sh_degree=self.sh_degree, antialiasing=self.antialiasing)
+            # The scene's rasterizer inputs, prepared (and checked) once per model: docs/SPEED.md.
+            cached = getattr(self, "_prepared", None)
+            if cached is None or cached[0] is not self.model or cached[1] != self.sh_degree:
+                cached = self._prepared = (self.model, self.sh_degree,
+                                           prepare_scene(self.model, self.sh_degree))
+            return render(cached[2], self.intrinsics_at(scale), w2c.to(device=dev, dtype=dt), self.bg,
+                          backend=self.backend, antialiasing=self.antialiasing)
 
     def observe(self, w2c: np.ndarray, scale: float = 1.0, match: bool = True) -> Observation:
         """Render at ``w2c`` and (optionally) match the render against the query."""
@@ -182,6 +188,12 @@ class LocalizationState:
         return float(rotation_error_deg(c2w, self.gt_c2w)), float(translation_error(c2w, self.gt_c2w))
 
     def record(self, rec: TraceRecord) -> TraceRecord:
+        """Keep ``rec`` (and report it); a record without its own duration gets the time since the
+        previous one, so the durations of a trace add up to the run's time."""
+        now = time.perf_counter()
+        if not rec.seconds:
+            rec.seconds = now - self._last_record
+        self._last_record = now
         self.steps += 1
         if self.record_trace:
             self.trace.append(rec)

@@ -1,0 +1,244 @@
+"""The record of a batch or a sequence: ``poses.json`` (one row per photo or frame) and
+``poses.csv``, rewritten atomically after every photo so that a run killed at any moment loses
+none that it finished, and restarted on the same folder skips them.
+
+    ledger = PosesLedger(out_dir, run={"model_path": ..., "queries": ...}, total=50)
+    done = ledger.finished()                    # names recorded by any earlier run (or shard)
+    ledger.record(row)                          # after each photo: atomic rewrite
+    ledger.close()                              # status "complete" once every photo has a row
+
+A row is a JSON mapping with at least ``index`` (the photo's place in the input order), ``name``
+and ``status`` (``ok | uncertain | failed``); see ``batch.result_row`` for the rest.
+
+Shards (``num_shards > 1``, e.g. the array tasks of a SLURM job): every shard writes its own part
+``parts/shard-<i>-of-<n>.json`` and then merges all parts into ``poses.json`` under a file lock,
+so whichever shard merges last leaves every shard's rows in ``poses.json``. The lock is
+``fcntl.flock`` on ``.poses.lock`` (a no-op where fcntl is missing).
+"""
+from __future__ import annotations
+
+import contextlib
+import csv
+import io
+import json
+import logging
+import os
+from pathlib import Path
+from typing import Any, Dict, Iterator, List, Optional, Sequence
+
+from ..io.atomic import write_json_atomic, write_text_atomic
+from .types import VERDICTS
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["CSV_COLUMNS", "LedgerError", "PosesLedger", "counts_of", "read_poses_json"]
+
+#: Columns of poses.csv (errors are blank when the truth is unknown).
+CSV_COLUMNS = ("index", "name", "verdict", "rot_err_deg", "trans_err", "trans_err_rel", "seconds",
+               "initial_rot_err_deg", "relocalized", "reason", "error")
+
+#: Keys of ``run`` that must agree between a run and the poses.json it resumes.
+RUN_IDENTITY = ("kind", "model_path", "queries", "sequence")
+
+FORMAT_VERSION = 1
+
+
+class LedgerError(ValueError):
+    """An output folder that cannot be resumed (another run's poses.json, an unreadable file)."""
+
+
+def counts_of(rows: Sequence[Dict[str, Any]]) -> Dict[str, int]:
+    """``{"ok": n, "uncertain": n, "failed": n}`` of ``rows``."""
+    c = {v: 0 for v in VERDICTS}
+    for r in rows:
+        s = r.get("status")
+        if s in c:
+            c[s] += 1
+    return c
+
+
+def read_poses_json(path) -> Dict[str, Any]:
+    """A poses.json (or a shard part) as a dict with a ``photos`` list; LedgerError if unreadable."""
+    p = Path(path)
+    try:
+        doc = json.loads(p.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise LedgerError(f"cannot read {p} ({type(e).__name__}: {e}); move it away to start over") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("photos"), list):
+        raise LedgerError(f"{p} is not a poses.json of icomma (no 'photos' list)")
+    return doc
+
+
+@contextlib.contextmanager
+def _locked(path: Path) -> Iterator[None]:
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        yield
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a+") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return repr(v)
+    return str(v)
+
+
+class PosesLedger:
+    """poses.json / poses.csv of one output folder (see the module docstring).
+
+    Args:
+        out_dir: the output folder.
+        run: what identifies the run (``kind``, ``model_path``, ``queries`` / ``sequence``) plus
+            anything worth keeping (the config); a folder whose poses.json has another identity
+            is refused (LedgerError).
+        total: number of photos of the whole run (every shard), for the ``complete`` status.
+        shard, num_shards: this process's share of the run.
+    """
+
+    def __init__(self, out_dir, run: Dict[str, Any], total: int, shard: int = 0, num_shards: int = 1):
+        if not (isinstance(num_shards, int) and num_shards >= 1):
+            raise ValueError(f"num_shards must be a positive int, got {num_shards!r}")
+        if not (isinstance(shard, int) and 0 <= shard < num_shards):
+            raise ValueError(f"shard must be an int in [0, {num_shards}), got {shard!r}")
+        self.out_dir = Path(out_dir)
+        self.run = dict(run)
+        self.total = int(total)
+        self.shard, self.num_shards = shard, num_shards
+        self.rows: Dict[str, Dict[str, Any]] = {}  # this process's rows (this shard's)
+        self._seen: Dict[str, Dict[str, Any]] = {}  # rows of earlier runs and other shards
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self._load()
+
+    # ------------------------------------------------------------------ paths
+    @property
+    def poses_path(self) -> Path:
+        return self.out_dir / "poses.json"
+
+    @property
+    def csv_path(self) -> Path:
+        return self.out_dir / "poses.csv"
+
+    @property
+    def part_path(self) -> Path:
+        return self.out_dir / "parts" / f"shard-{self.shard:03d}-of-{self.num_shards:03d}.json"
+
+    def _part_paths(self) -> List[Path]:
+        d = self.out_dir / "parts"
+        return sorted(d.glob("shard-*.json")) if d.is_dir() else []
+
+    # ------------------------------------------------------------------ resume
+    def _check_identity(self, doc: Dict[str, Any], path: Path) -> None:
+        theirs = doc.get("run") or {}
+        for k in RUN_IDENTITY:
+            if theirs.get(k) != self.run.get(k):
+                raise LedgerError(
+                    f"{path} belongs to another run ({k} {theirs.get(k)!r}, this run {self.run.get(k)!r}); "
+                    "choose another output folder (output.dir or hydra.run.dir) to start a new one")
+
+    def _load(self) -> None:
+        sources = ([self.poses_path] if self.poses_path.is_file() else []) + self._part_paths()
+        for p in sources:
+            doc = read_poses_json(p)
+            self._check_identity(doc, p)
+            for r in doc["photos"]:
+                if isinstance(r, dict) and isinstance(r.get("name"), str):
+                    self._seen[r["name"]] = r
+        mine = self.part_path if self.num_shards > 1 else self.poses_path
+        if mine.is_file():  # keep this shard's earlier rows in its part
+            for r in read_poses_json(mine)["photos"]:
+                if isinstance(r, dict) and isinstance(r.get("name"), str) \
+                        and (self.num_shards == 1 or r.get("shard", self.shard) == self.shard):
+                    self.rows[r["name"]] = r
+
+    def finished(self, retry_failed: bool = False) -> Dict[str, Dict[str, Any]]:
+        """Rows recorded by earlier runs or other shards, by name (failed ones left out with
+        ``retry_failed``)."""
+        rows = {**self._seen, **self.rows}
+        if retry_failed:
+            rows = {k: r for k, r in rows.items() if r.get("status") != "failed"}
+        return rows
+
+    def forget(self, names: Sequence[str]) -> None:
+        """Drop rows that are going to be redone (``retry_failed``)."""
+        for n in names:
+            self.rows.pop(n, None)
+            self._seen.pop(n, None)
+
+    # ------------------------------------------------------------------ writing
+    def all_rows(self) -> List[Dict[str, Any]]:
+        rows = {**self._seen, **self.rows}
+        return sorted(rows.values(), key=lambda r: (r.get("index", 0), r["name"]))
+
+    def _document(self, rows: List[Dict[str, Any]], status: Optional[str] = None) -> Dict[str, Any]:
+        done = len(rows)
+        return {
+            "format": "icomma-poses", "version": FORMAT_VERSION,
+            "status": status or ("complete" if done >= self.total else "running"),
+            "total": self.total, "done": done, "counts": counts_of(rows),
+            "conventions": "c2w / w2c: 4x4, OpenCV camera axes (x right, y down, z forward), column vectors",
+            "run": self.run, "photos": rows,
+        }
+
+    def _write_csv(self, rows: List[Dict[str, Any]]) -> None:
+        buf = io.StringIO()
+        w = csv.writer(buf)
+        w.writerow(CSV_COLUMNS)
+        for r in rows:
+            vals = {**r, "verdict": r.get("status")}
+            w.writerow([_fmt(vals.get(k)) for k in CSV_COLUMNS])
+        write_text_atomic(self.csv_path, buf.getvalue())
+
+    def _write_merged(self) -> None:
+        rows = self.all_rows()
+        write_json_atomic(self.poses_path, self._document(rows))
+        self._write_csv(rows)
+
+    def flush(self) -> None:
+        """Write poses.json / poses.csv (and this shard's part) now."""
+        if self.num_shards == 1:
+            self._write_merged()
+            return
+        mine = sorted(self.rows.values(), key=lambda r: (r.get("index", 0), r["name"]))
+        part = self._document(mine, status="running")
+        part.update({"shard": self.shard, "num_shards": self.num_shards})
+        write_json_atomic(self.part_path, part)
+        with _locked(self.out_dir / ".poses.lock"):
+            for p in self._part_paths():  # the other shards' latest rows
+                try:
+                    doc = read_poses_json(p)
+                except LedgerError as e:  # a part being replaced is never half-written; still
+                    logger.warning("skipping %s: %s", p, e)
+                    continue
+                for r in doc["photos"]:
+                    if isinstance(r, dict) and isinstance(r.get("name"), str) and r["name"] not in self.rows:
+                        self._seen[r["name"]] = r
+            self._write_merged()
+
+    def record(self, row: Dict[str, Any]) -> None:
+        """Add one photo's row and rewrite the files (atomically)."""
+        if not isinstance(row.get("name"), str) or row.get("status") not in VERDICTS:
+            raise ValueError(f"a ledger row needs a name and a status in {VERDICTS}, got {row!r:.200}")
+        row = dict(row)
+        if self.num_shards > 1:
+            row["shard"] = self.shard
+        self.rows[row["name"]] = row
+        self._seen.pop(row["name"], None)
+        self.flush()
+
+    def close(self) -> Dict[str, Any]:
+        """Final write; returns the poses.json document."""
+        self.flush()
+        return read_poses_json(self.poses_path)
+
+    def counts(self) -> Dict[str, int]:
+        return counts_of(self.all_rows())

@@ -1,0 +1,247 @@
+"""The default localizer's stages, each on its own (PnP, geometric rounds, photometric refinement,
+candidates, verdict), and end to end on the demo scene from a 90 degree start and from no start."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from icomma_plugin.camera import Intrinsics
+from icomma_plugin.localization.geometry import lift_keypoints, project, solve_pnp
+from icomma_plugin.localization.state import LocalizationState
+from icomma_plugin.localization.types import Query, Stage
+from icomma_plugin.localization.verify import VerdictConfig, decide, score_observation
+from icomma_plugin.matchers import make_matcher
+from icomma_plugin.pose.convert import look_at_c2w, perturb_pose, rotation_error_deg
+
+BACKEND = "auto"
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    """The demo scene at 100x100 (model, query, intrinsics, gt, ring cameras)."""
+    from icomma_plugin.demo_scene import build_demo_scene
+    from icomma_plugin.io.cameras_json import read_cameras_json
+
+    scene = build_demo_scene(tmp_path_factory.mktemp("demo") / "scene", seed=0, width=100, height=100)
+    cams = [e.c2w for e in read_cameras_json(scene.path / "cameras.json")]
+    return scene, scene.load_model(), scene.load_query(), cams
+
+
+@pytest.fixture(scope="module")
+def xfeat():
+    return make_matcher("xfeat")
+
+
+def _state(demo, matcher=None, query=None):
+    scene, model, q, _ = demo
+    return LocalizationState(model, Query(q if query is None else query, scene.intrinsics), torch.zeros(3),
+                             backend=BACKEND, matcher=matcher, gt_c2w=scene.gt_c2w)
+
+
+# ------------------------------------------------------------------------------------------- PnP
+
+
+def test_pnp_recovers_a_known_pose_with_half_outliers():
+    rng = np.random.default_rng(3)
+    intr = Intrinsics(320, 240, 300.0, 300.0, 158.0, 121.5)
+    c2w = look_at_c2w([2.0, -3.0, 1.5], [0.1, 0.0, 0.2])
+    w2c = np.linalg.inv(c2w)
+    X = rng.uniform(-1, 1, (400, 3))
+    uv, z = project(X, w2c, intr)
+    assert (z > 0).all()
+    uv = uv + rng.normal(0, 0.3, uv.shape)
+    outlier = np.arange(400) % 2 == 0
+    uv[outlier] = rng.uniform([0, 0], [320, 240], (int(outlier.sum()), 2))
+    res = solve_pnp(X, uv, intr, threshold_px=2.0)
+    assert res is not None
+    assert float(rotation_error_deg(res.w2c, w2c)) < 0.1
+    assert np.linalg.norm(np.linalg.inv(res.w2c)[:3, 3] - c2w[:3, 3]) < 0.01
+    # the inliers are the true correspondences
+    assert (res.inliers & outlier).sum() <= 2 and (res.inliers & ~outlier).sum() >= 190
+
+
+def test_pnp_gives_up_on_pure_noise():
+    rng = np.random.default_rng(0)
+    intr = Intrinsics(100, 100, 90.0, 90.0)
+    assert solve_pnp(rng.uniform(-1, 1, (40, 3)), rng.uniform(0, 100, (40, 2)), intr, 1.0,
+                     min_inliers=20) is None
+    assert solve_pnp(np.zeros((3, 3)), np.zeros((3, 2)), intr, 1.0) is None  # too few points
+
+
+def test_lift_keypoints_inverts_the_projection(demo):
+    scene, model, _, _ = demo
+    st = _state(demo)
+    w2c = np.linalg.inv(scene.gt_c2w)
+    out = st.render(w2c)
+    ys, xs = torch.nonzero(out.alpha[0] > 0.99, as_tuple=True)
+    k = torch.stack([xs, ys], -1)[::37].double()
+    pts, keep = lift_keypoints(k, out.depth, out.alpha, scene.intrinsics, torch.as_tensor(scene.gt_c2w),
+                               max_depth_jump=0.05)
+    uv, _ = project(pts.numpy(), w2c, scene.intrinsics)
+    assert keep.sum() > 10 and np.abs(uv - k[keep].numpy()).max() < 1e-6
+
+
+# ------------------------------------------------------------------------------- stages alone
+
+
+def test_a_worse_geometric_proposal_is_rejected_and_the_pose_kept(demo, xfeat, monkeypatch):
+    """The geometric stage never takes a proposal whose own render scores worse."""
+    from icomma_plugin.localization import geometric
+
+    scene, _, _, _ = demo
+    st = _state(demo, xfeat)
+    start = np.linalg.inv(perturb_pose(scene.gt_c2w, 1.0, 0.01, 0, pivot="camera"))
+    wrong = np.linalg.inv(perturb_pose(scene.gt_c2w, 35.0, 0.3, 1, pivot="camera"))
+
+    class Bad:
+        w2c, num_inliers, inliers, median_error_px = wrong, 50, np.ones(50, bool), 0.1
+
+    monkeypatch.setattr(geometric, "pnp_from_observation", lambda *a, **k: Bad())
+    out = geometric.run_geometric(st, start, geometric.GeometricConfig(max_rounds=3))
+    assert np.array_equal(out.w2c, start)
+    recs = [r for r in st.trace if r.stage == Stage.GEOMETRIC]
+    assert [r.accepted for r in recs] == [True, False]
+
+
+def test_refinement_never_increases_the_loss_and_a_rejected_step_keeps_the_pose(demo):
+    from icomma_plugin.localization.refine import RefineConfig, refine_photometric
+
+    scene, _, _, _ = demo
+    st = _state(demo)
+    start = np.linalg.inv(perturb_pose(scene.gt_c2w, 0.5, 0.005, 2, pivot="camera"))
+    cfg = RefineConfig(scales=(1.0,), blur=(0.0,), iterations=(6,))
+    out = refine_photometric(st, start, cfg, scene_depth=4.0)
+    accepted = [r for r in st.trace if r.accepted]
+    losses = [r.loss for r in accepted]
+    assert losses == sorted(losses, reverse=True)
+    assert out.loss_end <= out.loss_start
+    assert float(rotation_error_deg(np.linalg.inv(out.w2c), scene.gt_c2w)) < 0.1
+
+    # At the optimum (the query is the render at the truth) no step lowers the loss: every step
+    # is rejected and the pose is returned exactly as given.
+    gt_w2c = np.linalg.inv(scene.gt_c2w)
+    st2 = _state(demo, query=st.render(gt_w2c).color.detach().clamp(0, 1))
+    out2 = refine_photometric(st2, gt_w2c, RefineConfig(scales=(1.0,), blur=(0.0,), iterations=(3,)),
+                              scene_depth=4.0)
+    assert [r.accepted for r in st2.trace] == [False] * len(st2.trace) and len(st2.trace) == 3
+    assert np.array_equal(out2.w2c, gt_w2c)
+
+
+def test_finite_difference_hessian_agrees_with_the_motion_field_model(demo):
+    """The two Gauss-Newton Hessians describe the same curvature (cheap model: 15-30 % short)."""
+    from icomma_plugin.localization.refine import _hessian, RefineConfig
+    from icomma_plugin.localization.state import Observation
+    from icomma_plugin.localization.verify import coverage_mask
+
+    scene, _, _, _ = demo
+    st = _state(demo)
+    w2c = np.linalg.inv(scene.gt_c2w)
+    out = st.render(w2c)
+    mask = coverage_mask(Observation(w2c, 1.0, out.color, out.depth, out.alpha), st)
+    h_fd = _hessian(st, RefineConfig(hessian="finite_difference"), w2c, 1.0, out, mask, scene.intrinsics, 0.0)
+    h_mf = _hessian(st, RefineConfig(hessian="motion_field"), w2c, 1.0, out, mask, scene.intrinsics, 0.0)
+    cos = float((h_fd * h_mf).sum() / (h_fd.norm() * h_mf.norm()))
+    assert cos > 0.9
+    assert 0.3 < float(torch.trace(h_mf) / torch.trace(h_fd)) < 1.2
+
+
+def test_candidates_rank_the_nearest_camera_first(demo, xfeat):
+    from icomma_plugin.localization.candidates import CandidateConfig, CandidateSet
+
+    scene, model, q, cams = demo
+    cs = CandidateSet.for_model(model, scene.intrinsics, xfeat, torch.zeros(3), cams, CandidateConfig())
+    st = _state(demo, xfeat)
+    order = cs.rank(st, CandidateConfig())
+    angles = [float(rotation_error_deg(c, scene.gt_c2w)) for c in cs.c2w]
+    dists = [np.linalg.norm(c[:3, 3] - scene.gt_c2w[:3, 3]) for c in cs.c2w]
+    best = order[0]
+    # the best-ranked view is among the 5 closest (by viewing direction and position)
+    closeness = np.argsort(np.asarray(angles) / 10.0 + np.asarray(dists))
+    assert best in closeness[:5]
+    other = LocalizationState(model, Query(torch.zeros(3, 64, 64), Intrinsics(64, 64, 60.0, 60.0)),
+                              torch.zeros(3), matcher=xfeat)
+    with pytest.raises(ValueError, match="another size"):
+        cs.rank(other, CandidateConfig())
+
+
+# ------------------------------------------------------------------------------------ verdict
+
+
+def test_verdict_is_failed_for_an_empty_render(demo, xfeat):
+    scene, _, _, _ = demo
+    st = _state(demo, xfeat)
+    away = scene.gt_c2w.copy()
+    away[:3, :3] = away[:3, :3] @ np.diag([-1.0, 1.0, -1.0])  # turned around: looks away from the scene
+    obs = st.observe(np.linalg.inv(away))
+    v = decide(score_observation(obs, st, 2.0), VerdictConfig())
+    assert v.status == "failed" and "sees almost none of the scene" in v.reason
+
+
+def test_verdict_is_failed_or_uncertain_for_a_wrong_pose_and_ok_for_the_truth(demo, xfeat):
+    scene, _, _, _ = demo
+    st = _state(demo, xfeat)
+    wrong = perturb_pose(scene.gt_c2w, 25.0, 0.3, 5, pivot=scene.scene_centre)
+    v_wrong = decide(score_observation(st.observe(np.linalg.inv(wrong)), st, 2.0), VerdictConfig())
+    v_right = decide(score_observation(st.observe(np.linalg.inv(scene.gt_c2w)), st, 2.0), VerdictConfig(),
+                     converged=True)
+    assert v_wrong.status in ("failed", "uncertain"), v_wrong
+    assert v_right.status == "ok", v_right
+    assert v_right.signals["inliers"] >= 30 and "inlier_ratio" in v_right.signals
+
+
+def test_empty_start_is_reported_with_what_to_do(demo, xfeat):
+    """A start that looks away from the scene: relocalized from the candidates, and said so."""
+    from icomma_plugin.localize import localize
+
+    scene, model, q, cams = demo
+    away = scene.gt_c2w.copy()
+    away[:3, :3] = away[:3, :3] @ np.diag([-1.0, 1.0, -1.0])
+    res = localize(model, q, scene.intrinsics, np.linalg.inv(away), xfeat, gt_w2c=np.linalg.inv(scene.gt_c2w),
+                   backend=BACKEND, cameras_c2w=cams)
+    assert res.verdict.signals["start_render_empty"] is True
+    assert "start pose was empty" in res.verdict.reason
+    assert res.final_rotation_error_deg < 1.0 and res.verdict.status in ("ok", "uncertain")
+
+
+# ------------------------------------------------------------------------------- end to end
+
+
+@pytest.mark.parametrize("start", ["90deg", "none"])
+def test_demo_end_to_end_from_90_degrees_and_from_no_start(demo, xfeat, start):
+    from icomma_plugin.localize import localize
+
+    scene, model, q, cams = demo
+    init = None
+    if start == "90deg":
+        init = np.linalg.inv(perturb_pose(scene.gt_c2w, 90.0, 0.1, 11, pivot=scene.scene_centre))
+    res = localize(model, q, scene.intrinsics, init, xfeat, gt_w2c=np.linalg.inv(scene.gt_c2w), backend=BACKEND,
+                   cameras_c2w=cams)
+    assert res.final_rotation_error_deg < 0.1, res.verdict
+    assert res.final_translation_error < 0.01 * scene.scene_scale
+    assert res.verdict.status == "ok", res.verdict.reason
+    assert res.method == "robust" and len(res.hypotheses) >= 1
+    assert set(res.stage_seconds) >= {"render", "matcher", "pnp", "other", "total"}
+    j = res.to_json()
+    first = "geometric" if init is not None else "candidates"
+    assert j["verdict"]["status"] == "ok" and j["trace"][0]["stage_name"] == first
+
+
+def test_default_method_needs_a_matcher_and_the_paper_needs_a_start(demo):
+    from icomma_plugin.localize import LocalizerConfig, localize
+
+    scene, model, q, _ = demo
+    with pytest.raises(ValueError, match="needs a matcher"):
+        localize(model, q, scene.intrinsics, np.linalg.inv(scene.gt_c2w), None, backend=BACKEND)
+    with pytest.raises(ValueError, match="init_w2c is required"):
+        localize(model, q, scene.intrinsics, None, None, LocalizerConfig(), backend=BACKEND)
+
+
+def test_features_of_the_query_are_reused_and_match_like_match(demo, xfeat):
+    """extract + match_features gives the same matches as match() (the query is detected once)."""
+    _, _, q, _ = demo
+    a = xfeat.match(q, q)
+    b = xfeat.match(q, q, features1=xfeat.extract(q))
+    assert len(a) == len(b) > 50 and torch.equal(a.kpts0, b.kpts0) and torch.equal(a.kpts1, b.kpts1)
+    with pytest.raises(ValueError, match="features1"):
+        xfeat.match(q, q[:, :64, :64].contiguous(), features1=xfeat.extract(q))
