@@ -41,7 +41,8 @@ import torch
 from torch import nn
 
 from . import _dispatch
-from ._validate import RasterizerInputError, is_absent, validate
+from ._validate import RasterizerInputError, is_absent
+from ._validate import validate as validate_inputs
 
 
 class GaussianRasterizationSettings(NamedTuple):
@@ -82,18 +83,24 @@ def rasterize_gaussians(
     scales: Optional[torch.Tensor] = None,
     rotations: Optional[torch.Tensor] = None,
     cov3D_precomp: Optional[torch.Tensor] = None,
+    validate: bool = True,
 ) -> RasterOutput:
     """Render; see the module docstring for conventions and numerics.
 
     Exactly one of ``shs`` / ``colors_precomp`` and exactly one of (``scales``, ``rotations``) /
     ``cov3D_precomp``; absent inputs may be None or empty tensors. Raises `RasterizerInputError`
     (a ValueError) on bad input, RuntimeError when an explicitly requested backend is unusable.
+
+    ``validate=False`` skips the NaN/Inf scans of the per-Gaussian tensors (means3D, means2D,
+    opacities, shs, colors_precomp, scales, rotations, cov3D_precomp), whose cost grows with the
+    scene; use it only for tensors already checked (e.g. a scene rendered many times, checked
+    once). Types, shapes, dtypes, devices, the settings and the camera tensors are still checked.
     """
     if not isinstance(settings, GaussianRasterizationSettings):
         raise RasterizerInputError(
             f"settings must be a GaussianRasterizationSettings, got {type(settings).__name__}"
         )
-    args = validate(
+    args = validate_inputs(
         means3D,
         opacities,
         settings,
@@ -103,6 +110,7 @@ def rasterize_gaussians(
         scales=scales,
         rotations=rotations,
         cov3D_precomp=cov3D_precomp,
+        check_finite=validate,
     )
     fn = _dispatch.select_backend(settings.backend, means3D.device, means3D.dtype)
     color, radii, invdepth, depth_acc, alpha = fn(

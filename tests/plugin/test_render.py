@@ -105,3 +105,85 @@ def test_sh_degree_and_errors():
         render(m, K, _w2c(), torch.zeros(4))
     with pytest.raises(ValueError, match="intrinsics"):
         render(m, None, _w2c(), bg)
+
+
+# ---------------------------------------------------------------------------------- prepared scene
+from icomma_plugin.gaussians import SH_C0  # noqa: E402
+from icomma_plugin.render import PreparedScene, prepare_scene  # noqa: E402
+
+
+def _native_or_skip():
+    from gaussian_renderer_pose._backend import native_status
+
+    if not native_status("cpu")[0]:
+        pytest.skip("native cpu backend not built")
+
+
+def _render_with_pose_grad(model, K, bg, backend, **kw):
+    xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
+    w2c = se3_exp(xi) @ se3_exp(torch.tensor([0.05, -0.03, 0.02, 0.04, 0.03, -0.02],
+                                             dtype=torch.float64)) @ _w2c()
+    out = render(model, K, w2c, bg, backend=backend, **kw)
+    (out.color.square().sum() + out.depth.sum() + out.alpha.sum()).backward()
+    return out, xi.grad
+
+
+@pytest.mark.parametrize("backend,dtype", [("reference", torch.float64), ("cpu", torch.float32)])
+@pytest.mark.parametrize("model_degree,degree", [(0, None), (2, 0), (2, 1), (2, None)])
+def test_prepared_scene_renders_bit_identical(backend, dtype, model_degree, degree):
+    # Every output and the pose gradient are the same bits as render(model): at degree 0 the
+    # colours are precomputed (view independent), above it the SH go to the rasterizer.
+    if backend == "cpu":
+        _native_or_skip()
+    m = _blobs(P=60, dtype=dtype, seed=3, degree=model_degree)
+    m.sh_dc[:5] = -3.0  # raw colour below 0: the rasterizer's clamp must be reproduced
+    assert bool((SH_C0 * m.sh_dc + 0.5 < 0).any())
+    K = Intrinsics(32, 24, 30.0, 30.0, cx=15.0, cy=12.5)
+    bg = torch.tensor([0.2, 0.4, 0.6], dtype=dtype)
+    scene = prepare_scene(m, degree)
+    assert isinstance(scene, PreparedScene)
+    assert (scene.colors is not None) == (scene.sh_degree == 0)
+    plain, g_plain = _render_with_pose_grad(m, K, bg, backend, sh_degree=degree)
+    fast, g_fast = _render_with_pose_grad(scene, K, bg, backend)
+    assert float(plain.alpha.detach().max()) > 0.5  # the scene is in view
+    for name in plain._fields:
+        assert torch.equal(getattr(plain, name), getattr(fast, name)), name
+    assert torch.equal(g_plain, g_fast)
+    assert float(g_plain.abs().sum()) > 0
+
+
+def test_prepared_scene_is_frozen_and_checked_once():
+    m = _blobs(degree=1)
+    for t in m.tensors().values():
+        t.requires_grad_(True)
+    scene = prepare_scene(m)
+    for t in (scene.means, scene.opacities, scene.scales, scene.rotations, scene.shs):
+        assert not t.requires_grad and t.is_contiguous()
+    assert torch.equal(scene.scales, m.scales().detach())
+    assert (scene.num_gaussians, scene.dtype, scene.sh_degree) == (12, torch.float64, 1)
+    assert scene.shs.shape == (12, 4, 3)
+    assert prepare_scene(m, 0).shs is None and prepare_scene(m, 0).colors.shape == (12, 3)
+
+
+def test_prepared_scene_errors():
+    m = _blobs(degree=1)
+    K = Intrinsics(16, 12, 15.0, 15.0)
+    bg = torch.zeros(3, dtype=torch.float64)
+    with pytest.raises(ValueError, match="model must be a GaussianModel"):
+        prepare_scene("scene")
+    with pytest.raises(ValueError, match=r"sh_degree must be an int in \[0, 1\]"):
+        prepare_scene(m, 2)
+    with pytest.raises(ValueError, match=r"sh_degree must be None or 0 \(the degree the scene was prepared"):
+        render(prepare_scene(m, 0), K, _w2c(), bg, sh_degree=1)
+    bad = _blobs(degree=1)
+    bad.scale_log[4, 1] = 1000.0  # exp overflows to inf: caught on the activated value
+    with pytest.raises(ValueError, match=r"model.scale_log \(after exp\) must be finite, got 1 NaN/Inf entry"):
+        prepare_scene(bad)
+    bad = _blobs(degree=1)
+    bad.sh_rest[0, 0, 0] = float("nan")
+    with pytest.raises(ValueError, match="model.sh_dc / model.sh_rest must be finite"):
+        prepare_scene(bad)
+    bad.sh_rest[0, 0, 0] = 0.0
+    bad.means[2, 0] = float("inf")
+    with pytest.raises(ValueError, match="model.means must be finite"):
+        prepare_scene(bad)

@@ -149,3 +149,33 @@ def test_errors_are_value_errors():
 def test_bad_settings_type(scene):
     with pytest.raises(ValueError, match="settings must be a GaussianRasterizationSettings"):
         rasterize_gaussians(scene.means3D, scene.opacities, settings=dict(image_height=3))
+
+
+def test_validate_false_skips_only_the_per_gaussian_scans(scene, monkeypatch):
+    import gaussian_renderer_pose._validate as v
+
+    scanned = []
+    real = v._check_finite
+    monkeypatch.setattr(v, "_check_finite", lambda name, t: (scanned.append(name), real(name, t)))
+    full = call(scene)
+    assert {"means3D", "opacities", "shs", "scales", "rotations"} <= set(scanned)
+    scanned.clear()
+    fast = rasterize_gaussians(settings=scene.settings("reference"), validate=False, **scene.inputs())
+    assert sorted(scanned) == sorted(v.CAMERA_TENSORS)
+    for a, b in zip(full, fast):
+        assert torch.equal(a, b)
+
+
+def test_validate_false_keeps_the_cheap_checks(scene):
+    st = scene.settings("reference")
+    with pytest.raises(ValueError, match=r"means3D must have shape \[\*, 3\], got \[12, 2\]"):
+        rasterize_gaussians(settings=st, validate=False, **{**scene.inputs(), "means3D": torch.zeros(12, 2)})
+    with pytest.raises(ValueError, match=r"opacities must have the same dtype as means3D"):
+        rasterize_gaussians(settings=st, validate=False,
+                            **{**scene.inputs(), "opacities": scene.opacities.double()})
+    bad = st.viewmatrix.clone(memory_format=torch.contiguous_format)
+    bad[0, 0] = float("nan")
+    with pytest.raises(ValueError, match=r"viewmatrix must contain only finite values"):
+        rasterize_gaussians(settings=st._replace(viewmatrix=bad), validate=False, **scene.inputs())
+    with pytest.raises(ValueError, match=r"validate must be a bool, got 'no'"):
+        rasterize_gaussians(settings=st, validate="no", **scene.inputs())
