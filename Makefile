@@ -4,8 +4,11 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 NATIVE_SOURCES := $(shell find gaussian_renderer_pose/csrc -type f 2>/dev/null) setup.py gaussian_renderer_pose/_build.py
 export MAX_JOBS ?= 2
+# Fitted models live outside the repository (the data licences forbid committing them).
+SCENES ?= $(HOME)/.cache/icomma/scenes
+SHARED_DATA ?= $(or $(ICOMMA_SHARED_DATA),$(CURDIR)/../shared/data)
 
-.PHONY: setup demo test bench clean-native
+.PHONY: setup demo test bench scenes clean-native
 
 setup: $(VENV)/.deps-installed $(VENV)/.native-built
 
@@ -33,6 +36,14 @@ test: setup
 
 bench: setup
 	$(BIN)/python tools/bench_rasterizer.py
+
+# The benchmark's models (docs/BENCHMARK.md): lego fitted at 200x200 from its train split, and the
+# fox capture at 270x480 (held-out frames are the queries). Skipped when already there.
+scenes: setup
+	test -f $(SCENES)/lego_200/cfg_args || $(BIN)/python tools/fit_scene.py \
+		-s $(SHARED_DATA)/nerf_synthetic/lego_400 -m $(SCENES)/lego_200 -r 2 --iterations 7000
+	test -f $(SCENES)/fox_270/cfg_args || $(BIN)/python tools/fit_scene.py \
+		-s $(SHARED_DATA)/fox -m $(SCENES)/fox_270 -r 4
 
 clean-native:
 	rm -rf build gaussian_renderer_pose/_C*.so $(VENV)/.native-built

@@ -46,8 +46,11 @@ class RefineConfig:
 
     scales: working scale of each level, coarse to fine (fractions of the working resolution).
     blur: Gaussian blur sigma [px of the level] applied to render and query at each level (a
-        blurred image stays linear in the pose over a wider misalignment; the last level is
-        usually sharp). Same length as ``scales``.
+        blurred image stays linear in the pose over a wider misalignment). Same length as
+        ``scales``. The default is one sharp level at the working resolution: after the geometric
+        stage the pose is within ~0.2 deg, and on a fitted scene the optimum of a blurred or
+        downscaled comparison lies elsewhere (lego: a sigma-4 level moved 0.10 deg poses to 0.27
+        deg), so coarse levels cost time and accuracy there (docs/BENCHMARK.md).
     iterations: LM iterations at most, per level (same length as ``scales``).
     lambda_init: initial LM damping (relative to the Hessian's diagonal).
     hessian: ``"finite_difference"``: Gauss-Newton from the exact Jacobian of the render by
@@ -67,9 +70,9 @@ class RefineConfig:
         verdict) when the last step of the finest level was smaller than this.
     """
 
-    scales: Tuple[float, ...] = (1.0, 1.0, 1.0)
-    blur: Tuple[float, ...] = (4.0, 1.0, 0.0)
-    iterations: Tuple[int, ...] = (3, 3, 3)
+    scales: Tuple[float, ...] = (1.0,)
+    blur: Tuple[float, ...] = (0.0,)
+    iterations: Tuple[int, ...] = (6,)
     lambda_init: float = 1e-4
     hessian: str = "finite_difference"
     fd_step: float = 1e-3
