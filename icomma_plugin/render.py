@@ -10,7 +10,7 @@ A scene rendered many times from different poses (a localization) is prepared on
 :func:`prepare_scene`: the activations, the SH concatenation and, at SH degree 0, the colours
 (view independent there) are computed once, the tensors are checked for NaN/Inf once, and each
 render then skips the rasterizer's per-call scans. The image, depth, alpha and pose gradient are
-bit-identical to ``render(model, ...)`` (tests/plugin/test_render.py; docs/SPEED.md has the timings).
+bit-identical to ``render(model, ...)`` (tests/plugin/test_render.py); timings in docs/SPEED.md.
 """
 from __future__ import annotations
 
@@ -29,7 +29,8 @@ __all__ = ["PreparedScene", "prepare_scene", "render"]
 
 @dataclass(frozen=True)
 class PreparedScene:
-    """The rasterizer inputs of a fixed :class:`GaussianModel`, computed once (:func:`prepare_scene`).
+    """The rasterizer inputs of a fixed :class:`GaussianModel`, computed once
+    (:func:`prepare_scene`).
 
     means: ``[P, 3]``; opacities: ``[P, 1]`` (sigmoid); scales: ``[P, 3]`` (exp); rotations:
     ``[P, 4]`` (normalised); shs: ``[P, (D+1)^2, 3]`` at ``sh_degree`` D >= 1, else None;
@@ -71,7 +72,8 @@ def _check_sh_degree(sh_degree, model_degree: int) -> int:
 def _finite(name: str, t: torch.Tensor) -> torch.Tensor:
     bad = int((~torch.isfinite(t)).sum())
     if bad:
-        raise ValueError(f"{name} must be finite, got {bad} NaN/Inf entr{'y' if bad == 1 else 'ies'}")
+        entries = "entry" if bad == 1 else "entries"
+        raise ValueError(f"{name} must be finite, got {bad} NaN/Inf {entries}")
     return t.contiguous()
 
 
@@ -90,9 +92,8 @@ def prepare_scene(model: GaussianModel, sh_degree: Optional[int] = None) -> Prep
         ValueError: on a non-GaussianModel, a bad SH degree, or parameters whose activations
             are not finite (the message names the model field).
     """
-    prepared = isinstance(model, PreparedScene)
-    if not prepared and not isinstance(model, GaussianModel):
-        raise ValueError(f"model must be a GaussianModel or a PreparedScene, got {type(model).__name__}")
+    if not isinstance(model, GaussianModel):
+        raise ValueError(f"model must be a GaussianModel, got {type(model).__name__}")
     degree = _check_sh_degree(sh_degree, model.sh_degree)
     with torch.no_grad():
         means = _finite("model.means", model.means)
@@ -146,7 +147,8 @@ def render(
     """
     prepared = isinstance(model, PreparedScene)
     if not prepared and not isinstance(model, GaussianModel):
-        raise ValueError(f"model must be a GaussianModel or a PreparedScene, got {type(model).__name__}")
+        raise ValueError("model must be a GaussianModel or a PreparedScene, got "
+                         f"{type(model).__name__}")
     if not isinstance(intrinsics, Intrinsics):
         raise ValueError(f"intrinsics must be an Intrinsics, got {type(intrinsics).__name__}")
     if not isinstance(w2c, torch.Tensor) or tuple(w2c.shape) != (4, 4):

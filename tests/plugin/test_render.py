@@ -169,15 +169,20 @@ def test_prepared_scene_errors():
     m = _blobs(degree=1)
     K = Intrinsics(16, 12, 15.0, 15.0)
     bg = torch.zeros(3, dtype=torch.float64)
-    with pytest.raises(ValueError, match="model must be a GaussianModel"):
+    with pytest.raises(ValueError, match="model must be a GaussianModel, got str"):
         prepare_scene("scene")
+    with pytest.raises(ValueError, match="model must be a GaussianModel, got PreparedScene"):
+        prepare_scene(prepare_scene(m))
+    with pytest.raises(ValueError, match="must be a GaussianModel or a PreparedScene, got str"):
+        render("scene", K, _w2c(), bg)
     with pytest.raises(ValueError, match=r"sh_degree must be an int in \[0, 1\]"):
         prepare_scene(m, 2)
-    with pytest.raises(ValueError, match=r"sh_degree must be None or 0 \(the degree the scene was prepared"):
+    with pytest.raises(ValueError, match=r"sh_degree must be None or 0 \(the degree the scene was"):
         render(prepare_scene(m, 0), K, _w2c(), bg, sh_degree=1)
     bad = _blobs(degree=1)
     bad.scale_log[4, 1] = 1000.0  # exp overflows to inf: caught on the activated value
-    with pytest.raises(ValueError, match=r"model.scale_log \(after exp\) must be finite, got 1 NaN/Inf entry"):
+    with pytest.raises(ValueError, match=r"model.scale_log \(after exp\) must be finite, got 1 "
+                                         r"NaN/Inf entry$"):
         prepare_scene(bad)
     bad = _blobs(degree=1)
     bad.sh_rest[0, 0, 0] = float("nan")

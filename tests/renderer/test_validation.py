@@ -160,7 +160,8 @@ def test_validate_false_skips_only_the_per_gaussian_scans(scene, monkeypatch):
     full = call(scene)
     assert {"means3D", "opacities", "shs", "scales", "rotations"} <= set(scanned)
     scanned.clear()
-    fast = rasterize_gaussians(settings=scene.settings("reference"), validate=False, **scene.inputs())
+    st = scene.settings("reference")
+    fast = rasterize_gaussians(settings=st, validate=False, **scene.inputs())
     assert sorted(scanned) == sorted(v.CAMERA_TENSORS)
     for a, b in zip(full, fast):
         assert torch.equal(a, b)
@@ -169,7 +170,8 @@ def test_validate_false_skips_only_the_per_gaussian_scans(scene, monkeypatch):
 def test_validate_false_keeps_the_cheap_checks(scene):
     st = scene.settings("reference")
     with pytest.raises(ValueError, match=r"means3D must have shape \[\*, 3\], got \[12, 2\]"):
-        rasterize_gaussians(settings=st, validate=False, **{**scene.inputs(), "means3D": torch.zeros(12, 2)})
+        rasterize_gaussians(settings=st, validate=False,
+                            **{**scene.inputs(), "means3D": torch.zeros(12, 2)})
     with pytest.raises(ValueError, match=r"opacities must have the same dtype as means3D"):
         rasterize_gaussians(settings=st, validate=False,
                             **{**scene.inputs(), "opacities": scene.opacities.double()})

@@ -1,0 +1,859 @@
+"""Time whole localizations: wall time per pose and where it goes, for the default method
+(``RobustConfig``) and the paper's (``LocalizerConfig``), on lego and the built-in demo scene.
+
+For each scene x method it runs localizations from sampled starts and reports medians of the
+wall time, the process CPU time and the breakdown of ``LocalizationResult.stage_seconds``
+(render, backward, matcher, pnp, verify, candidates, other, total), the final errors and the
+success rate (< 5 deg and < 0.05 world units, the time table's), plus the paper/default time
+ratio of the same run. It prints the thread count and the load average before and after each
+block (the machine may be shared: compare ratios measured in the same run, not absolute times
+of different runs).
+
+Scenes: ``lego200``: the fitted model (``--model``, default ~/.cache/icomma/scenes/lego_200,
+fitted at 200x200 from lego_400) with its test views at 200x200; ``lego400``: the SAME model
+with the test views and intrinsics at full size (400x400; the model was fitted at 200, so this
+times 400 px renders, not a 400 px fit); ``demo``: the built-in demo scene
+(icomma_plugin/demo_scene.py) and its query.
+
+Starts: as the benchmark (``icomma_plugin.benchmark.sampling.sample_initial_pose``: rotation
+about the world origin by an angle uniform in ``--rot`` about a random axis, translation
++-``--trans`` per axis, world units), from seeds ``(--seed, 0, query index, pose index)``; the
+default seed (1010) is held out from the benchmark's (0). Start k uses query ``k mod --queries``.
+The paper's method runs the first ``--paper-starts`` starts (it costs ~35 s a start at 200 px),
+so the ratio is also given paired over those starts.
+
+``--render-path both`` runs every start twice, with the prepared render path
+(``icomma_plugin.render.prepare_scene``, the library's) and with the ``plain`` one (the render
+path before issue 10: activations and NaN scans on every render), in alternating order, and
+reports their time ratio and the largest difference of the final poses (0 when the renders are
+bit-identical). ``--render-repeats`` adds a per-render table (forward, forward + pose backward)
+of the two paths at a test pose.
+
+Examples:
+    python tools/bench_localize.py --threads 1                              # everything
+    python tools/bench_localize.py --quick --scenes demo --threads 1        # a quick look
+    python tools/bench_localize.py --scenes lego200 --methods robust --render-path both --threads 1
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import datetime
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Dict, Iterator, List, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+SCENES = ("lego200", "lego400", "demo")
+METHODS = ("robust", "icomma")
+RENDER_PATHS = ("prepared", "plain")
+STAGES = ("render", "backward", "matcher", "pnp", "verify", "candidates", "other", "total")
+SUCCESS = (5.0, 0.05)  # deg, world units (the time table's threshold)
+DEFAULT_MODEL = "~/.cache/icomma/scenes/lego_200"
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def _pair(text: str, name: str) -> Tuple[float, float]:
+    try:
+        lo, hi = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{name} must be 'lo,hi' (two numbers), got {text!r}"
+        ) from None
+    if not (0 <= lo <= hi):
+        raise argparse.ArgumentTypeError(f"{name} must satisfy 0 <= lo <= hi, got {text!r}")
+    return lo, hi
+
+
+def _names(text: str, known: Sequence[str], name: str) -> List[str]:
+    out = [s.strip() for s in text.split(",") if s.strip()]
+    bad = [s for s in out if s not in known]
+    if bad or not out:
+        raise argparse.ArgumentTypeError(
+            f"{name} must be a comma list of {', '.join(known)}, got {text!r}"
+        )
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Machine
+# ----------------------------------------------------------------------------------------------
+def load_average() -> Optional[List[float]]:
+    try:
+        return [round(v, 2) for v in os.getloadavg()]
+    except OSError:
+        return None
+
+
+def load1() -> str:
+    la = load_average()
+    return "?" if la is None else f"{la[0]:.2f}"
+
+
+def machine_info() -> Dict[str, Any]:
+    cpu = platform.processor() or None
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    try:
+        commit = (
+            subprocess.run(
+                ["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"],
+                capture_output=True,
+                text=True,
+                timeout=10,
+            ).stdout.strip()
+            or None
+        )
+    except (OSError, subprocess.SubprocessError):
+        commit = None
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return {
+        "cpu": cpu,
+        "cores": cores,
+        "torch_threads": torch.get_num_threads(),
+        "torch": torch.__version__,
+        "python": platform.python_version(),
+        "commit": commit,
+    }
+
+
+# ----------------------------------------------------------------------------------------------
+# Scenes
+# ----------------------------------------------------------------------------------------------
+def load_scene(name: str, args) -> "Any":
+    """A ``BenchScene`` for ``name`` (lego200, lego400 or demo)."""
+    from icomma_plugin.benchmark.scene import BenchScene, Query, load_model_folder_scene
+
+    if name in ("lego200", "lego400"):
+        model = Path(args.model).expanduser()
+        if not model.is_dir():
+            raise FileNotFoundError(
+                f"--model: model folder not found: {model} (fit one with tools/fit_scene.py)"
+            )
+        scale = None if name == "lego200" else 1.0  # None: the model's training scale (200 px)
+        sc = load_model_folder_scene(
+            model, dataset=args.dataset, num_queries=args.queries, image_scale=scale
+        )
+        want = 200 if name == "lego200" else 400
+        got = sc.queries[0].intrinsics.width
+        if got != want:
+            log(f"note: {name}: the queries are {got} px wide (dataset {sc.info['dataset']})")
+        return sc
+    from icomma_plugin.localization.problem import load_problem
+
+    p = load_problem(
+        {"kind": "demo", "path": args.demo_path, "width": args.demo_size, "height": args.demo_size}
+    )
+    q = Query(
+        name="demo_query",
+        rgb=p.query.rgb,
+        alpha=None,
+        intrinsics=p.query.intrinsics,
+        gt_c2w=np.asarray(p.gt_c2w, np.float64),
+        index=0,
+    )
+    return BenchScene(
+        model=p.model,
+        queries=[q],
+        bg=p.bg,
+        translation_scale=1.0,
+        translation_unit="world",
+        scene_radius=float(p.scene_scale or 1.0),
+        cameras_c2w=p.candidate_c2ws(),
+        info={"kind": "demo", **p.info},
+    )
+
+
+@dataclass
+class Start:
+    index: int
+    query: Any
+    pose_index: int
+    seed: Tuple[int, ...]
+    init_c2w: np.ndarray
+    rot_deg: float
+    trans_world: float
+
+
+def sample_starts(
+    scene, n: int, seed: int, rot: Tuple[float, float], trans: Tuple[float, float]
+) -> List[Start]:
+    from icomma_plugin.benchmark.sampling import pose_seed, sample_initial_pose
+
+    out = []
+    nq = len(scene.queries)
+    for k in range(n):
+        q = scene.queries[k % nq]
+        s = pose_seed(seed, 0, q.index, k // nq)
+        init = sample_initial_pose(
+            q.gt_c2w,
+            rot,
+            trans,
+            s,
+            translation_scale=scene.translation_scale,
+            translation_mode="per_axis",
+            pivot="origin",
+        )
+        out.append(
+            Start(
+                k,
+                q,
+                k // nq,
+                s,
+                init.c2w,
+                float(init.rot_deg),
+                float(np.linalg.norm(init.c2w[:3, 3] - q.gt_c2w[:3, 3])),
+            )
+        )
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Render paths
+# ----------------------------------------------------------------------------------------------
+def _plain_render(self, w2c, scale: float = 1.0):
+    """``LocalizationState.render`` as it was before issue 10 (the baseline of docs/SPEED.md):
+    the raw model on every call, so the activations, the SH concatenation and the rasterizer's
+    NaN/Inf scans of every Gaussian tensor run on every render."""
+    from icomma_plugin.render import render
+
+    if isinstance(w2c, np.ndarray):
+        w2c = torch.as_tensor(w2c, dtype=torch.float64)
+    dev, dt = self.model.device, self.model.dtype
+    with self.timed("render"):
+        return render(
+            self.model,
+            self.intrinsics_at(scale),
+            w2c.to(device=dev, dtype=dt),
+            self.bg,
+            backend=self.backend,
+            sh_degree=self.sh_degree,
+            antialiasing=self.antialiasing,
+        )
+
+
+@contextlib.contextmanager
+def render_path(name: str) -> Iterator[None]:
+    """Localizations inside the block render with ``name`` ("prepared": the library's, "plain")."""
+    if name == "prepared":
+        yield
+        return
+    from icomma_plugin.localization.state import LocalizationState
+
+    original = LocalizationState.render
+    LocalizationState.render = _plain_render
+    try:
+        yield
+    finally:
+        LocalizationState.render = original
+
+
+@contextlib.contextmanager
+def cpu_stage_seconds(into: Dict[str, float]) -> Iterator[None]:
+    """Inside the block, ``LocalizationState.timed(kind)`` also adds the process CPU seconds of
+    its block to ``into[kind]`` (the stage timers measure wall time, which a loaded machine
+    inflates; with one thread the CPU time is the work done)."""
+    from icomma_plugin.localization.state import LocalizationState
+
+    original = LocalizationState.timed
+
+    @contextlib.contextmanager
+    def timed(self, kind: str):
+        c = time.process_time()
+        try:
+            with original(self, kind):
+                yield
+        finally:
+            into[kind] = into.get(kind, 0.0) + time.process_time() - c
+
+    LocalizationState.timed = timed
+    try:
+        yield
+    finally:
+        LocalizationState.timed = original
+
+
+def _with_other(seconds: Dict[str, float], total: float) -> Dict[str, float]:
+    out = {k: float(seconds.get(k, 0.0)) for k in STAGES[:-2]}
+    out["other"] = max(0.0, total - sum(out.values()))
+    out["total"] = total
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# One localization
+# ----------------------------------------------------------------------------------------------
+def method_config(method: str, args):
+    from icomma_plugin.localize import LocalizerConfig, RobustConfig
+
+    if method == "robust":
+        return RobustConfig()
+    return LocalizerConfig(max_iterations=args.paper_max_iterations)
+
+
+def run_start(scene, st: Start, method: str, path: str, matcher, args) -> Dict[str, Any]:
+    from icomma_plugin.localize import localize
+
+    cfg = method_config(method, args)
+    candidates = (
+        scene.candidate_set(st.query, matcher, cfg, args.backend) if method == "robust" else None
+    )
+    q = st.query
+    torch.manual_seed(int(np.random.SeedSequence(list(st.seed)).generate_state(1)[0]))
+    cpu_stages: Dict[str, float] = {}
+    with render_path(path), cpu_stage_seconds(cpu_stages):
+        c0, t0 = time.process_time(), time.perf_counter()
+        res = localize(
+            scene.model,
+            q.rgb,
+            q.intrinsics,
+            np.linalg.inv(st.init_c2w),
+            matcher,
+            cfg,
+            gt_w2c=np.linalg.inv(q.gt_c2w),
+            query_alpha=q.alpha,
+            query_valid=q.valid,
+            backend=args.backend,
+            bg=scene.bg,
+            cameras_c2w=scene.cameras_c2w,
+            candidate_set=candidates,
+            query_name=q.name,
+        )
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    rot, trans = res.final_rotation_error_deg, res.final_translation_error
+    return {
+        "start": st.index,
+        "query": q.name,
+        "query_index": q.index,
+        "pose_index": st.pose_index,
+        "seed": list(st.seed),
+        "init_rot_deg": st.rot_deg,
+        "init_trans": st.trans_world,
+        "method": method,
+        "render_path": path,
+        "wall_s": wall,
+        "cpu_s": cpu,
+        "stage_seconds": {k: float(res.stage_seconds.get(k, 0.0)) for k in STAGES},
+        "stage_cpu_seconds": _with_other(cpu_stages, cpu),
+        "iterations": res.iterations,
+        "stop_reason": res.stop_reason,
+        "verdict": None if res.verdict is None else res.verdict.status,
+        "final_rot_deg": rot,
+        "final_trans": trans,
+        "success": bool(
+            rot is not None and trans is not None and rot < SUCCESS[0] and trans < SUCCESS[1]
+        ),
+        "w2c": res.w2c.tolist(),
+    }
+
+
+# ----------------------------------------------------------------------------------------------
+# Per-render timings (the two render paths at one pose)
+# ----------------------------------------------------------------------------------------------
+def render_timings(scene, repeats: int, backend: str) -> Dict[str, Any]:
+    """Median ms of a render at the first query's true pose: forward (no grad) and forward +
+    pose backward, for the plain and the prepared path, as ``LocalizationState`` calls them."""
+    from icomma_plugin.localization.state import LocalizationState
+    from icomma_plugin.localization.types import Query as LQuery
+    from icomma_plugin.pose.se3 import se3_exp
+
+    q = scene.queries[0]
+    state = LocalizationState(scene.model, LQuery(q.rgb, q.intrinsics), scene.bg, backend=backend)
+    w2c = torch.as_tensor(np.linalg.inv(q.gt_c2w), dtype=torch.float64)
+    out: Dict[str, Any] = {
+        "gaussians": state.model.num_gaussians,
+        "sh_degree": state.model.sh_degree,
+        "image": [q.intrinsics.width, q.intrinsics.height],
+    }
+
+    def fwd():
+        with torch.no_grad():
+            state.render(w2c)
+
+    def fwd_bwd():
+        xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
+        o = state.render(se3_exp(xi) @ w2c)
+        o.color.square().sum().backward()
+
+    for path in ("plain", "prepared", "plain", "prepared"):  # twice, interleaved: drift cancels
+        with render_path(path):
+            for mode, fn in (("fwd", fwd), ("fwd+bwd", fwd_bwd)):
+                fn()  # warm-up (and the prepared scene's one-off preparation)
+                ts = []
+                for _ in range(repeats):
+                    c = time.process_time()
+                    fn()
+                    ts.append((time.process_time() - c) * 1e3)
+                out.setdefault(f"{path}/{mode}", []).extend(ts)
+    for k in [k for k in out if "/" in k]:
+        out[k] = statistics.median(out[k])
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Summary and report
+# ----------------------------------------------------------------------------------------------
+def _median(vals) -> Optional[float]:
+    vals = [float(v) for v in vals if v is not None]
+    return statistics.median(vals) if vals else None
+
+
+def summarize(records: List[Dict[str, Any]]) -> List[Dict[str, Any]]:
+    rows = []
+    keys = sorted(
+        {(r["scene"], r["method"], r["render_path"]) for r in records},
+        key=lambda k: (SCENES.index(k[0]), METHODS.index(k[1]), RENDER_PATHS.index(k[2])),
+    )
+    for scene, method, path in keys:
+        rs = [
+            r
+            for r in records
+            if (r["scene"], r["method"], r["render_path"]) == (scene, method, path)
+        ]
+        rows.append(
+            {
+                "scene": scene,
+                "method": method,
+                "render_path": path,
+                "n": len(rs),
+                "wall_s": _median(r["wall_s"] for r in rs),
+                "cpu_s": _median(r["cpu_s"] for r in rs),
+                "stages": {k: _median(r["stage_seconds"][k] for r in rs) for k in STAGES},
+                "stages_cpu": {k: _median(r["stage_cpu_seconds"][k] for r in rs) for k in STAGES},
+                "final_rot_deg": _median(r["final_rot_deg"] for r in rs),
+                "final_trans": _median(r["final_trans"] for r in rs),
+                "success": sum(r["success"] for r in rs) / len(rs),
+                "ok": sum(r["verdict"] == "ok" for r in rs) / len(rs),
+                "iterations": _median(r["iterations"] for r in rs),
+            }
+        )
+    return rows
+
+
+def _paired(records, scene, key_a, key_b, field="wall_s") -> Tuple[Optional[float], int]:
+    """Median over the starts run by both (method, path) keys of a / b, and how many."""
+    a = {
+        r["start"]: r[field]
+        for r in records
+        if r["scene"] == scene and (r["method"], r["render_path"]) == key_a
+    }
+    b = {
+        r["start"]: r[field]
+        for r in records
+        if r["scene"] == scene and (r["method"], r["render_path"]) == key_b
+    }
+    common = sorted(set(a) & set(b))
+    return (_median(a[k] / b[k] for k in common if b[k] > 0), len(common))
+
+
+def ratios(records: List[Dict[str, Any]], rows: List[Dict[str, Any]]) -> List[Dict[str, Any]]:
+    """paper/default per scene and path; plain/prepared per scene and method (same run)."""
+    out = []
+    by = {(r["scene"], r["method"], r["render_path"]): r for r in rows}
+    for scene in SCENES:
+        for path in RENDER_PATHS:
+            a, b = by.get((scene, "icomma", path)), by.get((scene, "robust", path))
+            if a and b:
+                pr, n = _paired(records, scene, ("icomma", path), ("robust", path))
+                pc, _ = _paired(records, scene, ("icomma", path), ("robust", path), "cpu_s")
+                out.append(
+                    {
+                        "scene": scene,
+                        "what": f"paper / default ({path})",
+                        "of_medians": a["wall_s"] / b["wall_s"],
+                        "paired_median": pr,
+                        "paired_n": n,
+                        "paired_cpu_median": pc,
+                    }
+                )
+        for method in METHODS:
+            a, b = by.get((scene, method, "plain")), by.get((scene, method, "prepared"))
+            if a and b:
+                pr, n = _paired(records, scene, (method, "plain"), (method, "prepared"))
+                pc, _ = _paired(records, scene, (method, "plain"), (method, "prepared"), "cpu_s")
+                pose = _pose_difference(records, scene, method)
+                out.append(
+                    {
+                        "scene": scene,
+                        "what": f"plain / prepared ({method})",
+                        "of_medians": a["wall_s"] / b["wall_s"],
+                        "paired_median": pr,
+                        "paired_n": n,
+                        "paired_cpu_median": pc,
+                        "max_pose_diff": pose,
+                    }
+                )
+    return out
+
+
+def _pose_difference(records, scene, method) -> Optional[float]:
+    """Largest |w2c_plain - w2c_prepared| entry over the starts run with both paths."""
+    a = {
+        r["start"]: np.asarray(r["w2c"])
+        for r in records
+        if (r["scene"], r["method"], r["render_path"]) == (scene, method, "plain")
+    }
+    b = {
+        r["start"]: np.asarray(r["w2c"])
+        for r in records
+        if (r["scene"], r["method"], r["render_path"]) == (scene, method, "prepared")
+    }
+    common = set(a) & set(b)
+    return max(float(np.abs(a[k] - b[k]).max()) for k in common) if common else None
+
+
+def _f(v, digits=2, unit="") -> str:
+    return "—" if v is None else f"{v:.{digits}f}{unit}"
+
+
+def _load(la) -> str:
+    return "?" if not la else f"{la[0]:.2f}"
+
+
+def markdown(result: Dict[str, Any]) -> str:
+    m, a = result["machine"], result["args"]
+    header = [
+        "scene",
+        "method",
+        "render path",
+        "n",
+        "wall s",
+        "CPU s",
+        "final rot deg",
+        "final trans",
+        "success",
+        "verdict ok",
+        "iterations",
+        "load before -> after",
+    ]
+    lines = [
+        f"threads: {m['torch_threads']} (cores: {m['cores']}, {m['cpu']}), torch {m['torch']}, "
+        f"commit "
+        f"{m['commit']}; load average (1, 5, 15 min) before: {result['load_before']}, after: "
+        f"{result['load_after']}",
+        f"starts: rotation {a['rot']} deg about the origin, translation +-{a['trans']} per axis, "
+        f"seed {a['seed']}; medians over n starts; success = < {SUCCESS[0]:g} deg and "
+        f"< {SUCCESS[1]:g}",
+        "",
+        "| " + " | ".join(header) + " |",
+        "|" + "---|" * len(header),
+    ]
+
+    def name(r):
+        return "default (robust)" if r["method"] == "robust" else "paper (icomma)"
+
+    for r in result["rows"]:
+        blk = result["blocks"].get(f"{r['scene']}/{r['method']}", {})
+        lines.append(
+            "| "
+            + " | ".join(
+                [
+                    r["scene"],
+                    name(r),
+                    r["render_path"],
+                    str(r["n"]),
+                    _f(r["wall_s"]),
+                    _f(r["cpu_s"]),
+                    _f(r["final_rot_deg"], 3),
+                    _f(r["final_trans"], 4),
+                    f"{100 * r['success']:.0f} %",
+                    f"{100 * r['ok']:.0f} %",
+                    _f(r["iterations"], 0),
+                    f"{_load(blk.get('load_before'))} -> {_load(blk.get('load_after'))}",
+                ]
+            )
+            + " |"
+        )
+    for key, title in (("stages_cpu", "CPU"), ("stages", "wall")):
+        lines += [
+            "",
+            f"Breakdown by stage ({title} seconds, medians):",
+            "",
+            "| scene | method | render path | " + " | ".join(STAGES) + " |",
+            "|" + "---|" * (3 + len(STAGES)),
+        ]
+        for r in result["rows"]:
+            lines.append(
+                "| "
+                + " | ".join(
+                    [r["scene"], name(r), r["render_path"], *[_f(r[key][k]) for k in STAGES]]
+                )
+                + " |"
+            )
+    if result["ratios"]:
+        lines += [
+            "",
+            "| scene | ratio | of the medians (wall) | median of paired ratios (wall) | "
+            "paired CPU | "
+            "starts paired | max pose difference |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for q in result["ratios"]:
+            lines.append(
+                "| "
+                + " | ".join(
+                    [
+                        q["scene"],
+                        q["what"],
+                        _f(q["of_medians"]) + "x",
+                        _f(q["paired_median"]) + "x",
+                        _f(q.get("paired_cpu_median"))
+                        + ("x" if q.get("paired_cpu_median") is not None else ""),
+                        str(q["paired_n"]),
+                        "—" if q.get("max_pose_diff") is None else f"{q['max_pose_diff']:.1e}",
+                    ]
+                )
+                + " |"
+            )
+    if result.get("render_timings"):
+        lines += [
+            "",
+            "Per render at the first query's true pose (CPU ms, median), as LocalizationState "
+            "calls it:",
+            "",
+            "| scene | Gaussians | SH degree | image | plain fwd | prepared fwd | ratio | "
+            "plain fwd+bwd | prepared fwd+bwd | ratio |",
+            "|---|---|---|---|---|---|---|---|---|---|",
+        ]
+        for name, t in result["render_timings"].items():
+            lines.append(
+                "| "
+                + " | ".join(
+                    [
+                        name,
+                        f"{t['gaussians']:,}",
+                        str(t["sh_degree"]),
+                        f"{t['image'][0]}x{t['image'][1]}",
+                        _f(t["plain/fwd"], 1),
+                        _f(t["prepared/fwd"], 1),
+                        _f(t["plain/fwd"] / t["prepared/fwd"]) + "x",
+                        _f(t["plain/fwd+bwd"], 1),
+                        _f(t["prepared/fwd+bwd"], 1),
+                        _f(t["plain/fwd+bwd"] / t["prepared/fwd+bwd"]) + "x",
+                    ]
+                )
+                + " |"
+            )
+    lines += [
+        "",
+        "Stage columns are medians, each on its own (they need not add up to the total). Wall: "
+        "`LocalizationResult.stage_seconds`; CPU: the process CPU time of the same timed blocks. "
+        "`verify` and `candidates` include the renders and matcher calls made inside them (also "
+        "counted under render / matcher), so `other` (total minus the rest) is a lower bound.",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+# ----------------------------------------------------------------------------------------------
+# Main
+# ----------------------------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument(
+        "--scenes",
+        default="lego200,lego400,demo",
+        type=lambda s: _names(s, SCENES, "--scenes"),
+        help="comma list of lego200, lego400, demo",
+    )
+    ap.add_argument(
+        "--methods",
+        default="robust,icomma",
+        type=lambda s: _names(s, METHODS, "--methods"),
+        help="robust (the default, RobustConfig) and/or icomma (the paper's, LocalizerConfig)",
+    )
+    ap.add_argument(
+        "--starts", type=int, default=20, help="starts per scene for the default method"
+    )
+    ap.add_argument(
+        "--paper-starts",
+        type=int,
+        default=5,
+        help="starts per scene for the paper's method (the first of the same starts; ~35 s each)",
+    )
+    ap.add_argument(
+        "--quick", action="store_true", help="a quick look: 3 starts, 1 for the paper's method"
+    )
+    ap.add_argument(
+        "--rot",
+        type=lambda s: _pair(s, "--rot"),
+        default=(20.0, 40.0),
+        help="initial rotation error interval lo,hi [deg] (default 20,40)",
+    )
+    ap.add_argument(
+        "--trans",
+        type=lambda s: _pair(s, "--trans"),
+        default=(0.0, 0.2),
+        help="initial translation per axis lo,hi [world units] (default 0,0.2)",
+    )
+    ap.add_argument("--seed", type=int, default=1010, help="start seed (the benchmark uses 0)")
+    ap.add_argument(
+        "--queries", type=int, default=5, help="lego test views the starts cycle through"
+    )
+    ap.add_argument("--model", default=DEFAULT_MODEL, help="the lego model folder")
+    ap.add_argument(
+        "--dataset", default=None, help="lego dataset (default: the model's source_path)"
+    )
+    ap.add_argument(
+        "--demo-path", default=None, help="demo scene folder (default ./outputs/demo_scene)"
+    )
+    ap.add_argument(
+        "--demo-size", type=int, default=200, help="demo image side [px] (built if absent)"
+    )
+    ap.add_argument("--matcher", default="xfeat")
+    ap.add_argument("--backend", default="auto")
+    ap.add_argument("--paper-max-iterations", type=int, default=500)
+    ap.add_argument(
+        "--render-path",
+        default="prepared",
+        choices=("prepared", "plain", "both"),
+        help="prepared (the library's), plain (before issue 10) or both, alternating per start",
+    )
+    ap.add_argument(
+        "--render-repeats",
+        type=int,
+        default=0,
+        help="add per-render timings of both paths, this many repeats (0: none)",
+    )
+    ap.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="torch threads (default: automatic, the cores the load leaves free)",
+    )
+    ap.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="output folder for results.json / results.md (default outputs/bench_localize/<time>)",
+    )
+    return ap
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    args = build_parser().parse_args(argv)
+    from icomma_plugin.runtime import torch_threads
+
+    if args.quick:
+        args.starts, args.paper_starts = min(args.starts, 3), min(args.paper_starts, 1)
+    for name in ("starts", "paper_starts", "queries", "render_repeats"):
+        if getattr(args, name) < (0 if name in ("paper_starts", "render_repeats") else 1):
+            print(
+                f"error: --{name.replace('_', '-')} must be a positive int, "
+                f"got {getattr(args, name)}",
+                file=sys.stderr,
+            )
+            return 2
+    with torch_threads(args.threads):
+        return _main(args)
+
+
+def _main(args) -> int:
+    from icomma_plugin.io.atomic import write_json_atomic, write_text_atomic
+    from icomma_plugin.matchers import make_matcher
+
+    out_dir = args.out or Path("outputs") / "bench_localize" / datetime.datetime.now().strftime(
+        "%Y-%m-%d_%H-%M-%S"
+    )
+    paths = list(RENDER_PATHS) if args.render_path == "both" else [args.render_path]
+    matcher = make_matcher(args.matcher)
+    result: Dict[str, Any] = {
+        "machine": machine_info(),
+        "load_before": load_average(),
+        "records": [],
+        "blocks": {},
+        "render_timings": {},
+        "args": {
+            k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(args).items() if k != "out"
+        },
+    }
+    log(f"threads {torch.get_num_threads()}, load {result['load_before']}")
+
+    def save():
+        result["load_after"] = load_average()
+        result["rows"] = summarize(result["records"])
+        result["ratios"] = ratios(result["records"], result["rows"])
+        write_json_atomic(out_dir / "results.json", result)
+        write_text_atomic(out_dir / "results.md", markdown(result))
+
+    try:
+        _run(args, result, out_dir, paths, matcher, save)
+    except (ValueError, FileNotFoundError) as e:  # bad input: one line, no traceback
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    finally:
+        if result["records"] or result["render_timings"]:
+            save()
+            log(f"wrote {out_dir / 'results.json'} and results.md")
+    print(markdown(result), end="")
+    return 0
+
+
+def _run(args, result: Dict[str, Any], out_dir: Path, paths: List[str], matcher, save) -> None:
+    """Every scene x method x start of ``args`` into ``result["records"]`` (saved after each
+    start)."""
+    for scene_name in args.scenes:
+        t = time.perf_counter()
+        scene = load_scene(scene_name, args)
+        starts = sample_starts(scene, args.starts, args.seed, args.rot, args.trans)
+        if (
+            "robust" in args.methods
+        ):  # the candidate views: built once per scene, outside the timings
+            from icomma_plugin.localize import RobustConfig
+
+            tc = time.perf_counter()
+            scene.candidate_set(scene.queries[0], matcher, RobustConfig(), args.backend)
+            result["blocks"][f"{scene_name}/candidate_set_s"] = time.perf_counter() - tc
+        log(
+            f"[{scene_name}] {scene.model.num_gaussians} Gaussians, {len(scene.queries)} queries "
+            f"at {scene.queries[0].intrinsics.width}x{scene.queries[0].intrinsics.height} "
+            f"({time.perf_counter() - t:.1f} s)"
+        )
+        if args.render_repeats:
+            result["render_timings"][scene_name] = render_timings(
+                scene, args.render_repeats, args.backend
+            )
+        for method in args.methods:
+            n = args.starts if method == "robust" else min(args.paper_starts, args.starts)
+            block = {"load_before": load_average()}
+            for st in starts[:n]:
+                order = paths if st.index % 2 == 0 else paths[::-1]
+                for path in order:
+                    rec = run_start(scene, st, method, path, matcher, args)
+                    rec["scene"] = scene_name
+                    result["records"].append(rec)
+                    log(
+                        f"[{scene_name}] {method:6s} {path:8s} start {st.index:2d} "
+                        f"({st.rot_deg:4.1f} deg): {rec['wall_s']:6.2f} s, "
+                        f"render {rec['stage_seconds']['render']:.2f} s, final "
+                        f"{_f(rec['final_rot_deg'], 3)} deg, {rec['verdict']}, load {load1()}"
+                    )
+                save()
+            block["load_after"] = load_average()
+            result["blocks"][f"{scene_name}/{method}"] = block
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
