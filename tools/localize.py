@@ -15,10 +15,24 @@ matches_initial.png, convergence.png (optimisation.gif with ``output.gif=true``)
 the final rotation error in degrees (the final loss when no ground truth is known), so sweepers
 can minimise it.
 
+Many photos, or a video, against one model (README "Many photos, videos"):
+
+    python tools/localize.py data=model_folder data.model_path=output/fox \
+        data.queries=photos/ data.intrinsics.camera=0001 data.init=none workers=2 \
+        output.dir=outputs/fox_batch output.export=[cameras_json,colmap]
+    python tools/localize.py data=model_folder data.model_path=output/lego \
+        data.sequence=walk.mp4 data.intrinsics.fx=277.8 data.init.c2w_file=start.txt
+    python tools/localize.py -m hydra/launcher=slurm_cluster data=model_folder ... \
+        data.shard=0,1,2,3 data.num_shards=4          # one SLURM array task per shard
+
+write poses.json / poses.csv (rewritten after every photo: rerun with the same output.dir to
+resume), contact_sheet.png (batch), trajectory.png and tracking.mp4 (sequence), exports/.
+
 Configuration: conf/localize.yaml (groups data, matcher, optimizer, renderer).
 """
 from __future__ import annotations
 
+import json
 import logging
 import sys
 import time
@@ -42,9 +56,19 @@ from omegaconf import DictConfig  # noqa: E402
 log = logging.getLogger("localize")
 
 
+def is_many(cfg: DictConfig) -> bool:
+    """Whether the config asks for a batch (data.queries) or a sequence (data.sequence)."""
+    return bool(cfg.data.get("queries") or cfg.data.get("sequence"))
+
+
 def run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
     """The body of the tool: load, localise, write the outputs into ``output_dir``; returns
-    result.json. ``cfg.threads`` applies for the duration of the call."""
+    result.json (a batch or a sequence: poses.json). ``cfg.threads`` applies for the duration
+    of the call (a batch's worker processes: ``threads`` each, null meaning 1)."""
+    if is_many(cfg):
+        out = Path(cfg.output.get("dir") or output_dir)
+        with common.torch_threads(cfg.get("threads") or (1 if (cfg.get("workers") or 1) > 1 else None)):
+            return _run_many(cfg, out)
     with common.torch_threads(cfg.get("threads")):
         return _run(cfg, Path(output_dir))
 
@@ -105,6 +129,179 @@ def _run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
                          config=common.container(cfg), seconds_total=time.perf_counter() - t0)
 
 
+class _Bar:
+    """tqdm bar with ETA and the running ok / uncertain / failed counts (made on the start event)."""
+
+    def __init__(self, enabled: bool, unit: str):
+        self.enabled, self.unit, self.bar = enabled, unit, None
+
+    def __call__(self, ev: Dict[str, Any]) -> None:
+        if not self.enabled:
+            return
+        if self.bar is None:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=ev.get("todo"), desc="localize", unit=self.unit, dynamic_ncols=True)
+        if ev.get("row") is not None:
+            self.bar.update(1)
+        self.bar.set_postfix(ev["counts"], refresh=True)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _run_many(cfg: DictConfig, out: Path) -> Dict[str, Any]:
+    """A batch (data.queries) or a sequence (data.sequence) into ``out``; returns poses.json."""
+    from icomma_plugin.localization.batch import (WorkerSetup, export_rows, open_model_folder, plan_batch,
+                                                  run_batch, run_identity)
+    from icomma_plugin.localization.ledger import PosesLedger
+    from icomma_plugin.localization.output import OutputOptions
+    from icomma_plugin.localize import LocalizerConfig
+
+    data = common.container(cfg.data)
+    if data.get("kind") != "model_folder":
+        raise common.UserError("data.queries / data.sequence need a model folder: data=model_folder "
+                               "data.model_path=<3DGS output> (the demo scene folder is one)")
+    if data.get("queries") and data.get("sequence"):
+        raise common.UserError("set data.queries (a batch) or data.sequence (a video), not both")
+    common.seed_everything(int(cfg.seed))
+    backend = str(cfg.renderer.backend)
+    if backend == "cuda" and not torch.cuda.is_available():
+        raise common.UserError("renderer=cuda: no CUDA device is available here (use renderer=auto or cpu)")
+    method_cfg = common.build_optimizer(cfg.optimizer)
+    matcher, _ = common.build_matcher(cfg.get("matcher"))
+    if matcher is None and not isinstance(method_cfg, LocalizerConfig):
+        raise common.UserError("the default optimizer (optimizer=robust) needs a matcher (e.g. matcher=xfeat)")
+    oc = common.container(cfg.output)
+    workers = int(cfg.get("workers") or 1)
+    shard, num_shards = int(data.get("shard") or 0), int(data.get("num_shards") or 1)
+    if not (num_shards >= 1 and 0 <= shard < num_shards):
+        raise common.UserError(f"data.shard must be in [0, data.num_shards={num_shards}), got {shard}")
+    if workers < 1:
+        raise common.UserError(f"workers must be a positive integer, got {workers}")
+    mf, white = open_model_folder(data)
+    sequence = bool(data.get("sequence"))
+    setup = WorkerSetup(
+        model_path=str(Path(mf.path).resolve()), method=method_cfg, matcher=common.container(cfg.get("matcher")),
+        out_dir=str(out), iteration=mf.iteration, white_background=white, backend=backend,
+        resize=data.get("resize"), folders=bool(oc.get("photo_folders")), output=OutputOptions.from_dict(oc),
+        thumbs=bool(oc.get("contact_sheet")), thumb_side=int(oc.get("thumb_side") or 192),
+        config=common.container(cfg), seed=int(cfg.seed))
+    bar = _Bar(bool(oc.get("progress")), "frame" if sequence else "photo")
+    t0 = time.perf_counter()
+    try:
+        if sequence:
+            if num_shards > 1 or workers > 1:
+                raise common.UserError("a sequence is tracked frame after frame: data.num_shards and workers "
+                                       "must be 1 with data.sequence")
+            res = _run_sequence(cfg, data, mf, setup, matcher, out, bar)
+        else:
+            if workers > 1 and backend == "cuda":
+                raise common.UserError("workers > 1 shares one GPU between processes: use workers=1 with "
+                                       "renderer=cuda")
+            plan, _ = plan_batch(data, mf)
+            ledger = PosesLedger(out, {**run_identity("batch", data, setup.model_path),
+                                       "config": common.container(cfg)}, len(plan.tasks), shard, num_shards)
+            summ = run_batch(plan, setup, ledger, workers=workers, threads_per_worker=int(cfg.get("threads") or 1),
+                             retry_failed=bool(oc.get("retry_failed")), progress=bar,
+                             model_folder=mf if workers == 1 else None, matcher=matcher if workers == 1 else None)
+            res = {"kind": "batch", "done_now": summ.done_now, "skipped": summ.skipped,
+                   "photos_per_minute": summ.photos_per_minute, "seconds": summ.seconds}
+            rows = ledger.all_rows()
+            if setup.thumbs and rows:
+                from icomma_plugin.visualize import contact_sheet
+
+                try:
+                    contact_sheet(out / "contact_sheet.png", rows, out)
+                except Exception as e:  # noqa: BLE001 - a picture never fails the run
+                    log.warning("no contact sheet: %s: %s", type(e).__name__, e)
+            res["rows"] = rows
+    finally:
+        bar.close()
+    exports = export_rows(out, res["rows"], list(oc.get("export") or []),
+                          tuple(oc.get("export_verdicts") or ("ok", "uncertain"))) if oc.get("export") else {}
+    doc = json.loads((out / "poses.json").read_text())
+    doc["summary"] = {k: v for k, v in res.items() if k != "rows"}
+    doc["summary"].update({"exports": exports, "output_dir": str(out), "seconds_total": time.perf_counter() - t0})
+    return doc
+
+
+def _run_sequence(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, Any]:
+    from icomma_plugin.localization.batch import BatchWorker, run_identity, start_poses
+    from icomma_plugin.localization.inputs import photo_intrinsics, read_poses_file
+    from icomma_plugin.localization.ledger import PosesLedger
+    from icomma_plugin.localization.tracking import FrameSource, TrackingConfig, track, write_tracking_video
+
+    oc = common.container(cfg.output)
+    source = FrameSource.open(data["sequence"], int(data.get("every") or 1), data.get("limit"))
+    table = None
+    g = data.get("gt") or {}
+    for k in ("poses_file", "cameras_json"):
+        if g.get(k) is not None:
+            table = read_poses_file(g[k], f"data.gt.{k}")
+    gt_of = None if table is None else table.get
+    first = "frame_000000" if source.is_video else source.names[0]
+    mode, inits, errs = start_poses(data.get("init"), [first], [None if gt_of is None else gt_of(first)], mf)
+    if errs[0]:
+        raise common.UserError(errs[0])
+    it = data.get("intrinsics") or {}
+    photo_intrinsics((1000, 1000), dict(it, width=None, height=None), mf.cameras)  # a config error now
+
+    def intrinsics_of(size):
+        return photo_intrinsics(size, it, mf.cameras)
+
+    worker = BatchWorker(setup, mf, matcher)
+    ledger = PosesLedger(out, {**run_identity("sequence", data, setup.model_path),
+                               "config": common.container(cfg)}, source.count() or 0)
+    tc = common.container(cfg.get("tracking")) or {}
+    summ = track(worker, source, ledger, intrinsics_of, inits[0], gt_of,
+                 TrackingConfig(**tc), progress=bar)
+    ledger.total = max(ledger.total, len(ledger.all_rows()))
+    ledger.flush()
+    rows = ledger.all_rows()
+    files = []
+    try:
+        if oc.get("trajectory_plot") and rows:
+            from icomma_plugin.visualize import plot_trajectory
+
+            plot_trajectory(out / "trajectory.png", [None if r.get("c2w") is None else np.asarray(r["c2w"])
+                                                     for r in rows], [e.c2w for e in mf.cameras],
+                            [None if r.get("gt_c2w") is None else np.asarray(r["gt_c2w"]) for r in rows],
+                            [r["status"] for r in rows], title=f"{len(rows)} frames of {data['sequence']}")
+            files.append("trajectory.png")
+        if oc.get("video") and rows:
+            p = write_tracking_video(out / "tracking.mp4", worker, source, rows, intrinsics_of,
+                                     float(oc.get("video_fps") or 10))
+            files.append(p.name)
+    except Exception as e:  # noqa: BLE001 - a picture never fails the run
+        log.warning("could not draw every picture: %s: %s", type(e).__name__, e)
+    return {"kind": "sequence", "done_now": summ.done_now, "skipped": summ.skipped,
+            "frames_per_second": summ.frames_per_second, "seconds": summ.seconds,
+            "relocalized": summ.relocalized, "files": files, "rows": rows}
+
+
+def many_summary(doc: Dict[str, Any]) -> str:
+    s = doc.get("summary", {})
+    c = doc.get("counts", {})
+    rows = doc.get("photos", [])
+    errs = [r["rot_err_deg"] for r in rows if r.get("rot_err_deg") is not None]
+    rate = (f"{s['photos_per_minute']:.2f} photos/min" if s.get("photos_per_minute")
+            else f"{s['frames_per_second']:.3f} frames/s" if s.get("frames_per_second") else "nothing new to do")
+    lines = ["=" * 72,
+             f"{s.get('kind')}: {doc.get('done')} of {doc.get('total')} done ({doc.get('status')}); this run "
+             f"{s.get('done_now')} in {s.get('seconds', 0):.1f} s ({rate}), {s.get('skipped')} skipped (resume)",
+             f"  verdicts     ok {c.get('ok', 0)}  uncertain {c.get('uncertain', 0)}  failed {c.get('failed', 0)}"]
+    if errs:
+        lines.append(f"  rotation error (truth known, {len(errs)}): median {np.median(errs):.3f} deg, "
+                     f"max {np.max(errs):.3f} deg")
+    for f, paths in (s.get("exports") or {}).items():
+        lines.append(f"  export {f}: {', '.join(paths)}")
+    lines.append(f"  outputs in {s.get('output_dir')} (poses.json, poses.csv)")
+    lines.append("=" * 72)
+    return "\n".join(lines)
+
+
 def summary(res: Dict[str, Any], output_dir: Path) -> str:
     def f(v, fmt):
         return "n/a" if v is None else format(v, fmt)
@@ -140,6 +337,12 @@ def main(cfg: DictConfig) -> float:
     hc = HydraConfig.get()
     output_dir = Path(hc.runtime.output_dir)
     multirun = str(hc.mode) == "RunMode.MULTIRUN"
+    if is_many(cfg):
+        if multirun and int(cfg.data.get("num_shards") or 1) > 1 and not cfg.output.get("dir"):
+            output_dir = Path(hc.sweep.dir)  # the shards of one batch share one folder
+        doc = common.run_or_exit(lambda: run(cfg, output_dir), multirun, log)
+        print(many_summary(doc))
+        return float(doc["counts"].get("failed", 0)) / max(1, int(doc.get("done") or 0))
     res = common.run_or_exit(lambda: run(cfg, output_dir), multirun, log)
     print(summary(res, output_dir))
     if res["final_rotation_error_deg"] is not None:

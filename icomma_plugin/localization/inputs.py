@@ -33,13 +33,18 @@ import numpy as np
 from ..camera import Intrinsics
 from .problem import ProblemError, _is_rigid
 
-__all__ = ["PhotoList", "PoseTable", "list_photos", "natural_key", "photo_intrinsics", "read_poses_file",
+__all__ = ["PhotoList", "PhotoMismatch", "PoseTable", "list_photos", "natural_key", "photo_intrinsics", "read_poses_file",
            "DATASET_KINDS"]
 
 #: Dataset folders that ``data.queries`` reads as views (a plain cameras.json folder is not one).
 DATASET_KINDS = ("colmap", "blender", "transforms_json", "llff")
 
 _GLOB = re.compile(r"[*?\[]")
+
+
+class PhotoMismatch(ProblemError):
+    """A photo that does not fit the intrinsics it was given (another size or aspect ratio): a
+    per-photo failure in a batch, not a configuration error."""
 
 
 def natural_key(s: str):
@@ -297,7 +302,7 @@ def photo_intrinsics(size: Tuple[int, int], it: Dict[str, Any], cameras: Sequenc
         w0 = int(it["width"]) if it.get("width") is not None else W
         h0 = int(it["height"]) if it.get("height") is not None else H
         if (w0, h0) != (W, H):
-            raise ProblemError(f"the photo is {W}x{H} but data.intrinsics.width/height say {w0}x{h0} "
+            raise PhotoMismatch(f"the photo is {W}x{H} but data.intrinsics.width/height say {w0}x{h0} "
                                "(resize the photo, or give intrinsics for its size)")
         fy = it.get("fy") if it.get("fy") is not None else it["fx"]
         try:
@@ -318,7 +323,7 @@ def photo_intrinsics(size: Tuple[int, int], it: Dict[str, Any], cameras: Sequenc
         if (src.width, src.height) == (W, H):
             return src
         if not math.isclose(src.width / src.height, W / H, rel_tol=0.01):
-            raise ProblemError(f"the photo is {W}x{H} but data.intrinsics.camera={it['camera']!r} is "
+            raise PhotoMismatch(f"the photo is {W}x{H} but data.intrinsics.camera={it['camera']!r} is "
                                f"{src.width}x{src.height} (another aspect ratio)")
         return Intrinsics(W, H, src.fx * W / src.width, src.fy * H / src.height)
     raise ProblemError("the photos' intrinsics are unknown: set data.intrinsics.fx (and fy, cx, cy, "

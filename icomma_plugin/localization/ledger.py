@@ -22,7 +22,6 @@ import csv
 import io
 import json
 import logging
-import os
 from pathlib import Path
 from typing import Any, Dict, Iterator, List, Optional, Sequence
 

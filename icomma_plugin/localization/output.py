@@ -39,6 +39,7 @@ class OutputOptions:
     convergence_plot: bool = True
     gif: bool = False
     gif_every: int = 10
+    mp4: bool = False  # optimisation.mp4 (same frames as the GIF; a GIF when no MP4 encoder works)
     trace_format: str = "both"  # json | csv | both | none
 
     @classmethod
@@ -165,7 +166,7 @@ def write_outputs(out_dir: Path, problem: Problem, result: LocalizationResult, *
                                  result.switch_iteration, title, rot_target_deg=SUCCESS_ROT_DEG,
                                  trans_target=None if scale is None else SUCCESS_TRANS_REL * scale)
             files.append("convergence.png")
-        if opt.gif and result.trace:
+        if (opt.gif or opt.mp4) and result.trace:
             frames = []
             every = max(1, int(opt.gif_every))
             for i, rec in enumerate(result.trace):
@@ -176,9 +177,11 @@ def write_outputs(out_dir: Path, problem: Problem, result: LocalizationResult, *
                     continue
                 img = _render_rgb(problem, np.linalg.inv(w2c), backend)
                 frames.append(viz.overlay_panel(img, q))
-            if frames:
+            if frames and opt.gif:
                 viz.save_gif(out_dir / "optimisation.gif", frames)
                 files.append("optimisation.gif")
+            if frames and opt.mp4:
+                files.append(viz.save_video(out_dir / "optimisation.mp4", frames).name)
     except Exception as e:  # noqa: BLE001 - a picture must never fail the run
         logger.warning("could not draw every picture: %s: %s", type(e).__name__, e)
     doc["files"] = files

@@ -1,0 +1,317 @@
+"""Batches (data.queries): inputs (photo lists, poses files), poses.json / poses.csv content,
+per-photo failures that do not stop the batch, one-line errors, exports read back, resume after
+a kill, worker processes, and shards through submitit's local executor (the SLURM code path).
+
+Photos are rendered from a 100x100 demo scene at known poses, so the truth is known."""
+from __future__ import annotations
+
+import csv
+import importlib.util
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from PIL import Image
+
+from icomma_plugin.localization.inputs import list_photos, read_poses_file
+from icomma_plugin.localization.ledger import CSV_COLUMNS, LedgerError, PosesLedger
+from icomma_plugin.localization.problem import ProblemError
+
+REPO = Path(__file__).resolve().parents[1]
+CONF = REPO / "conf"
+TOOL = REPO / "tools" / "localize.py"
+SIZE = 100
+
+pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
+
+
+def _tool():
+    name = "icomma_tools_localize"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, TOOL)
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules[name] = mod
+        spec.loader.exec_module(mod)
+    return sys.modules[name]
+
+
+def _compose(overrides):
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose(config_name="localize", overrides=list(overrides))
+
+
+def _png(path: Path, img: torch.Tensor) -> None:
+    Image.fromarray((img.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)).save(path)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """A 100x100 demo model folder, 6 photos rendered around it, their true poses (JSON)."""
+    from icomma_plugin.demo_scene import build_demo_scene
+    from icomma_plugin.io.model_folder import load_model_folder
+    from icomma_plugin.pose.convert import look_at_c2w
+    from icomma_plugin.render import render
+
+    root = tmp_path_factory.mktemp("batch")
+    s = build_demo_scene(root / "model", seed=0, width=SIZE, height=SIZE)
+    model = load_model_folder(s.path).model
+    photos = root / "photos"
+    photos.mkdir()
+    gt = {}
+    for i in range(6):
+        az = 0.3 + 0.9 * i
+        c2w = look_at_c2w(np.array([3.8 * math.cos(az), 3.8 * math.sin(az), 2.0]), np.array([0.0, 0.0, 0.4]))
+        with torch.no_grad():
+            img = render(model, s.intrinsics, torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32),
+                         torch.zeros(3)).color.clamp(0, 1)
+        _png(photos / f"p{i}.png", img)
+        gt[f"p{i}.png"] = c2w.tolist()
+    (root / "gt.json").write_text(json.dumps(gt))
+    return {"root": root, "model": s.path, "photos": photos, "gt": root / "gt.json", "gt_poses": gt,
+            "scale": s.scene_scale}
+
+
+def _base(scene, out: Path, *extra):
+    return ["data=model_folder", f"data.model_path={scene['model']}", f"data.queries={scene['photos']}",
+            "data.intrinsics.camera=ring_000", f"data.gt.poses_file={scene['gt']}", f"output.dir={out}",
+            "output.progress=false", "threads=1", *extra]
+
+
+def _cli(args, timeout=600, **kw):
+    env = dict(os.environ, PYTHONWARNINGS="ignore", HYDRA_FULL_ERROR="0", OMP_NUM_THREADS="1")
+    return subprocess.run([sys.executable, str(TOOL), *args], cwd=str(REPO), capture_output=True, text=True,
+                          timeout=timeout, env=env, **kw)
+
+
+# ------------------------------------------------------------------------------------ inputs
+
+def test_list_photos_folder_glob_and_list_file(scene, tmp_path):
+    folder = list_photos(str(scene["photos"]))
+    assert folder.names == [f"p{i}.png" for i in range(6)]
+    glob = list_photos(str(scene["photos"] / "p[13].png"))
+    assert glob.names == ["p1.png", "p3.png"]
+    lst = tmp_path / "list.txt"
+    lst.write_text(f"# two photos\n{scene['photos'] / 'p4.png'}\n\n{os.path.relpath(scene['photos'] / 'p0.png', tmp_path)}\n")
+    assert list_photos(str(lst)).names == ["p4.png", "p0.png"]
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ProblemError, match="data.queries: no image files"):
+        list_photos(str(tmp_path / "empty"))
+    with pytest.raises(ProblemError, match="data.queries: no image files match"):
+        list_photos(str(tmp_path / "*.jpg"))
+    lst.write_text("nope.png\n")
+    with pytest.raises(ProblemError, match="line 1 of the list file"):
+        list_photos(str(lst))
+
+
+def test_poses_files_json_text_cameras_json_and_poses_json(scene, tmp_path):
+    gt = scene["gt_poses"]
+    table = read_poses_file(scene["gt"], "data.init.poses_file")
+    assert len(table) == 6 and np.allclose(table.get("p2.png"), gt["p2.png"])
+    assert np.allclose(table.get("p2"), gt["p2.png"]) and table.get("sub/p2.png") is not None  # stem, basename
+    assert table.get("p9.png") is None
+    txt = tmp_path / "poses.txt"
+    txt.write_text("# name and 16 numbers\n" + "\n".join(
+        f"{k} " + " ".join(repr(float(v)) for v in np.asarray(m).ravel()) for k, m in gt.items()) + "\n")
+    t2 = read_poses_file(txt, "data.init.poses_file")
+    assert all(np.array_equal(t2.get(k), np.asarray(v)) for k, v in gt.items())
+    from icomma_plugin.io.cameras_json import read_cameras_json
+
+    cams = read_cameras_json(Path(scene["model"]) / "cameras.json")
+    t3 = read_poses_file(Path(scene["model"]) / "cameras.json", "data.init.cameras_json")
+    assert np.allclose(t3.get(cams[3].img_name), cams[3].c2w)
+    bad = tmp_path / "bad.txt"
+    bad.write_text("p0.png 1 2 3\n")
+    with pytest.raises(ProblemError, match=r"data.init.poses_file: line 1 .*16 \(or 12\) numbers"):
+        read_poses_file(bad, "data.init.poses_file")
+    bad.write_text("{not json")
+    with pytest.raises(ProblemError, match="data.gt.poses_file: .* not valid JSON"):
+        read_poses_file(bad, "data.gt.poses_file")
+    (tmp_path / "skew.json").write_text(json.dumps({"a": (2 * np.eye(4)).tolist()}))
+    with pytest.raises(ProblemError, match="not a rigid"):
+        read_poses_file(tmp_path / "skew.json", "data.init.poses_file")
+
+
+def test_ledger_refuses_another_runs_folder(tmp_path):
+    led = PosesLedger(tmp_path, {"kind": "batch", "model_path": "/a", "queries": "/q"}, total=1)
+    led.record({"index": 0, "name": "x.png", "status": "ok"})
+    assert json.loads((tmp_path / "poses.json").read_text())["status"] == "complete"
+    with pytest.raises(LedgerError, match="belongs to another run .*model_path"):
+        PosesLedger(tmp_path, {"kind": "batch", "model_path": "/b", "queries": "/q"}, total=1)
+    (tmp_path / "poses.json").write_text("{trunc")
+    with pytest.raises(LedgerError, match="cannot read"):
+        PosesLedger(tmp_path, {"kind": "batch", "model_path": "/a", "queries": "/q"}, total=1)
+
+
+# ------------------------------------------------------------------------------------ one batch
+
+def test_batch_poses_json_csv_exports_and_bad_photos(scene, tmp_path):
+    """No start pose; a photo of another size and an unreadable one fail alone, the rest localize."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in (0, 1):
+        (photos / f"p{i}.png").write_bytes((scene["photos"] / f"p{i}.png").read_bytes())
+    Image.new("RGB", (80, SIZE)).save(photos / "small.png")
+    (photos / "broken.png").write_bytes(b"not a png")
+    out = tmp_path / "out"
+    cfg = _compose(["data=model_folder", f"data.model_path={scene['model']}", f"data.queries={photos}",
+                    "data.intrinsics.camera=ring_000", f"data.gt.poses_file={scene['gt']}", "data.init=none",
+                    "output.progress=false", "output.export=[cameras_json,colmap,nerfstudio]",
+                    "output.photo_folders=true", "output.match_lines=false", "output.convergence_plot=false"])
+    doc = _tool().run(cfg, out)
+    assert doc == json.loads((out / "poses.json").read_text()) | {"summary": doc["summary"]}
+    rows = {r["name"]: r for r in doc["photos"]}
+    assert set(rows) == {"broken.png", "p0.png", "p1.png", "small.png"}
+    assert doc["status"] == "complete" and doc["total"] == 4 and doc["done"] == 4
+    assert sum(doc["counts"].values()) == 4 and doc["counts"]["failed"] >= 2
+    assert rows["small.png"]["status"] == "failed" and "80x100" in rows["small.png"]["error"] \
+        and "data.intrinsics.camera" in rows["small.png"]["error"]
+    assert rows["broken.png"]["status"] == "failed" and "broken.png" in rows["broken.png"]["error"]
+    for n in ("p0.png", "p1.png"):
+        r = rows[n]
+        assert r["status"] == "ok", r["reason"]
+        assert r["init_c2w"] is None and r["error"] is None
+        assert r["rot_err_deg"] < 0.1 and r["trans_err_rel"] < 1e-3
+        assert np.allclose(r["gt_c2w"], scene["gt_poses"][n])
+        assert (out / r["folder"] / "result.json").is_file() and (out / r["folder"] / "overlay_final.png").is_file()
+        assert (out / r["thumb"]).is_file()
+    assert (out / "contact_sheet.png").is_file()
+    # one CSV row per photo, the same numbers as poses.json
+    with open(out / "poses.csv") as fh:
+        table = list(csv.DictReader(fh))
+    assert tuple(table[0].keys()) == CSV_COLUMNS and len(table) == 4
+    for t in table:
+        r = rows[t["name"]]
+        assert t["verdict"] == r["status"]
+        assert (t["rot_err_deg"] == "") == (r["rot_err_deg"] is None)
+        if r["rot_err_deg"] is not None:
+            assert float(t["rot_err_deg"]) == r["rot_err_deg"] and float(t["seconds"]) == r["seconds"]
+    # exports hold the estimated poses (only ok / uncertain), read back with our readers
+    from icomma_plugin.io.cameras_json import read_cameras_json
+    from icomma_plugin.io.datasets import read_colmap
+
+    cams = {e.img_name: e for e in read_cameras_json(out / "exports" / "cameras.json")}
+    good = {n for n, r in rows.items() if r["status"] != "failed"}
+    assert set(cams) == good
+    for n in good:
+        assert np.allclose(cams[n].c2w, rows[n]["c2w"], atol=1e-9)
+    img_dir = out / "exports" / "colmap" / "images"  # sparse/0 beside images/: a COLMAP dataset
+    img_dir.mkdir()
+    for n in good:
+        (img_dir / n).write_bytes((photos / n).read_bytes())
+    views = {v.name: v for v in read_colmap(out / "exports" / "colmap", eval=False).train}
+    assert set(views) == good
+    for n in good:
+        assert np.allclose(views[n].c2w, rows[n]["c2w"], atol=1e-9)
+    ns = json.loads((out / "exports" / "transforms.json").read_text())
+    assert {f["file_path"] for f in ns["frames"]} == good
+
+
+def test_per_photo_start_poses_and_missing(scene, tmp_path):
+    """data.init.poses_file: a photo the file lacks fails (missing=fail) with a reason."""
+    starts = {k: v for k, v in scene["gt_poses"].items() if k != "p1.png"}
+    pf = tmp_path / "starts.json"
+    pf.write_text(json.dumps(starts))
+    out = tmp_path / "out"
+    cfg = _compose(_base(scene, out, "data.limit=2", f"data.init.poses_file={pf}", "output.contact_sheet=false"))
+    doc = _tool().run(cfg, out)
+    rows = {r["name"]: r for r in doc["photos"]}
+    assert rows["p0.png"]["status"] != "failed" and np.allclose(rows["p0.png"]["init_c2w"], starts["p0.png"])
+    assert rows["p0.png"]["initial_rot_err_deg"] < 1e-6
+    assert rows["p1.png"]["status"] == "failed" and "no start pose for 'p1.png'" in rows["p1.png"]["error"]
+    assert "data.init.missing=none" in rows["p1.png"]["error"]
+
+
+def test_cli_one_line_errors(scene, tmp_path):
+    (tmp_path / "empty").mkdir()
+    p = _cli(_base(scene, tmp_path / "o1", f"data.queries={tmp_path / 'empty'}", "data.init=none"))
+    assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr[-2000:]
+    err = [ln for ln in p.stderr.splitlines() if ln.startswith("error:")]
+    assert len(err) == 1 and "data.queries" in err[0] and "no image files" in err[0]
+    bad = tmp_path / "bad.json"
+    bad.write_text("[1, 2")
+    p = _cli(_base(scene, tmp_path / "o2", f"data.init.poses_file={bad}"))
+    err = [ln for ln in p.stderr.splitlines() if ln.startswith("error:")]
+    assert p.returncode == 2 and len(err) == 1 and "data.init.poses_file" in err[0], p.stderr[-2000:]
+    p = _cli([a for a in _base(scene, tmp_path / "o3", "data.init=none") if "intrinsics" not in a])
+    err = [ln for ln in p.stderr.splitlines() if ln.startswith("error:")]
+    assert p.returncode == 2 and len(err) == 1 and "data.intrinsics.fx" in err[0], p.stderr[-2000:]
+
+
+# ------------------------------------------------------------------------------------ resume
+
+def test_resume_after_kill_redoes_no_finished_photo(scene, tmp_path):
+    out = tmp_path / "out"
+    args = _base(scene, out, "data.init=none", "output.contact_sheet=false")
+    env = dict(os.environ, PYTHONWARNINGS="ignore", OMP_NUM_THREADS="1")
+    proc = subprocess.Popen([sys.executable, str(TOOL), *args], cwd=str(REPO), env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    first = None
+    try:
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline and proc.poll() is None:
+            if (out / "poses.json").is_file():
+                doc = json.loads((out / "poses.json").read_text())  # never half-written
+                if doc["done"] >= 2:
+                    os.killpg(proc.pid, signal.SIGKILL)
+                    first = doc
+                    break
+            time.sleep(0.05)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    assert first is not None, "the batch finished or stalled before it could be killed"
+    killed = json.loads((out / "poses.json").read_text())
+    assert killed["status"] == "running" and 2 <= killed["done"] < 6
+    p = _cli(args)
+    assert p.returncode == 0, p.stderr[-2000:]
+    final = json.loads((out / "poses.json").read_text())
+    assert final["status"] == "complete" and final["done"] == 6
+    assert [r["name"] for r in final["photos"]] == [f"p{i}.png" for i in range(6)]
+    before = {r["name"]: r for r in killed["photos"]}
+    after = {r["name"]: r for r in final["photos"]}
+    for n, r in before.items():  # the same rows, from the same (killed) process: not redone
+        assert after[n] == r
+    assert {after[n]["worker"] for n in after if n not in before} != {r["worker"] for r in before.values()}
+    assert f"{len(before)} skipped" in p.stdout
+
+
+# ------------------------------------------------------------------------------------ parallel
+
+def test_two_worker_processes(scene, tmp_path):
+    out = tmp_path / "out"
+    cfg = _compose(_base(scene, out, "data.limit=4", "data.init=none", "workers=2", "output.contact_sheet=false"))
+    doc = _tool().run(cfg, out)
+    assert doc["done"] == 4 and [r["index"] for r in doc["photos"]] == [0, 1, 2, 3]
+    pids = {r["worker"] for r in doc["photos"]}
+    assert os.getpid() not in pids and 1 <= len(pids) <= 2
+    assert all(r["status"] != "failed" for r in doc["photos"]), [r["reason"] for r in doc["photos"]]
+
+
+def test_submitit_local_shards_merge_into_one_poses_json(scene, tmp_path):
+    sweep = tmp_path / "sweep"
+    args = ["-m", "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=10",
+            f"hydra.sweep.dir={sweep}", "data=model_folder", f"data.model_path={scene['model']}",
+            f"data.queries={scene['photos']}", "data.limit=4", "data.intrinsics.camera=ring_000",
+            f"data.gt.poses_file={scene['gt']}", f"data.init.poses_file={scene['gt']}",
+            "output.progress=false", "threads=1", "data.shard=0,1", "data.num_shards=2"]
+    p = _cli(args)
+    assert p.returncode == 0, (p.stdout[-2000:], p.stderr[-3000:])
+    assert (sweep / ".submitit").is_dir()  # it went through submitit's executor
+    doc = json.loads((sweep / "poses.json").read_text())
+    assert doc["status"] == "complete" and doc["done"] == 4
+    assert [(r["index"], r["shard"]) for r in doc["photos"]] == [(0, 0), (1, 1), (2, 0), (3, 1)]
+    parts = sorted(p.name for p in (sweep / "parts").iterdir())
+    assert parts == ["shard-000-of-002.json", "shard-001-of-002.json"]
+    assert all(r["status"] != "failed" for r in doc["photos"])
+    with open(sweep / "poses.csv") as fh:
+        assert len(list(csv.DictReader(fh))) == 4
