@@ -407,6 +407,10 @@ def plot_trajectory(path: PathLike, est_c2w: Sequence[Optional[np.ndarray]], cam
                 d = c[:3, 2] * scale * 1.5
                 a2.arrow(c[ax_a, 3], c[ax_b, 3], d[ax_a], d[ax_b], color="C0", width=scale * 0.05)
     names = "xyz"
+    mid, half = 0.5 * (allp.max(0) + allp.min(0)), 0.55 * float(max(span.max(), 1e-6))
+    a3.set_xlim(mid[0] - half, mid[0] + half)  # equal axes: a circle stays a circle
+    a3.set_ylim(mid[1] - half, mid[1] + half)
+    a3.set_zlim(mid[2] - half, mid[2] + half)
     a3.set_xlabel("x")
     a3.set_ylabel("y")
     a3.set_zlabel("z")

@@ -1,0 +1,244 @@
+"""Sequences (data.sequence): constant-velocity prediction, video files written and read back
+(MP4, GIF fallback), relocalization of a failed frame, and tracking a synthetic path on a
+100x100 demo scene from a folder of frames and from an MP4 through the tool."""
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from PIL import Image
+
+from icomma_plugin.io import video
+from icomma_plugin.localization.ledger import PosesLedger
+from icomma_plugin.localization.tracking import FrameSource, TrackingConfig, predict_w2c, track
+from icomma_plugin.localization.types import Verdict
+from icomma_plugin.pose.se3 import se3_exp
+
+REPO = Path(__file__).resolve().parents[1]
+CONF = REPO / "conf"
+TOOL = REPO / "tools" / "localize.py"
+SIZE = 100
+N_FRAMES = 6
+
+pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
+
+
+def _tool():
+    name = "icomma_tools_localize"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, TOOL)
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules[name] = mod
+        spec.loader.exec_module(mod)
+    return sys.modules[name]
+
+
+def _compose(overrides):
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose(config_name="localize", overrides=list(overrides))
+
+
+# ------------------------------------------------------------------------------------ prediction
+
+def test_constant_velocity_prediction_is_exact_on_a_constant_twist_path():
+    xi = torch.tensor([0.05, -0.02, 0.03, 0.02, -0.01, 0.04], dtype=torch.float64)
+    T0 = se3_exp(torch.tensor([0.3, 0.1, -2.0, 0.2, 0.5, -0.1], dtype=torch.float64)).numpy()
+
+    def T(k):
+        return se3_exp(xi * k).numpy() @ T0
+
+    assert predict_w2c([], 3) is None
+    assert np.allclose(predict_w2c([(0, T(0))], 1), T(0))  # one pose: stay there
+    assert np.allclose(predict_w2c([(0, T(0)), (1, T(1))], 2), T(2), atol=1e-9)
+    assert np.allclose(predict_w2c([(0, T(0)), (2, T(2))], 5), T(5), atol=1e-9)  # gaps (every N, failures)
+    assert np.allclose(predict_w2c([(0, T(0)), (1, T(1))], 2, velocity=False), T(1))
+
+
+# ------------------------------------------------------------------------------------ video files
+
+def _frames(n=5, h=48, w=64):
+    out = []
+    for i in range(n):
+        f = np.zeros((h, w, 3), np.uint8)
+        f[:, 8 * i: 8 * i + 16] = (255, 128, 0)
+        f[h // 2:, :, 2] = 40 * i
+        out.append(f)
+    return out
+
+
+def test_video_written_and_read_back(tmp_path):
+    frames = _frames()
+    p = video.write_video(tmp_path / "v.mp4", frames, fps=5)
+    assert p == tmp_path / "v.mp4" and p.is_file()
+    assert not [q for q in tmp_path.iterdir() if q.name.startswith(".")]  # no temporary left
+    w, h, n, fps = video.video_info(p)
+    assert (w, h, n) == (64, 48, 5) and abs(fps - 5) < 1e-6
+    back = list(video.read_video_frames(p))
+    assert [i for i, _ in back] == [0, 1, 2, 3, 4]
+    for (_, b), f in zip(back, frames):
+        assert b.shape == f.shape and np.abs(b.astype(int) - f).mean() < 12  # lossy codec
+    assert [i for i, _ in video.read_video_frames(p, every=2)] == [0, 2, 4]
+    assert [i for i, _ in video.read_video_frames(p, every=2, limit=2)] == [0, 2]
+    with pytest.raises(video.VideoError, match="not found"):
+        video.video_info(tmp_path / "none.mp4")
+    (tmp_path / "bad.mp4").write_bytes(b"nope")
+    with pytest.raises(video.VideoError, match="cannot open"):
+        video.video_info(tmp_path / "bad.mp4")
+    with pytest.raises(video.VideoError, match="differ in size"):
+        video.write_video(tmp_path / "x.mp4", [frames[0], frames[0][:10]])
+
+
+def test_video_falls_back_to_gif_when_no_encoder_works(tmp_path, monkeypatch):
+    monkeypatch.setattr(video, "_write_imageio", lambda *a: False)
+    monkeypatch.setattr(video, "_write_cv2", lambda *a: False)
+    p = video.write_video(tmp_path / "v.mp4", _frames(3))
+    assert p == tmp_path / "v.gif" and not (tmp_path / "v.mp4").exists()
+    with Image.open(p) as im:
+        assert im.n_frames == 3 and im.size == (64, 48)
+
+
+# ------------------------------------------------------------------------------------ relocalization
+
+class _FakeWorker:
+    """localize() fails from a start pose and succeeds without one (the candidate views)."""
+
+    def __init__(self, truth):
+        self.truth, self.calls = truth, []
+        self.setup = SimpleNamespace(resize=None)
+
+    def _can_search(self):
+        return True
+
+    def problem(self, task, query):
+        return SimpleNamespace(name=task.name, query=query, init_c2w=task.init_c2w, gt_c2w=None, scene_scale=1.0)
+
+    def localize(self, problem, init_c2w):
+        self.calls.append((problem.name, init_c2w is None))
+        ok = init_c2w is None or problem.name != "f2.png"
+        status = "ok" if ok else "failed"
+        c2w = self.truth[problem.name] if ok else np.eye(4)
+        return SimpleNamespace(c2w=c2w, verdict=Verdict(status, status), final_rotation_error_deg=None,
+                               final_translation_error=None, initial_rotation_error_deg=None, seconds=0.0,
+                               iterations=1, method="fake", match_counts={})
+
+    def write_pictures(self, problem, result, seconds):
+        return None, None
+
+
+def test_a_failed_frame_is_relocalized_from_candidates(tmp_path):
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    truth = {}
+    for i in range(4):
+        Image.new("RGB", (8, 8)).save(folder / f"f{i}.png")
+        c2w = np.eye(4)
+        c2w[0, 3] = 0.1 * i
+        truth[f"f{i}.png"] = c2w
+    w = _FakeWorker(truth)
+    from icomma_plugin.camera import Intrinsics
+
+    ledger = PosesLedger(tmp_path / "out", {"kind": "sequence"}, 4)
+    summ = track(w, FrameSource.open(str(folder)), ledger, lambda s: Intrinsics(8, 8, 8.0, 8.0),
+                 init_c2w=np.eye(4), cfg=TrackingConfig())
+    rows = ledger.all_rows()
+    assert [r["status"] for r in rows] == ["ok"] * 4 and summ.relocalized == 1
+    assert [r["relocalized"] for r in rows] == [False, False, True, False]
+    assert ("f2.png", False) in w.calls and ("f2.png", True) in w.calls
+    assert np.allclose(rows[3]["predicted_c2w"], truth["f3.png"])  # velocity from f1, f2
+    w2 = _FakeWorker(truth)
+    ledger2 = PosesLedger(tmp_path / "out2", {"kind": "sequence"}, 4)
+    track(w2, FrameSource.open(str(folder)), ledger2, lambda s: Intrinsics(8, 8, 8.0, 8.0),
+          init_c2w=np.eye(4), cfg=TrackingConfig(relocalize=False))
+    assert [r["status"] for r in ledger2.all_rows()][2] == "failed"
+
+
+# ------------------------------------------------------------------------------------ real tracking
+
+@pytest.fixture(scope="module")
+def path_scene(tmp_path_factory):
+    """A 100x100 demo model and N_FRAMES frames along an arc around it (PNG folder + MP4)."""
+    from icomma_plugin.demo_scene import build_demo_scene
+    from icomma_plugin.io.model_folder import load_model_folder
+    from icomma_plugin.pose.convert import look_at_c2w
+    from icomma_plugin.render import render
+
+    root = tmp_path_factory.mktemp("track")
+    s = build_demo_scene(root / "model", seed=0, width=SIZE, height=SIZE)
+    model = load_model_folder(s.path).model
+    folder = root / "frames"
+    folder.mkdir()
+    gts, frames = {}, []
+    for i in range(N_FRAMES):
+        az = 0.4 + 0.05 * i
+        eye = np.array([3.8 * math.cos(az), 3.8 * math.sin(az), 2.0 + 0.03 * i])
+        c2w = look_at_c2w(eye, np.array([0.0, 0.0, 0.4]))
+        with torch.no_grad():
+            img = render(model, s.intrinsics, torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32),
+                         torch.zeros(3)).color.clamp(0, 1)
+        a = (img.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
+        Image.fromarray(a).save(folder / f"frame{i}.png")
+        frames.append(a)
+        gts[f"frame{i}.png"] = c2w.tolist()
+        gts[f"frame_{i:06d}"] = c2w.tolist()  # the names of a video's frames
+    (root / "gt.json").write_text(json.dumps(gts))
+    first = np.asarray(gts["frame0.png"])
+    start = first.copy()
+    start[:3, 3] += 0.05  # a start near the first frame
+    np.savetxt(root / "start.txt", start)
+    mp4 = video.write_video(root / "path.mp4", frames, fps=5)
+    return {"model": s.path, "frames": folder, "gt": root / "gt.json", "start": root / "start.txt",
+            "mp4": mp4, "scale": s.scene_scale, "gts": gts}
+
+
+def _args(ps, out, *extra):
+    return ["data=model_folder", f"data.model_path={ps['model']}", "data.intrinsics.camera=ring_000",
+            f"data.gt.poses_file={ps['gt']}", f"data.init.c2w_file={ps['start']}", f"output.dir={out}",
+            "output.progress=false", *extra]
+
+
+def test_tracking_a_path_from_a_folder_of_frames(path_scene, tmp_path):
+    out = tmp_path / "out"
+    doc = _tool().run(_compose(_args(path_scene, out, f"data.sequence={path_scene['frames']}",
+                                     "output.video=false")), out)
+    rows = doc["photos"]
+    assert [r["name"] for r in rows] == [f"frame{i}.png" for i in range(N_FRAMES)]
+    assert doc["status"] == "complete" and doc["summary"]["kind"] == "sequence"
+    for r in rows:
+        assert r["status"] != "failed", r["reason"]
+        assert r["rot_err_deg"] < 0.2 and r["trans_err_rel"] < 2e-3, r
+    # the constant-velocity prediction is close to the truth on this smooth path
+    gts = path_scene["gts"]
+    from icomma_plugin.pose.convert import rotation_error_deg
+
+    for r in rows[2:]:
+        pred, gt = np.asarray(r["predicted_c2w"]), np.asarray(gts[r["name"]])
+        assert rotation_error_deg(pred, gt) < 0.5
+    assert (out / "trajectory.png").is_file() and not (out / "tracking.mp4").exists()
+
+
+def test_tracking_an_mp4_every_second_frame_with_its_video(path_scene, tmp_path):
+    out = tmp_path / "out"
+    doc = _tool().run(_compose(_args(path_scene, out, f"data.sequence={path_scene['mp4']}", "data.every=2",
+                                     "output.export=[nerfstudio]")), out)
+    rows = doc["photos"]
+    assert [r["name"] for r in rows] == ["frame_000000", "frame_000002", "frame_000004"]
+    assert [r["index"] for r in rows] == [0, 2, 4]
+    for r in rows:  # compressed frames: looser than the PNGs
+        assert r["status"] != "failed" and r["rot_err_deg"] < 1.0 and r["trans_err_rel"] < 0.01, r
+    w, h, n, _ = video.video_info(out / "tracking.mp4")
+    assert n == 3 and h == SIZE and w >= 4 * SIZE
+    ns = json.loads((out / "exports" / "transforms.json").read_text())
+    assert [f["file_path"] for f in ns["frames"]] == [r["name"] for r in rows if r["status"] != "failed"]
+    # run again on the same folder: nothing is redone
+    again = _tool().run(_compose(_args(path_scene, out, f"data.sequence={path_scene['mp4']}", "data.every=2",
+                                       "output.video=false", "output.trajectory_plot=false")), out)
+    assert again["summary"]["done_now"] == 0 and again["summary"]["skipped"] == 3
+    assert again["photos"] == rows
