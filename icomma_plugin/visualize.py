@@ -464,8 +464,8 @@ def plot_curves_vs_paper(path: PathLike, summary: Dict[str, Any], paper=None,
             (a float, None, or a ``PaperValue``; keys may carry the protocol first), or a callable
             ``(interval, method, metric) -> value``, e.g.
             ``lambda iv, m, k: paper_value(protocol, iv, m, k)``. A known value is drawn as a
-            dashed line in the curve's colour at the right end; an unknown one is listed as
-            "paper: n/a" in the panel's legend.
+            dotted horizontal line in the curve's colour, labelled at the right end; an unknown
+            one is listed as "paper n/a" in the panel's legend.
         title: the figure's title (default: the summary's protocol).
     """
     import matplotlib
@@ -495,19 +495,19 @@ def plot_curves_vs_paper(path: PathLike, summary: Dict[str, Any], paper=None,
                 if pv is None:
                     missing.append(label)
                 else:
-                    ax.axhline(pv, color=col, ls=styles[s % len(styles)], lw=0.8, alpha=0.6)
-                    ax.annotate(f"paper {100 * pv:.0f}%", (x[-1], pv), fontsize=7, color=col,
-                                ha="right", va="bottom")
+                    ax.axhline(pv, color=col, ls=":", lw=1.0, alpha=0.8)
+                    ax.annotate(f"paper {100 * pv:.0f}% ({tk.replace('deg_', ' deg, ')})", (x[-1], pv),
+                                fontsize=7, color=col, ha="right", va="bottom")
         if missing:
-            ax.plot([], [], " ", label="paper: n/a for " + ", ".join(sorted(set(m.split(" (")[0] for m in missing))))
+            ax.plot([], [], " ", label="paper n/a: " + "; ".join(missing))
         ax.set_title(str(iv))
         ax.set_xlabel("iteration")
         ax.set_ylim(-0.02, 1.02)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=6, loc="lower right")
     axes[0, 0].set_ylabel("fraction of poses under the threshold")
-    fig.suptitle(title or f"{summary.get('protocol', 'benchmark')}: ours (lines) and the paper (dashed)",
-                 fontsize=9)
+    fig.suptitle(title or f"{summary.get('protocol', 'benchmark')}: ours (curves), the paper's numbers "
+                          "(dotted horizontal lines)", fontsize=9)
     path = Path(path)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
