@@ -27,7 +27,7 @@ so the ratio is also given paired over those starts.
 path before issue 10: activations and NaN scans on every render), in alternating order, and
 reports their time ratio and the largest difference of the final poses (0 when the renders are
 bit-identical). ``--render-repeats`` adds a per-render table (forward, forward + pose backward)
-of the two paths at a test pose.
+of the two paths and of the backend function alone at a test pose (CPU ms).
 
 Examples:
     python tools/bench_localize.py --threads 1                              # everything
@@ -372,11 +372,17 @@ def run_start(scene, st: Start, method: str, path: str, matcher, args) -> Dict[s
 # Per-render timings (the two render paths at one pose)
 # ----------------------------------------------------------------------------------------------
 def render_timings(scene, repeats: int, backend: str) -> Dict[str, Any]:
-    """Median ms of a render at the first query's true pose: forward (no grad) and forward +
-    pose backward, for the plain and the prepared path, as ``LocalizationState`` calls them."""
+    """Median CPU ms of a render at the first query's true pose: forward (no grad) and forward +
+    pose backward, for the plain and the prepared path as ``LocalizationState`` calls them, and
+    for the backend function alone on the prepared tensors (``kernel``: no camera matrices, no
+    checks; the rest of a render's time is the Python around it)."""
+    import gaussian_renderer_pose as grp
+    from gaussian_renderer_pose import _dispatch
+
     from icomma_plugin.localization.state import LocalizationState
     from icomma_plugin.localization.types import Query as LQuery
     from icomma_plugin.pose.se3 import se3_exp
+    from icomma_plugin.render import prepare_scene
 
     q = scene.queries[0]
     state = LocalizationState(scene.model, LQuery(q.rgb, q.intrinsics), scene.bg, backend=backend)
@@ -386,6 +392,22 @@ def render_timings(scene, repeats: int, backend: str) -> Dict[str, Any]:
         "sh_degree": state.model.sh_degree,
         "image": [q.intrinsics.width, q.intrinsics.height],
     }
+    ps = prepare_scene(state.model)
+    intr, dt = q.intrinsics, ps.dtype
+    mats = grp.camera_matrices(w2c.to(dt), intr.fx, intr.fy, intr.width, intr.height, intr.cx,
+                               intr.cy)
+    kernel = _dispatch.select_backend(backend, ps.device, dt)
+    settings = dict(image_height=intr.height, image_width=intr.width, tanfovx=mats.tanfovx,
+                    tanfovy=mats.tanfovy, scale_modifier=1.0, sh_degree=ps.sh_degree,
+                    prefiltered=False, antialiasing=False)
+
+    def kernel_call(grad: bool):
+        cam = [t.detach().contiguous().requires_grad_(grad)
+               for t in (mats.viewmatrix, mats.projmatrix, mats.campos)]
+        color = kernel(ps.means, None, ps.opacities, ps.shs, ps.colors, ps.scales, ps.rotations,
+                       None, state.bg, *cam, **settings)[0]
+        if grad:
+            color.square().sum().backward()
 
     def fwd():
         with torch.no_grad():
@@ -396,9 +418,16 @@ def render_timings(scene, repeats: int, backend: str) -> Dict[str, Any]:
         o = state.render(se3_exp(xi) @ w2c)
         o.color.square().sum().backward()
 
-    for path in ("plain", "prepared", "plain", "prepared"):  # twice, interleaved: drift cancels
-        with render_path(path):
-            for mode, fn in (("fwd", fwd), ("fwd+bwd", fwd_bwd)):
+    def kernel_fwd():
+        with torch.no_grad():
+            kernel_call(False)
+
+    calls = {"fwd": fwd, "fwd+bwd": fwd_bwd}
+    for path in ("plain", "prepared", "kernel", "plain", "prepared", "kernel"):  # interleaved
+        with render_path("prepared" if path == "kernel" else path):
+            for mode, fn in calls.items():
+                if path == "kernel":
+                    fn = kernel_fwd if mode == "fwd" else (lambda: kernel_call(True))
                 fn()  # warm-up (and the prepared scene's one-off preparation)
                 ts = []
                 for _ in range(repeats):
@@ -633,8 +662,8 @@ def markdown(result: Dict[str, Any]) -> str:
             "calls it:",
             "",
             "| scene | Gaussians | SH degree | image | plain fwd | prepared fwd | ratio | "
-            "plain fwd+bwd | prepared fwd+bwd | ratio |",
-            "|---|---|---|---|---|---|---|---|---|---|",
+            "kernel fwd | plain fwd+bwd | prepared fwd+bwd | ratio | kernel fwd+bwd |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|",
         ]
         for name, t in result["render_timings"].items():
             lines.append(
@@ -648,9 +677,11 @@ def markdown(result: Dict[str, Any]) -> str:
                         _f(t["plain/fwd"], 1),
                         _f(t["prepared/fwd"], 1),
                         _f(t["plain/fwd"] / t["prepared/fwd"]) + "x",
+                        _f(t.get("kernel/fwd"), 1),
                         _f(t["plain/fwd+bwd"], 1),
                         _f(t["prepared/fwd+bwd"], 1),
                         _f(t["plain/fwd+bwd"] / t["prepared/fwd+bwd"]) + "x",
+                        _f(t.get("kernel/fwd+bwd"), 1),
                     ]
                 )
                 + " |"
