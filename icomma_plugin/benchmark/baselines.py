@@ -21,6 +21,8 @@ from dataclasses import dataclass
 from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
+
+from ..pose.convert import rotation_error_deg
 import torch
 
 logger = logging.getLogger(__name__)
@@ -64,9 +66,8 @@ def relative_pose_gt(w2c_a: np.ndarray, w2c_b: np.ndarray) -> Tuple[np.ndarray, 
 
 
 def rotation_angle_deg(R_est: np.ndarray, R_gt: np.ndarray) -> float:
-    """Angle of ``R_est R_gt^T`` in degrees (trace clamped)."""
-    tr = float(np.clip(np.trace(np.asarray(R_est) @ np.asarray(R_gt).T), -1.0, 3.0))
-    return math.degrees(math.acos(0.5 * (tr - 1.0)))
+    """Angle of ``R_est R_gt^T`` in degrees (``pose.convert.rotation_error_deg``)."""
+    return float(rotation_error_deg(np.asarray(R_est, np.float64), np.asarray(R_gt, np.float64)))
 
 
 def translation_angle_deg(t_est: np.ndarray, t_gt: np.ndarray) -> Optional[float]:

@@ -1,7 +1,8 @@
 """Benchmark metrics: success fractions (per iteration), pose AUC, failure statistics, time to
 success.
 
-Conventions: rotation errors in degrees (iComMa: ``arccos((tr(R_est R_gt^T) - 1) / 2)``),
+Conventions: rotation errors in degrees (the angle of ``R_est R_gt^T``, iComMa's metric, computed
+well-conditioned by ``pose.convert.rotation_error_deg``),
 translation errors as camera-centre distances in the benchmark's translation unit (world distance /
 translation scale; the scale is 1 in world units; see docs/BENCHMARK.md). Success is strict: ``rot < rot_thr and trans < trans_thr``. A
 missing value (None / NaN, e.g. a failed baseline) counts as a failure and as an infinite error.
