@@ -39,9 +39,11 @@ class RobustConfig:
 
     work_side: longer side of the working resolution [px] (None: the query's own).
     min_start_inliers: when the geometric stage from the start pose ends with fewer agreeing
-        matches than this (or too small a share of them), the candidate views are tried too.
+        matches than this, or with a score the verdict would not call ok, the candidate views are
+        tried too.
     use_candidates: allow the candidate search at all.
-    good_inliers: a hypothesis with this many agreeing matches (and a good share) ends the search.
+    good_inliers: a hypothesis with this many agreeing matches (and a score the verdict calls
+        ok) ends the search.
     rollback_inliers: the refined pose is kept only if it keeps this share of the agreeing
         matches of the geometric pose (and its median displacement grows by less than
         ``rollback_median_px``).
@@ -125,6 +127,14 @@ def _summary(name: str, g: GeometricOutcome, state: LocalizationState) -> Dict[s
             "start_coverage": g.start_coverage, "rot_err_deg": rot, "trans_err": trans}
 
 
+def _convincing(score: Optional[PoseScore], cfg: RobustConfig, min_inliers: Optional[int] = None) -> bool:
+    """A geometric result that needs no other hypothesis: the verdict would call it ok (but for
+    the convergence signal, which only the refinement gives) with at least ``min_inliers``."""
+    if score is None or score.inliers < (cfg.min_start_inliers if min_inliers is None else min_inliers):
+        return False
+    return decide(score, cfg.verdict, converged=True).status == "ok"
+
+
 def _better(a: GeometricOutcome, b: Optional[GeometricOutcome]) -> bool:
     if b is None:
         return True
@@ -165,8 +175,7 @@ def localize_robust(
         hyps.append(("start", g))
         best = g
         empty_start = g.start_coverage < cfg.verdict.fail_coverage
-    need = (init_w2c is None or best.score is None or best.score.inliers < cfg.min_start_inliers
-            or best.score.inlier_ratio < cfg.verdict.ok_ratio)
+    need = init_w2c is None or not _convincing(best.score, cfg)
     if need and cfg.use_candidates and usable(state.matcher):
         cs = candidate_set
         if cs is None:
@@ -182,8 +191,7 @@ def localize_robust(
             hyps.append((cs.source[idx], g))
             if _better(g, best):
                 best = g
-            sc = best.score
-            if sc is not None and sc.inliers >= cfg.good_inliers and sc.inlier_ratio >= cfg.verdict.ok_ratio:
+            if _convincing(best.score, cfg, cfg.good_inliers):
                 break
     summaries = [_summary(n, g, state) for n, g in hyps]
     if best is None or best.score is None or best.score.inliers < cfg.verdict.fail_inliers:

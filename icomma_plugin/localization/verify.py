@@ -129,7 +129,8 @@ def score_observation(obs: Observation, state: LocalizationState, inlier_px: flo
 class VerdictConfig:
     """Thresholds of the verdict (calibrated on the benchmark, docs/BENCHMARK.md).
 
-    ok_inliers / ok_ratio / ok_median_px / ok_spread / ok_coverage: all must hold for ``ok``.
+    ok_inliers / ok_ratio / ok_median_px / ok_mean_px / ok_spread / ok_coverage: all must hold
+        for ``ok``.
     fail_inliers: fewer inliers than this is ``failed``; fail_coverage: a render covering less of
         the photo than this is ``failed`` (the pose sees almost none of the scene).
     inlier_px: displacement below which a match is an inlier [px at the working resolution].
@@ -139,13 +140,14 @@ class VerdictConfig:
     ok_inliers: int = 30
     ok_ratio: float = 0.5
     ok_median_px: float = 1.0
+    ok_mean_px: float = 0.6
     ok_spread: float = 0.04
     ok_coverage: float = 0.3
     fail_inliers: int = 8
     fail_coverage: float = 0.02
 
     def __post_init__(self):
-        for name in ("inlier_px", "ok_median_px"):
+        for name in ("inlier_px", "ok_median_px", "ok_mean_px"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"VerdictConfig.{name} must be a positive number, got {v!r}")
@@ -182,6 +184,8 @@ def decide(score: Optional[PoseScore], cfg: VerdictConfig, converged: Optional[b
         problems.append(f"{100 * score.inlier_ratio:.0f}% of the matches agree (< {100 * cfg.ok_ratio:.0f}%)")
     if not score.median_px <= cfg.ok_median_px:
         problems.append(f"median displacement {score.median_px:.2f} px (> {cfg.ok_median_px:g})")
+    if not score.mean_px <= cfg.ok_mean_px:
+        problems.append(f"mean displacement {score.mean_px:.2f} px (> {cfg.ok_mean_px:g})")
     if score.spread < cfg.ok_spread:
         problems.append(f"agreeing matches span {100 * score.spread:.1f}% of the image (< "
                         f"{100 * cfg.ok_spread:.0f}%)")
