@@ -6,6 +6,7 @@ Images are ``[3, H, W]`` float tensors in [0, 1] (or ``[H, W, 3]`` uint8/float n
 Every file is written atomically (``io.atomic.atomic_path``). matplotlib runs on the Agg backend
 and is imported lazily, so importing this module is cheap.
 """
+
 from __future__ import annotations
 
 import logging
@@ -46,7 +47,8 @@ VERDICT_COLOURS = {"ok": (40, 170, 60), "uncertain": (235, 150, 20), "failed": (
 
 
 def to_uint8(img: ImageLike) -> np.ndarray:
-    """``[3, H, W]`` tensor / ``[H, W, 3]`` array (float in [0, 1] or uint8) -> ``[H, W, 3]`` uint8."""
+    """``[3, H, W]`` tensor / ``[H, W, 3]`` array (float in [0, 1] or uint8) -> ``[H, W, 3]``
+    uint8."""
     if isinstance(img, torch.Tensor):
         t = img.detach().cpu()
         if t.ndim != 3 or t.shape[0] not in (1, 3):
@@ -75,8 +77,9 @@ def _resize_like(a: np.ndarray, h: int, w: int) -> np.ndarray:
     return np.asarray(Image.fromarray(a).resize((w, h), Image.BILINEAR))
 
 
-def overlay_panel(render: ImageLike, query: ImageLike, diff_gain: float = 3.0,
-                  alpha: float = 0.5) -> np.ndarray:
+def overlay_panel(
+    render: ImageLike, query: ImageLike, diff_gain: float = 3.0, alpha: float = 0.5
+) -> np.ndarray:
     """``[H, 4W, 3]`` uint8: render | query | blend (``alpha`` render) | |render - query| x gain."""
     r = to_uint8(render)
     q = _resize_like(to_uint8(query), r.shape[0], r.shape[1])
@@ -104,7 +107,9 @@ def match_lines_image(
     k0 = _np2(kpts_render)
     k1 = _np2(kpts_query)
     if k0.shape != k1.shape:
-        raise ValueError(f"kpts_render and kpts_query must have the same shape, got {k0.shape} and {k1.shape}")
+        raise ValueError(
+            f"kpts_render and kpts_query must have the same shape, got {k0.shape} and {k1.shape}"
+        )
     conf = np.ones(len(k0)) if confidence is None else np.asarray(_np1(confidence), np.float64)
     if len(k0) > max_lines:
         idx = np.argsort(-conf)[:max_lines]
@@ -112,12 +117,15 @@ def match_lines_image(
     H = max(r.shape[0], q.shape[0])
     canvas = np.zeros((H, r.shape[1] + 4 + q.shape[1], 3), np.uint8)
     canvas[: r.shape[0], : r.shape[1]] = r
-    canvas[:, r.shape[1]: r.shape[1] + 4] = 255
+    canvas[:, r.shape[1] : r.shape[1] + 4] = 255
     off = r.shape[1] + 4
     canvas[: q.shape[0], off:] = q
     s = float(scale)
-    canvas = cv2.resize(canvas, (int(round(canvas.shape[1] * s)), int(round(canvas.shape[0] * s))),
-                        interpolation=cv2.INTER_NEAREST)
+    canvas = cv2.resize(
+        canvas,
+        (int(round(canvas.shape[1] * s)), int(round(canvas.shape[0] * s))),
+        interpolation=cv2.INTER_NEAREST,
+    )
     cmap = _viridis()
     for (x0, y0), (x1, y1), c in zip(k0, k1, conf):
         col = tuple(int(v) for v in cmap[int(np.clip(c, 0, 1) * 255)])
@@ -126,10 +134,26 @@ def match_lines_image(
         cv2.line(canvas, p0, p1, col, 1, cv2.LINE_AA)
         cv2.circle(canvas, p0, 2, col, -1, cv2.LINE_AA)
         cv2.circle(canvas, p1, 2, col, -1, cv2.LINE_AA)
-    cv2.putText(canvas, f"render  ({len(k0)} matches shown)", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
-                (255, 255, 255), 1, cv2.LINE_AA)
-    cv2.putText(canvas, "query", (int(off * s) + 4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
-                (255, 255, 255), 1, cv2.LINE_AA)
+    cv2.putText(
+        canvas,
+        f"render  ({len(k0)} matches shown)",
+        (4, 14),
+        cv2.FONT_HERSHEY_SIMPLEX,
+        0.45,
+        (255, 255, 255),
+        1,
+        cv2.LINE_AA,
+    )
+    cv2.putText(
+        canvas,
+        "query",
+        (int(off * s) + 4, 14),
+        cv2.FONT_HERSHEY_SIMPLEX,
+        0.45,
+        (255, 255, 255),
+        1,
+        cv2.LINE_AA,
+    )
     return canvas
 
 
@@ -163,16 +187,27 @@ def save_image(path: PathLike, img: ImageLike) -> Path:
     return path
 
 
-def save_overlay(path: PathLike, render: ImageLike, query: ImageLike, diff_gain: float = 3.0) -> Path:
+def save_overlay(
+    path: PathLike, render: ImageLike, query: ImageLike, diff_gain: float = 3.0
+) -> Path:
     """:func:`overlay_panel` written to ``path``."""
     return save_image(path, overlay_panel(render, query, diff_gain=diff_gain))
 
 
-def save_match_lines(path: PathLike, render: ImageLike, query: ImageLike, kpts_render, kpts_query,
-                     confidence=None, max_lines: int = 150) -> Path:
+def save_match_lines(
+    path: PathLike,
+    render: ImageLike,
+    query: ImageLike,
+    kpts_render,
+    kpts_query,
+    confidence=None,
+    max_lines: int = 150,
+) -> Path:
     """:func:`match_lines_image` written to ``path``."""
-    return save_image(path, match_lines_image(render, query, kpts_render, kpts_query, confidence,
-                                              max_lines=max_lines))
+    return save_image(
+        path,
+        match_lines_image(render, query, kpts_render, kpts_query, confidence, max_lines=max_lines),
+    )
 
 
 def _series(trace: Sequence[Dict[str, Any]], key: str):
@@ -185,10 +220,14 @@ def _series(trace: Sequence[Dict[str, Any]], key: str):
     return np.asarray(xs), np.asarray(ys, np.float64)
 
 
-def plot_convergence(path: PathLike, trace: Sequence[Dict[str, Any]],
-                     switch_iteration: Optional[int] = None, title: Optional[str] = None,
-                     rot_target_deg: Optional[float] = None,
-                     trans_target: Optional[float] = None) -> Path:
+def plot_convergence(
+    path: PathLike,
+    trace: Sequence[Dict[str, Any]],
+    switch_iteration: Optional[int] = None,
+    title: Optional[str] = None,
+    rot_target_deg: Optional[float] = None,
+    trans_target: Optional[float] = None,
+) -> Path:
     """Rotation / translation error, losses and lr against the iteration (log scales); the
     stage switch is marked by a dashed vertical line. Written to ``path`` (PNG)."""
     import matplotlib
@@ -203,7 +242,9 @@ def plot_convergence(path: PathLike, trace: Sequence[Dict[str, Any]],
 
     def mark(ax):
         if switch_iteration is not None and switch_iteration > 0:
-            ax.axvline(switch_iteration, color="k", ls="--", lw=1, label=f"switch @ {switch_iteration}")
+            ax.axvline(
+                switch_iteration, color="k", ls="--", lw=1, label=f"switch @ {switch_iteration}"
+            )
         ax.set_xlabel("iteration")
         ax.grid(True, which="both", alpha=0.3)
 
@@ -227,8 +268,11 @@ def plot_convergence(path: PathLike, trace: Sequence[Dict[str, Any]],
         ax.set_title("pose error")
     ax = axes[i]
     i += 1
-    for key, col, lab in (("loss", "k", "total"), ("loss_compare", "C2", "L_compare"),
-                          ("loss_match", "C3", "L_match")):
+    for key, col, lab in (
+        ("loss", "k", "total"),
+        ("loss_compare", "C2", "L_compare"),
+        ("loss_match", "C3", "L_match"),
+    ):
         x, y = _series(trace, key)
         if len(x):
             ax.semilogy(x, np.maximum(y, 1e-12), color=col, lw=1, label=lab)
@@ -264,8 +308,14 @@ def save_gif(path: PathLike, frames: List[ImageLike], fps: float = 8.0) -> Path:
     ims = [Image.fromarray(to_uint8(f)) for f in frames]
     path = Path(path)
     with atomic_path(path) as tmp:
-        ims[0].save(tmp, format="GIF", save_all=True, append_images=ims[1:],
-                    duration=int(1000 / max(fps, 0.1)), loop=0)
+        ims[0].save(
+            tmp,
+            format="GIF",
+            save_all=True,
+            append_images=ims[1:],
+            duration=int(1000 / max(fps, 0.1)),
+            loop=0,
+        )
     return path
 
 
@@ -282,7 +332,9 @@ def save_video(path: PathLike, frames: List[ImageLike], fps: float = 8.0) -> Pat
 # ----------------------------------------------------------------------------------------------
 
 
-def save_thumbnail(path: PathLike, model, query, c2w, bg, side: int = 192, backend: str = "auto") -> Path:
+def save_thumbnail(
+    path: PathLike, model, query, c2w, bg, side: int = 192, backend: str = "auto"
+) -> Path:
     """Half-and-half blend of the render at ``c2w`` over the photo of ``query`` (a localization
     ``Query``), the longer side ``side`` px; written to ``path``."""
     from .localization.state import resize_image
@@ -292,10 +344,22 @@ def save_thumbnail(path: PathLike, model, query, c2w, bg, side: int = 192, backe
     s = min(1.0, float(side) / max(intr.width, intr.height))
     small = intr.scaled(s) if s != 1.0 else intr
     photo = resize_image(query.rgb.float().cpu(), small.height, small.width).clamp(0, 1)
-    w2c = torch.as_tensor(np.linalg.inv(np.asarray(c2w, np.float64)), dtype=model.dtype, device=model.device)
+    w2c = torch.as_tensor(
+        np.linalg.inv(np.asarray(c2w, np.float64)), dtype=model.dtype, device=model.device
+    )
     with torch.no_grad():
-        img = render(model, small, w2c, torch.as_tensor(bg, dtype=model.dtype, device=model.device),
-                     backend=backend).color.clamp(0, 1).float().cpu()
+        img = (
+            render(
+                model,
+                small,
+                w2c,
+                torch.as_tensor(bg, dtype=model.dtype, device=model.device),
+                backend=backend,
+            )
+            .color.clamp(0, 1)
+            .float()
+            .cpu()
+        )
     return save_image(path, 0.5 * img + 0.5 * photo)
 
 
@@ -307,8 +371,15 @@ def _label(canvas: np.ndarray, text: str, xy, scale: float = 0.38, colour=(255, 
     cv2.putText(canvas, text, (x, y), cv2.FONT_HERSHEY_SIMPLEX, scale, colour, 1, cv2.LINE_AA)
 
 
-def contact_sheet(path: PathLike, rows: Sequence[Dict[str, Any]], base_dir: PathLike, columns: int = 8,
-                  cell: int = 192, border: int = 5, max_photos: int = 400) -> Path:
+def contact_sheet(
+    path: PathLike,
+    rows: Sequence[Dict[str, Any]],
+    base_dir: PathLike,
+    columns: int = 8,
+    cell: int = 192,
+    border: int = 5,
+    max_photos: int = 400,
+) -> Path:
     """One picture of a batch: each photo's thumbnail (``row["thumb"]``, relative to
     ``base_dir``) framed in its verdict's colour (:data:`VERDICT_COLOURS`), with its name and,
     when the truth is known, its errors. Photos without a thumbnail get a grey cell. Rows after
@@ -327,25 +398,32 @@ def contact_sheet(path: PathLike, rows: Sequence[Dict[str, Any]], base_dir: Path
     canvas = np.full((header + nrows * pitch, cols * pitch, 3), 30, np.uint8)
     counts = {k: sum(1 for r in rows if r.get("status") == k) for k in VERDICT_COLOURS}
     title = "  ".join(f"{k} {v}" for k, v in counts.items()) + (
-        f"   (first {len(shown)} of {len(rows)})" if len(rows) > len(shown) else "")
+        f"   (first {len(shown)} of {len(rows)})" if len(rows) > len(shown) else ""
+    )
     _label(canvas, title, (6, 17), 0.5)
     base = Path(base_dir)
     for i, r in enumerate(shown):
         y0, x0 = header + (i // cols) * pitch, (i % cols) * pitch
         colour = VERDICT_COLOURS.get(r.get("status"), (128, 128, 128))
-        canvas[y0:y0 + pitch, x0:x0 + pitch] = colour
+        canvas[y0 : y0 + pitch, x0 : x0 + pitch] = colour
         tile = np.full((cell, cell, 3), 70, np.uint8)
         thumb = r.get("thumb")
         if thumb and (base / thumb).is_file():
             im = Image.open(base / thumb).convert("RGB")
             f = cell / max(im.size)
-            im = im.resize((max(1, round(im.size[0] * f)), max(1, round(im.size[1] * f))), Image.BILINEAR)
+            im = im.resize(
+                (max(1, round(im.size[0] * f)), max(1, round(im.size[1] * f))), Image.BILINEAR
+            )
             a = np.asarray(im)
             oy, ox = (cell - a.shape[0]) // 2, (cell - a.shape[1]) // 2
-            tile[oy:oy + a.shape[0], ox:ox + a.shape[1]] = a
-        canvas[y0 + border:y0 + border + cell, x0 + border:x0 + border + cell] = tile
+            tile[oy : oy + a.shape[0], ox : ox + a.shape[1]] = a
+        canvas[y0 + border : y0 + border + cell, x0 + border : x0 + border + cell] = tile
         name = str(r.get("name", "?"))
-        _label(canvas, name if len(name) <= 26 else "..." + name[-23:], (x0 + border + 3, y0 + border + 13))
+        _label(
+            canvas,
+            name if len(name) <= 26 else "..." + name[-23:],
+            (x0 + border + 3, y0 + border + 13),
+        )
         err = r.get("rot_err_deg")
         line = str(r.get("status", "?"))
         if err is not None:
@@ -360,9 +438,14 @@ def contact_sheet(path: PathLike, rows: Sequence[Dict[str, Any]], base_dir: Path
 # ----------------------------------------------------------------------------------------------
 
 
-def plot_trajectory(path: PathLike, est_c2w: Sequence[Optional[np.ndarray]], cameras_c2w: Sequence[np.ndarray],
-                    gt_c2w: Optional[Sequence[Optional[np.ndarray]]] = None,
-                    statuses: Optional[Sequence[str]] = None, title: Optional[str] = None) -> Path:
+def plot_trajectory(
+    path: PathLike,
+    est_c2w: Sequence[Optional[np.ndarray]],
+    cameras_c2w: Sequence[np.ndarray],
+    gt_c2w: Optional[Sequence[Optional[np.ndarray]]] = None,
+    statuses: Optional[Sequence[str]] = None,
+    title: Optional[str] = None,
+) -> Path:
     """The estimated camera path (coloured by verdict) over the scene's cameras (grey, with their
     viewing directions), in 3D and seen from above (the plane of the two widest axes); the true
     path dashed when known. Written to ``path`` (PNG)."""
@@ -377,7 +460,9 @@ def plot_trajectory(path: PathLike, est_c2w: Sequence[Optional[np.ndarray]], cam
     gts = None
     if gt_c2w is not None and any(g is not None for g in gt_c2w):
         gts = np.array([np.asarray(g)[:3, 3] for g in gt_c2w if g is not None]).reshape(-1, 3)
-    allp = np.concatenate([a for a in (pts, cams, gts) if a is not None and len(a)] or [np.zeros((1, 3))])
+    allp = np.concatenate(
+        [a for a in (pts, cams, gts) if a is not None and len(a)] or [np.zeros((1, 3))]
+    )
     span = np.ptp(allp, axis=0) if len(allp) > 1 else np.ones(3)
     ax_a, ax_b = np.argsort(-span)[:2]
     scale = 0.06 * float(max(span.max(), 1e-6))
@@ -419,8 +504,10 @@ def plot_trajectory(path: PathLike, est_c2w: Sequence[Optional[np.ndarray]], cam
     a2.set_aspect("equal", adjustable="datalim")
     a2.grid(alpha=0.3)
     a2.legend(fontsize=7, loc="best")
-    a2.set_title("seen along the narrowest axis (verdict colours: ok green, uncertain orange, failed red)",
-                 fontsize=8)
+    a2.set_title(
+        "seen along the narrowest axis (verdict colours: ok green, uncertain orange, failed red)",
+        fontsize=8,
+    )
     if title:
         fig.suptitle(title, fontsize=9)
     path = Path(path)
@@ -445,14 +532,21 @@ def _paper_number(paper, interval: str, method: str, metric: str):
     else:
         v = paper.get((interval, method, metric))
         if v is None:
-            v = next((x for k, x in paper.items() if isinstance(k, tuple) and len(k) == 4
-                      and k[1:] == (interval, method, metric)), None)
+            v = next(
+                (
+                    x
+                    for k, x in paper.items()
+                    if isinstance(k, tuple) and len(k) == 4 and k[1:] == (interval, method, metric)
+                ),
+                None,
+            )
     v = getattr(v, "value", v)
     return None if v is None else float(v)
 
 
-def plot_curves_vs_paper(path: PathLike, summary: Dict[str, Any], paper=None,
-                         title: Optional[str] = None) -> Path:
+def plot_curves_vs_paper(
+    path: PathLike, summary: Dict[str, Any], paper=None, title: Optional[str] = None
+) -> Path:
     """Success-rate-vs-iteration curves of a benchmark summary, with the paper's numbers.
 
     Args:
@@ -496,8 +590,14 @@ def plot_curves_vs_paper(path: PathLike, summary: Dict[str, Any], paper=None,
                     missing.append(label)
                 else:
                     ax.axhline(pv, color=col, ls=":", lw=1.0, alpha=0.8)
-                    ax.annotate(f"paper {100 * pv:.0f}% ({tk.replace('deg_', ' deg, ')})", (x[-1], pv),
-                                fontsize=7, color=col, ha="right", va="bottom")
+                    ax.annotate(
+                        f"paper {100 * pv:.0f}% ({tk.replace('deg_', ' deg, ')})",
+                        (x[-1], pv),
+                        fontsize=7,
+                        color=col,
+                        ha="right",
+                        va="bottom",
+                    )
         if missing:
             ax.plot([], [], " ", label="paper n/a: " + "; ".join(missing))
         ax.set_title(str(iv))
@@ -506,8 +606,12 @@ def plot_curves_vs_paper(path: PathLike, summary: Dict[str, Any], paper=None,
         ax.grid(alpha=0.3)
         ax.legend(fontsize=6, loc="lower right")
     axes[0, 0].set_ylabel("fraction of poses under the threshold")
-    fig.suptitle(title or f"{summary.get('protocol', 'benchmark')}: ours (curves), the paper's numbers "
-                          "(dotted horizontal lines)", fontsize=9)
+    fig.suptitle(
+        title
+        or f"{summary.get('protocol', 'benchmark')}: ours (curves), the paper's numbers "
+        "(dotted horizontal lines)",
+        fontsize=9,
+    )
     path = Path(path)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")

@@ -3,6 +3,7 @@ per-photo failures that do not stop the batch, one-line errors, exports read bac
 a kill, worker processes, and shards through submitit's local executor (the SLURM code path).
 
 Photos are rendered from a 100x100 demo scene at known poses, so the truth is known."""
+
 from __future__ import annotations
 
 import csv
@@ -69,30 +70,58 @@ def scene(tmp_path_factory):
     gt = {}
     for i in range(6):
         az = 0.3 + 0.9 * i
-        c2w = look_at_c2w(np.array([3.8 * math.cos(az), 3.8 * math.sin(az), 2.0]), np.array([0.0, 0.0, 0.4]))
+        c2w = look_at_c2w(
+            np.array([3.8 * math.cos(az), 3.8 * math.sin(az), 2.0]), np.array([0.0, 0.0, 0.4])
+        )
         with torch.no_grad():
-            img = render(model, s.intrinsics, torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32),
-                         torch.zeros(3)).color.clamp(0, 1)
+            img = render(
+                model,
+                s.intrinsics,
+                torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32),
+                torch.zeros(3),
+            ).color.clamp(0, 1)
         _png(photos / f"p{i}.png", img)
         gt[f"p{i}.png"] = c2w.tolist()
     (root / "gt.json").write_text(json.dumps(gt))
-    return {"root": root, "model": s.path, "photos": photos, "gt": root / "gt.json", "gt_poses": gt,
-            "scale": s.scene_scale}
+    return {
+        "root": root,
+        "model": s.path,
+        "photos": photos,
+        "gt": root / "gt.json",
+        "gt_poses": gt,
+        "scale": s.scene_scale,
+    }
 
 
 def _base(scene, out: Path, *extra):
-    return ["data=model_folder", f"data.model_path={scene['model']}", f"data.queries={scene['photos']}",
-            "data.intrinsics.camera=ring_000", f"data.gt.poses_file={scene['gt']}", f"output.dir={out}",
-            "output.progress=false", "threads=1", *extra]
+    return [
+        "data=model_folder",
+        f"data.model_path={scene['model']}",
+        f"data.queries={scene['photos']}",
+        "data.intrinsics.camera=ring_000",
+        f"data.gt.poses_file={scene['gt']}",
+        f"output.dir={out}",
+        "output.progress=false",
+        "threads=1",
+        *extra,
+    ]
 
 
 def _cli(args, timeout=600, **kw):
     env = dict(os.environ, PYTHONWARNINGS="ignore", HYDRA_FULL_ERROR="0", OMP_NUM_THREADS="1")
-    return subprocess.run([sys.executable, str(TOOL), *args], cwd=str(REPO), capture_output=True, text=True,
-                          timeout=timeout, env=env, **kw)
+    return subprocess.run(
+        [sys.executable, str(TOOL), *args],
+        cwd=str(REPO),
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=env,
+        **kw,
+    )
 
 
 # ------------------------------------------------------------------------------------ inputs
+
 
 def test_list_photos_folder_glob_and_list_file(scene, tmp_path):
     folder = list_photos(str(scene["photos"]))
@@ -100,7 +129,10 @@ def test_list_photos_folder_glob_and_list_file(scene, tmp_path):
     glob = list_photos(str(scene["photos"] / "p[13].png"))
     assert glob.names == ["p1.png", "p3.png"]
     lst = tmp_path / "list.txt"
-    lst.write_text(f"# two photos\n{scene['photos'] / 'p4.png'}\n\n{os.path.relpath(scene['photos'] / 'p0.png', tmp_path)}\n")
+    lst.write_text(
+        f"# two photos\n{scene['photos'] / 'p4.png'}\n\n"
+        f"{os.path.relpath(scene['photos'] / 'p0.png', tmp_path)}\n"
+    )
     assert list_photos(str(lst)).names == ["p4.png", "p0.png"]
     (tmp_path / "empty").mkdir()
     with pytest.raises(ProblemError, match="data.queries: no image files"):
@@ -116,11 +148,18 @@ def test_poses_files_json_text_cameras_json_and_poses_json(scene, tmp_path):
     gt = scene["gt_poses"]
     table = read_poses_file(scene["gt"], "data.init.poses_file")
     assert len(table) == 6 and np.allclose(table.get("p2.png"), gt["p2.png"])
-    assert np.allclose(table.get("p2"), gt["p2.png"]) and table.get("sub/p2.png") is not None  # stem, basename
+    assert (
+        np.allclose(table.get("p2"), gt["p2.png"]) and table.get("sub/p2.png") is not None
+    )  # stem, basename
     assert table.get("p9.png") is None
     txt = tmp_path / "poses.txt"
-    txt.write_text("# name and 16 numbers\n" + "\n".join(
-        f"{k} " + " ".join(repr(float(v)) for v in np.asarray(m).ravel()) for k, m in gt.items()) + "\n")
+    txt.write_text(
+        "# name and 16 numbers\n"
+        + "\n".join(
+            f"{k} " + " ".join(repr(float(v)) for v in np.asarray(m).ravel()) for k, m in gt.items()
+        )
+        + "\n"
+    )
     t2 = read_poses_file(txt, "data.init.poses_file")
     assert all(np.array_equal(t2.get(k), np.asarray(v)) for k, v in gt.items())
     from icomma_plugin.io.cameras_json import read_cameras_json
@@ -153,8 +192,10 @@ def test_ledger_refuses_another_runs_folder(tmp_path):
 
 # ------------------------------------------------------------------------------------ one batch
 
+
 def test_batch_poses_json_csv_exports_and_bad_photos(scene, tmp_path):
-    """No start pose; a photo of another size and an unreadable one fail alone, the rest localize."""
+    """No start pose; a photo of another size and an unreadable one fail alone, the others
+    localize."""
     photos = tmp_path / "photos"
     photos.mkdir()
     for i in (0, 1):
@@ -162,18 +203,32 @@ def test_batch_poses_json_csv_exports_and_bad_photos(scene, tmp_path):
     Image.new("RGB", (80, SIZE)).save(photos / "small.png")
     (photos / "broken.png").write_bytes(b"not a png")
     out = tmp_path / "out"
-    cfg = _compose(["data=model_folder", f"data.model_path={scene['model']}", f"data.queries={photos}",
-                    "data.intrinsics.camera=ring_000", f"data.gt.poses_file={scene['gt']}", "data.init=none",
-                    "output.progress=false", "output.export=[cameras_json,colmap,nerfstudio]",
-                    "output.photo_folders=true", "output.match_lines=false", "output.convergence_plot=false"])
+    cfg = _compose(
+        [
+            "data=model_folder",
+            f"data.model_path={scene['model']}",
+            f"data.queries={photos}",
+            "data.intrinsics.camera=ring_000",
+            f"data.gt.poses_file={scene['gt']}",
+            "data.init=none",
+            "output.progress=false",
+            "output.export=[cameras_json,colmap,nerfstudio]",
+            "output.photo_folders=true",
+            "output.match_lines=false",
+            "output.convergence_plot=false",
+        ]
+    )
     doc = _tool().run(cfg, out)
     assert doc == json.loads((out / "poses.json").read_text()) | {"summary": doc["summary"]}
     rows = {r["name"]: r for r in doc["photos"]}
     assert set(rows) == {"broken.png", "p0.png", "p1.png", "small.png"}
     assert doc["status"] == "complete" and doc["total"] == 4 and doc["done"] == 4
     assert sum(doc["counts"].values()) == 4 and doc["counts"]["failed"] >= 2
-    assert rows["small.png"]["status"] == "failed" and "80x100" in rows["small.png"]["error"] \
+    assert (
+        rows["small.png"]["status"] == "failed"
+        and "80x100" in rows["small.png"]["error"]
         and "data.intrinsics.camera" in rows["small.png"]["error"]
+    )
     assert rows["broken.png"]["status"] == "failed" and "broken.png" in rows["broken.png"]["error"]
     for n in ("p0.png", "p1.png"):
         r = rows[n]
@@ -181,7 +236,9 @@ def test_batch_poses_json_csv_exports_and_bad_photos(scene, tmp_path):
         assert r["init_c2w"] is None and r["error"] is None
         assert r["rot_err_deg"] < 0.1 and r["trans_err_rel"] < 1e-3
         assert np.allclose(r["gt_c2w"], scene["gt_poses"][n])
-        assert (out / r["folder"] / "result.json").is_file() and (out / r["folder"] / "overlay_final.png").is_file()
+        assert (out / r["folder"] / "result.json").is_file() and (
+            out / r["folder"] / "overlay_final.png"
+        ).is_file()
         assert (out / r["thumb"]).is_file()
     assert (out / "contact_sheet.png").is_file()
     # one CSV row per photo, the same numbers as poses.json
@@ -193,7 +250,9 @@ def test_batch_poses_json_csv_exports_and_bad_photos(scene, tmp_path):
         assert t["verdict"] == r["status"]
         assert (t["rot_err_deg"] == "") == (r["rot_err_deg"] is None)
         if r["rot_err_deg"] is not None:
-            assert float(t["rot_err_deg"]) == r["rot_err_deg"] and float(t["seconds"]) == r["seconds"]
+            assert (
+                float(t["rot_err_deg"]) == r["rot_err_deg"] and float(t["seconds"]) == r["seconds"]
+            )
     # exports hold the estimated poses (only ok / uncertain), read back with our readers
     from icomma_plugin.io.cameras_json import read_cameras_json
     from icomma_plugin.io.datasets import read_colmap
@@ -221,12 +280,21 @@ def test_per_photo_start_poses_and_missing(scene, tmp_path):
     pf = tmp_path / "starts.json"
     pf.write_text(json.dumps(starts))
     out = tmp_path / "out"
-    cfg = _compose(_base(scene, out, "data.limit=2", f"data.init.poses_file={pf}", "output.contact_sheet=false"))
+    cfg = _compose(
+        _base(
+            scene, out, "data.limit=2", f"data.init.poses_file={pf}", "output.contact_sheet=false"
+        )
+    )
     doc = _tool().run(cfg, out)
     rows = {r["name"]: r for r in doc["photos"]}
-    assert rows["p0.png"]["status"] != "failed" and np.allclose(rows["p0.png"]["init_c2w"], starts["p0.png"])
+    assert rows["p0.png"]["status"] != "failed" and np.allclose(
+        rows["p0.png"]["init_c2w"], starts["p0.png"]
+    )
     assert rows["p0.png"]["initial_rot_err_deg"] < 1e-6
-    assert rows["p1.png"]["status"] == "failed" and "no start pose for 'p1.png'" in rows["p1.png"]["error"]
+    assert (
+        rows["p1.png"]["status"] == "failed"
+        and "no start pose for 'p1.png'" in rows["p1.png"]["error"]
+    )
     assert "data.init.missing=none" in rows["p1.png"]["error"]
 
 
@@ -240,7 +308,9 @@ def test_cli_one_line_errors(scene, tmp_path):
     bad.write_text("[1, 2")
     p = _cli(_base(scene, tmp_path / "o2", f"data.init.poses_file={bad}"))
     err = [ln for ln in p.stderr.splitlines() if ln.startswith("error:")]
-    assert p.returncode == 2 and len(err) == 1 and "data.init.poses_file" in err[0], p.stderr[-2000:]
+    assert p.returncode == 2 and len(err) == 1 and "data.init.poses_file" in err[0], p.stderr[
+        -2000:
+    ]
     p = _cli([a for a in _base(scene, tmp_path / "o3", "data.init=none") if "intrinsics" not in a])
     err = [ln for ln in p.stderr.splitlines() if ln.startswith("error:")]
     assert p.returncode == 2 and len(err) == 1 and "data.intrinsics.fx" in err[0], p.stderr[-2000:]
@@ -248,12 +318,19 @@ def test_cli_one_line_errors(scene, tmp_path):
 
 # ------------------------------------------------------------------------------------ resume
 
+
 def test_resume_after_kill_redoes_no_finished_photo(scene, tmp_path):
     out = tmp_path / "out"
     args = _base(scene, out, "data.init=none", "output.contact_sheet=false")
     env = dict(os.environ, PYTHONWARNINGS="ignore", OMP_NUM_THREADS="1")
-    proc = subprocess.Popen([sys.executable, str(TOOL), *args], cwd=str(REPO), env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    proc = subprocess.Popen(
+        [sys.executable, str(TOOL), *args],
+        cwd=str(REPO),
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
     first = None
     try:
         deadline = time.monotonic() + 300
@@ -281,15 +358,22 @@ def test_resume_after_kill_redoes_no_finished_photo(scene, tmp_path):
     after = {r["name"]: r for r in final["photos"]}
     for n, r in before.items():  # the same rows, from the same (killed) process: not redone
         assert after[n] == r
-    assert {after[n]["worker"] for n in after if n not in before} != {r["worker"] for r in before.values()}
+    assert {after[n]["worker"] for n in after if n not in before} != {
+        r["worker"] for r in before.values()
+    }
     assert f"{len(before)} skipped" in p.stdout
 
 
 # ------------------------------------------------------------------------------------ parallel
 
+
 def test_two_worker_processes(scene, tmp_path):
     out = tmp_path / "out"
-    cfg = _compose(_base(scene, out, "data.limit=4", "data.init=none", "workers=2", "output.contact_sheet=false"))
+    cfg = _compose(
+        _base(
+            scene, out, "data.limit=4", "data.init=none", "workers=2", "output.contact_sheet=false"
+        )
+    )
     doc = _tool().run(cfg, out)
     assert doc["done"] == 4 and [r["index"] for r in doc["photos"]] == [0, 1, 2, 3]
     pids = {r["worker"] for r in doc["photos"]}
@@ -299,11 +383,23 @@ def test_two_worker_processes(scene, tmp_path):
 
 def test_submitit_local_shards_merge_into_one_poses_json(scene, tmp_path):
     sweep = tmp_path / "sweep"
-    args = ["-m", "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=10",
-            f"hydra.sweep.dir={sweep}", "data=model_folder", f"data.model_path={scene['model']}",
-            f"data.queries={scene['photos']}", "data.limit=4", "data.intrinsics.camera=ring_000",
-            f"data.gt.poses_file={scene['gt']}", f"data.init.poses_file={scene['gt']}",
-            "output.progress=false", "threads=1", "data.shard=0,1", "data.num_shards=2"]
+    args = [
+        "-m",
+        "hydra/launcher=submitit_local",
+        "hydra.launcher.timeout_min=10",
+        f"hydra.sweep.dir={sweep}",
+        "data=model_folder",
+        f"data.model_path={scene['model']}",
+        f"data.queries={scene['photos']}",
+        "data.limit=4",
+        "data.intrinsics.camera=ring_000",
+        f"data.gt.poses_file={scene['gt']}",
+        f"data.init.poses_file={scene['gt']}",
+        "output.progress=false",
+        "threads=1",
+        "data.shard=0,1",
+        "data.num_shards=2",
+    ]
     p = _cli(args)
     assert p.returncode == 0, (p.stdout[-2000:], p.stderr[-3000:])
     assert (sweep / ".submitit").is_dir()  # it went through submitit's executor

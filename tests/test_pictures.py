@@ -1,5 +1,6 @@
 """Pictures where a person looks: the optimisation as MP4, the contact sheet of a batch (framed
 by verdict colour), the trajectory plot, and the benchmark curves beside the paper's numbers."""
+
 from __future__ import annotations
 
 import importlib.util
@@ -35,10 +36,22 @@ def test_optimisation_as_mp4(tmp_path):
 
     scene = build_demo_scene(tmp_path / "demo", seed=0, width=64, height=64)
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        cfg = compose(config_name="localize", overrides=[
-            f"data.path={scene.path}", "data.width=64", "data.height=64", "optimizer=icomma",
-            "optimizer.max_iterations=4", "output.progress=false", "output.mp4=true", "output.gif_every=1",
-            "output.overlays=false", "output.match_lines=false", "output.convergence_plot=false"])
+        cfg = compose(
+            config_name="localize",
+            overrides=[
+                f"data.path={scene.path}",
+                "data.width=64",
+                "data.height=64",
+                "optimizer=icomma",
+                "optimizer.max_iterations=4",
+                "output.progress=false",
+                "output.mp4=true",
+                "output.gif_every=1",
+                "output.overlays=false",
+                "output.match_lines=false",
+                "output.convergence_plot=false",
+            ],
+        )
     res = _tool().run(cfg, tmp_path / "out")
     assert "optimisation.mp4" in res["files"] and "optimisation.gif" not in res["files"]
     w, h, n, _ = video_info(tmp_path / "out" / "optimisation.mp4")
@@ -48,11 +61,18 @@ def test_optimisation_as_mp4(tmp_path):
 def _rows(tmp_path):
     rows = []
     for i, st in enumerate(["ok", "uncertain", "failed", "ok", "failed"]):
-        r = {"index": i, "name": f"IMG_{i}.jpg", "status": st, "rot_err_deg": 0.1 * i if st != "failed" else None,
-             "trans_err_rel": 0.001 if st != "failed" else None}
+        r = {
+            "index": i,
+            "name": f"IMG_{i}.jpg",
+            "status": st,
+            "rot_err_deg": 0.1 * i if st != "failed" else None,
+            "trans_err_rel": 0.001 if st != "failed" else None,
+        }
         if i < 3:
             (tmp_path / "thumbs").mkdir(exist_ok=True)
-            Image.fromarray(np.full((30, 40, 3), 200, np.uint8)).save(tmp_path / "thumbs" / f"{i}.png")
+            Image.fromarray(np.full((30, 40, 3), 200, np.uint8)).save(
+                tmp_path / "thumbs" / f"{i}.png"
+            )
             r["thumb"] = f"thumbs/{i}.png"
         rows.append(r)
     return rows
@@ -77,11 +97,22 @@ def test_contact_sheet_frames_each_photo_in_its_verdict_colour(tmp_path):
 def test_trajectory_plot(tmp_path):
     from icomma_plugin.pose.convert import look_at_c2w
 
-    cams = [look_at_c2w(np.array([4 * np.cos(a), 4 * np.sin(a), 2.0]), np.zeros(3))
-            for a in np.linspace(0, 2 * np.pi, 8, endpoint=False)]
-    est = [look_at_c2w(np.array([3 * np.cos(a), 3 * np.sin(a), 1.5]), np.zeros(3)) for a in np.linspace(0, 1, 5)]
-    p = viz.plot_trajectory(tmp_path / "t.png", est[:2] + [None] + est[3:], cams, est,
-                            ["ok", "uncertain", "failed", "ok", "ok"], title="t")
+    cams = [
+        look_at_c2w(np.array([4 * np.cos(a), 4 * np.sin(a), 2.0]), np.zeros(3))
+        for a in np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    ]
+    est = [
+        look_at_c2w(np.array([3 * np.cos(a), 3 * np.sin(a), 1.5]), np.zeros(3))
+        for a in np.linspace(0, 1, 5)
+    ]
+    p = viz.plot_trajectory(
+        tmp_path / "t.png",
+        est[:2] + [None] + est[3:],
+        cams,
+        est,
+        ["ok", "uncertain", "failed", "ok", "ok"],
+        title="t",
+    )
     with Image.open(p) as im:
         assert im.size[0] > 600 and im.size[1] > 300
 
@@ -89,16 +120,27 @@ def test_trajectory_plot(tmp_path):
 def test_curves_beside_the_paper(tmp_path):
     from icomma_plugin.benchmark.paper import PaperValue
 
-    summary = {"protocol": "curves_rotation", "cells": [
-        {"interval": "r0-20", "method": "icomma", "curves": {"1deg_0.01": [0, 0.5, 0.8], "5deg_0.05": [0, 0.9, 1]}},
-        {"interval": "r20-40", "method": "icomma", "curves": {"1deg_0.01": [0, 0.2, 0.4]}},
-        {"interval": "r20-40", "method": "essential", "auc5": 0.3},  # no curves: skipped
-    ]}
-    paper = {("r0-20", "icomma", "success_1deg_0.01"): PaperValue(0.85, "Fig. 4"),
-             ("curves_rotation", "r20-40", "icomma", "success_1deg_0.01"): 0.6,
-             ("r0-20", "icomma", "success_5deg_0.05"): PaperValue(None, "Fig. 4", "n/a")}
+    summary = {
+        "protocol": "curves_rotation",
+        "cells": [
+            {
+                "interval": "r0-20",
+                "method": "icomma",
+                "curves": {"1deg_0.01": [0, 0.5, 0.8], "5deg_0.05": [0, 0.9, 1]},
+            },
+            {"interval": "r20-40", "method": "icomma", "curves": {"1deg_0.01": [0, 0.2, 0.4]}},
+            {"interval": "r20-40", "method": "essential", "auc5": 0.3},  # no curves: skipped
+        ],
+    }
+    paper = {
+        ("r0-20", "icomma", "success_1deg_0.01"): PaperValue(0.85, "Fig. 4"),
+        ("curves_rotation", "r20-40", "icomma", "success_1deg_0.01"): 0.6,
+        ("r0-20", "icomma", "success_5deg_0.05"): PaperValue(None, "Fig. 4", "n/a"),
+    }
     assert viz._paper_number(paper, "r0-20", "icomma", "success_1deg_0.01") == 0.85
-    assert viz._paper_number(paper, "r20-40", "icomma", "success_1deg_0.01") == 0.6  # protocol-keyed
+    assert (
+        viz._paper_number(paper, "r20-40", "icomma", "success_1deg_0.01") == 0.6
+    )  # protocol-keyed
     assert viz._paper_number(paper, "r0-20", "icomma", "success_5deg_0.05") is None
     assert viz._paper_number(lambda iv, m, k: PaperValue(0.5, "x"), "a", "b", "c") == 0.5
     p = viz.plot_curves_vs_paper(tmp_path / "c.png", summary, paper)

@@ -1,6 +1,7 @@
 """Sequences (data.sequence): constant-velocity prediction, video files written and read back
 (MP4, GIF fallback), relocalization of a failed frame, and tracking a synthetic path on a
 100x100 demo scene from a folder of frames and from an MP4 through the tool."""
+
 from __future__ import annotations
 
 import importlib.util
@@ -48,6 +49,7 @@ def _compose(overrides):
 
 # ------------------------------------------------------------------------------------ prediction
 
+
 def test_constant_velocity_prediction_is_exact_on_a_constant_twist_path():
     xi = torch.tensor([0.05, -0.02, 0.03, 0.02, -0.01, 0.04], dtype=torch.float64)
     T0 = se3_exp(torch.tensor([0.3, 0.1, -2.0, 0.2, 0.5, -0.1], dtype=torch.float64)).numpy()
@@ -58,18 +60,21 @@ def test_constant_velocity_prediction_is_exact_on_a_constant_twist_path():
     assert predict_w2c([], 3) is None
     assert np.allclose(predict_w2c([(0, T(0))], 1), T(0))  # one pose: stay there
     assert np.allclose(predict_w2c([(0, T(0)), (1, T(1))], 2), T(2), atol=1e-9)
-    assert np.allclose(predict_w2c([(0, T(0)), (2, T(2))], 5), T(5), atol=1e-9)  # gaps (every N, failures)
+    assert np.allclose(
+        predict_w2c([(0, T(0)), (2, T(2))], 5), T(5), atol=1e-9
+    )  # gaps (every N, failures)
     assert np.allclose(predict_w2c([(0, T(0)), (1, T(1))], 2, velocity=False), T(1))
 
 
 # ------------------------------------------------------------------------------------ video files
 
+
 def _frames(n=5, h=48, w=64):
     out = []
     for i in range(n):
         f = np.zeros((h, w, 3), np.uint8)
-        f[:, 8 * i: 8 * i + 16] = (255, 128, 0)
-        f[h // 2:, :, 2] = 40 * i
+        f[:, 8 * i : 8 * i + 16] = (255, 128, 0)
+        f[h // 2 :, :, 2] = 40 * i
         out.append(f)
     return out
 
@@ -105,7 +110,8 @@ def test_video_falls_back_to_gif_when_no_encoder_works(tmp_path, monkeypatch):
         assert im.n_frames == 3 and im.size == (64, 48)
 
 
-# ------------------------------------------------------------------------------------ relocalization
+# ---------------------------------------------------------------------------- relocalization
+
 
 class _FakeWorker:
     """localize() fails from a start pose and succeeds without one (the candidate views)."""
@@ -118,16 +124,26 @@ class _FakeWorker:
         return True
 
     def problem(self, task, query):
-        return SimpleNamespace(name=task.name, query=query, init_c2w=task.init_c2w, gt_c2w=None, scene_scale=1.0)
+        return SimpleNamespace(
+            name=task.name, query=query, init_c2w=task.init_c2w, gt_c2w=None, scene_scale=1.0
+        )
 
     def localize(self, problem, init_c2w):
         self.calls.append((problem.name, init_c2w is None))
         ok = init_c2w is None or problem.name != "f2.png"
         status = "ok" if ok else "failed"
         c2w = self.truth[problem.name] if ok else np.eye(4)
-        return SimpleNamespace(c2w=c2w, verdict=Verdict(status, status), final_rotation_error_deg=None,
-                               final_translation_error=None, initial_rotation_error_deg=None, seconds=0.0,
-                               iterations=1, method="fake", match_counts={})
+        return SimpleNamespace(
+            c2w=c2w,
+            verdict=Verdict(status, status),
+            final_rotation_error_deg=None,
+            final_translation_error=None,
+            initial_rotation_error_deg=None,
+            seconds=0.0,
+            iterations=1,
+            method="fake",
+            match_counts={},
+        )
 
     def write_pictures(self, problem, result, seconds):
         return None, None
@@ -146,8 +162,14 @@ def test_a_failed_frame_is_relocalized_from_candidates(tmp_path):
     from icomma_plugin.camera import Intrinsics
 
     ledger = PosesLedger(tmp_path / "out", {"kind": "sequence"}, 4)
-    summ = track(w, FrameSource.open(str(folder)), ledger, lambda s: Intrinsics(8, 8, 8.0, 8.0),
-                 init_c2w=np.eye(4), cfg=TrackingConfig())
+    summ = track(
+        w,
+        FrameSource.open(str(folder)),
+        ledger,
+        lambda s: Intrinsics(8, 8, 8.0, 8.0),
+        init_c2w=np.eye(4),
+        cfg=TrackingConfig(),
+    )
     rows = ledger.all_rows()
     assert [r["status"] for r in rows] == ["ok"] * 4 and summ.relocalized == 1
     assert [r["relocalized"] for r in rows] == [False, False, True, False]
@@ -155,12 +177,19 @@ def test_a_failed_frame_is_relocalized_from_candidates(tmp_path):
     assert np.allclose(rows[3]["predicted_c2w"], truth["f3.png"])  # velocity from f1, f2
     w2 = _FakeWorker(truth)
     ledger2 = PosesLedger(tmp_path / "out2", {"kind": "sequence"}, 4)
-    track(w2, FrameSource.open(str(folder)), ledger2, lambda s: Intrinsics(8, 8, 8.0, 8.0),
-          init_c2w=np.eye(4), cfg=TrackingConfig(relocalize=False))
+    track(
+        w2,
+        FrameSource.open(str(folder)),
+        ledger2,
+        lambda s: Intrinsics(8, 8, 8.0, 8.0),
+        init_c2w=np.eye(4),
+        cfg=TrackingConfig(relocalize=False),
+    )
     assert [r["status"] for r in ledger2.all_rows()][2] == "failed"
 
 
 # ------------------------------------------------------------------------------------ real tracking
+
 
 @pytest.fixture(scope="module")
 def path_scene(tmp_path_factory):
@@ -181,8 +210,12 @@ def path_scene(tmp_path_factory):
         eye = np.array([3.8 * math.cos(az), 3.8 * math.sin(az), 2.0 + 0.03 * i])
         c2w = look_at_c2w(eye, np.array([0.0, 0.0, 0.4]))
         with torch.no_grad():
-            img = render(model, s.intrinsics, torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32),
-                         torch.zeros(3)).color.clamp(0, 1)
+            img = render(
+                model,
+                s.intrinsics,
+                torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32),
+                torch.zeros(3),
+            ).color.clamp(0, 1)
         a = (img.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
         Image.fromarray(a).save(folder / f"frame{i}.png")
         frames.append(a)
@@ -194,20 +227,38 @@ def path_scene(tmp_path_factory):
     start[:3, 3] += 0.05  # a start near the first frame
     np.savetxt(root / "start.txt", start)
     mp4 = video.write_video(root / "path.mp4", frames, fps=5)
-    return {"model": s.path, "frames": folder, "gt": root / "gt.json", "start": root / "start.txt",
-            "mp4": mp4, "scale": s.scene_scale, "gts": gts}
+    return {
+        "model": s.path,
+        "frames": folder,
+        "gt": root / "gt.json",
+        "start": root / "start.txt",
+        "mp4": mp4,
+        "scale": s.scene_scale,
+        "gts": gts,
+    }
 
 
 def _args(ps, out, *extra):
-    return ["data=model_folder", f"data.model_path={ps['model']}", "data.intrinsics.camera=ring_000",
-            f"data.gt.poses_file={ps['gt']}", f"data.init.c2w_file={ps['start']}", f"output.dir={out}",
-            "output.progress=false", *extra]
+    return [
+        "data=model_folder",
+        f"data.model_path={ps['model']}",
+        "data.intrinsics.camera=ring_000",
+        f"data.gt.poses_file={ps['gt']}",
+        f"data.init.c2w_file={ps['start']}",
+        f"output.dir={out}",
+        "output.progress=false",
+        *extra,
+    ]
 
 
 def test_tracking_a_path_from_a_folder_of_frames(path_scene, tmp_path):
     out = tmp_path / "out"
-    doc = _tool().run(_compose(_args(path_scene, out, f"data.sequence={path_scene['frames']}",
-                                     "output.video=false")), out)
+    doc = _tool().run(
+        _compose(
+            _args(path_scene, out, f"data.sequence={path_scene['frames']}", "output.video=false")
+        ),
+        out,
+    )
     rows = doc["photos"]
     assert [r["name"] for r in rows] == [f"frame{i}.png" for i in range(N_FRAMES)]
     assert doc["status"] == "complete" and doc["summary"]["kind"] == "sequence"
@@ -226,8 +277,18 @@ def test_tracking_a_path_from_a_folder_of_frames(path_scene, tmp_path):
 
 def test_tracking_an_mp4_every_second_frame_with_its_video(path_scene, tmp_path):
     out = tmp_path / "out"
-    doc = _tool().run(_compose(_args(path_scene, out, f"data.sequence={path_scene['mp4']}", "data.every=2",
-                                     "output.export=[nerfstudio]")), out)
+    doc = _tool().run(
+        _compose(
+            _args(
+                path_scene,
+                out,
+                f"data.sequence={path_scene['mp4']}",
+                "data.every=2",
+                "output.export=[nerfstudio]",
+            )
+        ),
+        out,
+    )
     rows = doc["photos"]
     assert [r["name"] for r in rows] == ["frame_000000", "frame_000002", "frame_000004"]
     assert [r["index"] for r in rows] == [0, 2, 4]
@@ -236,9 +297,22 @@ def test_tracking_an_mp4_every_second_frame_with_its_video(path_scene, tmp_path)
     w, h, n, _ = video.video_info(out / "tracking.mp4")
     assert n == 3 and h == SIZE and w >= 4 * SIZE
     ns = json.loads((out / "exports" / "transforms.json").read_text())
-    assert [f["file_path"] for f in ns["frames"]] == [r["name"] for r in rows if r["status"] != "failed"]
+    assert [f["file_path"] for f in ns["frames"]] == [
+        r["name"] for r in rows if r["status"] != "failed"
+    ]
     # run again on the same folder: nothing is redone
-    again = _tool().run(_compose(_args(path_scene, out, f"data.sequence={path_scene['mp4']}", "data.every=2",
-                                       "output.video=false", "output.trajectory_plot=false")), out)
+    again = _tool().run(
+        _compose(
+            _args(
+                path_scene,
+                out,
+                f"data.sequence={path_scene['mp4']}",
+                "data.every=2",
+                "output.video=false",
+                "output.trajectory_plot=false",
+            )
+        ),
+        out,
+    )
     assert again["summary"]["done_now"] == 0 and again["summary"]["skipped"] == 3
     assert again["photos"] == rows

@@ -30,6 +30,7 @@ resume), contact_sheet.png (batch), trajectory.png and tracking.mp4 (sequence), 
 
 Configuration: conf/localize.yaml (groups data, matcher, optimizer, renderer).
 """
+
 from __future__ import annotations
 
 import json
@@ -67,7 +68,9 @@ def run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
     of the call (a batch's worker processes: ``threads`` each, null meaning 1)."""
     if is_many(cfg):
         out = Path(cfg.output.get("dir") or output_dir)
-        with common.torch_threads(cfg.get("threads") or (1 if (cfg.get("workers") or 1) > 1 else None)):
+        with common.torch_threads(
+            cfg.get("threads") or (1 if (cfg.get("workers") or 1) > 1 else None)
+        ):
             return _run_many(cfg, out)
     with common.torch_threads(cfg.get("threads")):
         return _run(cfg, Path(output_dir))
@@ -86,20 +89,29 @@ def _run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
     problem = load_problem(common.container(cfg.data), backend)
     if backend == "cuda":  # the CUDA kernel renders CUDA tensors; library code never moves data
         if not torch.cuda.is_available():
-            raise common.UserError("renderer=cuda: no CUDA device is available here (use renderer=auto or cpu)")
+            raise common.UserError(
+                "renderer=cuda: no CUDA device is available here (use renderer=auto or cpu)"
+            )
         problem.model = problem.model.to("cuda")
     paper = isinstance(method_cfg, LocalizerConfig)
     if paper and problem.init_c2w is None:
-        raise common.UserError("data.init=none needs the default optimizer (optimizer=robust): the paper's "
-                               "method starts from a given pose")
+        raise common.UserError(
+            "data.init=none needs the default optimizer (optimizer=robust): the paper's "
+            "method starts from a given pose"
+        )
     opts = OutputOptions.from_dict(common.container(cfg.output))
 
     bar = None
     if cfg.output.progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=method_cfg.max_iterations if paper else None, desc="localize", unit="step",
-                   dynamic_ncols=True, leave=False)
+        bar = tqdm(
+            total=method_cfg.max_iterations if paper else None,
+            desc="localize",
+            unit="step",
+            dynamic_ncols=True,
+            leave=False,
+        )
 
     def hook(rec):
         if bar is None:
@@ -118,19 +130,39 @@ def _run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
     gt_w2c = None if problem.gt_c2w is None else np.linalg.inv(problem.gt_c2w)
     t0 = time.perf_counter()
     try:
-        result = localize(problem.model, problem.query.rgb, problem.query.intrinsics, init_w2c, matcher,
-                          method_cfg, gt_w2c=gt_w2c, query_alpha=problem.query.alpha,
-                          query_valid=problem.query.valid, backend=backend, bg=problem.bg, progress=hook,
-                          cameras_c2w=problem.candidate_c2ws(), query_name=problem.name)
+        result = localize(
+            problem.model,
+            problem.query.rgb,
+            problem.query.intrinsics,
+            init_w2c,
+            matcher,
+            method_cfg,
+            gt_w2c=gt_w2c,
+            query_alpha=problem.query.alpha,
+            query_valid=problem.query.valid,
+            backend=backend,
+            bg=problem.bg,
+            progress=hook,
+            cameras_c2w=problem.candidate_c2ws(),
+            query_name=problem.name,
+        )
     finally:
         if bar is not None:
             bar.close()
-    return write_outputs(output_dir, problem, result, matcher=matcher, options=opts, backend=backend,
-                         config=common.container(cfg), seconds_total=time.perf_counter() - t0)
+    return write_outputs(
+        output_dir,
+        problem,
+        result,
+        matcher=matcher,
+        options=opts,
+        backend=backend,
+        config=common.container(cfg),
+        seconds_total=time.perf_counter() - t0,
+    )
 
 
 class _Bar:
-    """tqdm bar with ETA and the running ok / uncertain / failed counts (made on the start event)."""
+    """tqdm bar with ETA and the running ok / uncertain / failed counts (made at the start)."""
 
     def __init__(self, enabled: bool, unit: str):
         self.enabled, self.unit, self.bar = enabled, unit, None
@@ -141,7 +173,9 @@ class _Bar:
         if self.bar is None:
             from tqdm import tqdm
 
-            self.bar = tqdm(total=ev.get("todo"), desc="localize", unit=self.unit, dynamic_ncols=True)
+            self.bar = tqdm(
+                total=ev.get("todo"), desc="localize", unit=self.unit, dynamic_ncols=True
+            )
         if ev.get("row") is not None:
             self.bar.update(1)
         self.bar.set_postfix(ev["counts"], refresh=True)
@@ -153,61 +187,107 @@ class _Bar:
 
 def _run_many(cfg: DictConfig, out: Path) -> Dict[str, Any]:
     """A batch (data.queries) or a sequence (data.sequence) into ``out``; returns poses.json."""
-    from icomma_plugin.localization.batch import (WorkerSetup, export_rows, open_model_folder, plan_batch,
-                                                  run_batch, run_identity)
+    from icomma_plugin.localization.batch import (
+        WorkerSetup,
+        export_rows,
+        open_model_folder,
+        plan_batch,
+        run_batch,
+        run_identity,
+    )
     from icomma_plugin.localization.ledger import PosesLedger
     from icomma_plugin.localization.output import OutputOptions
     from icomma_plugin.localize import LocalizerConfig
 
     data = common.container(cfg.data)
     if data.get("kind") != "model_folder":
-        raise common.UserError("data.queries / data.sequence need a model folder: data=model_folder "
-                               "data.model_path=<3DGS output> (the demo scene folder is one)")
+        raise common.UserError(
+            "data.queries / data.sequence need a model folder: data=model_folder "
+            "data.model_path=<3DGS output> (the demo scene folder is one)"
+        )
     if data.get("queries") and data.get("sequence"):
         raise common.UserError("set data.queries (a batch) or data.sequence (a video), not both")
     common.seed_everything(int(cfg.seed))
     backend = str(cfg.renderer.backend)
     if backend == "cuda" and not torch.cuda.is_available():
-        raise common.UserError("renderer=cuda: no CUDA device is available here (use renderer=auto or cpu)")
+        raise common.UserError(
+            "renderer=cuda: no CUDA device is available here (use renderer=auto or cpu)"
+        )
     method_cfg = common.build_optimizer(cfg.optimizer)
     matcher, _ = common.build_matcher(cfg.get("matcher"))
     if matcher is None and not isinstance(method_cfg, LocalizerConfig):
-        raise common.UserError("the default optimizer (optimizer=robust) needs a matcher (e.g. matcher=xfeat)")
+        raise common.UserError(
+            "the default optimizer (optimizer=robust) needs a matcher (e.g. matcher=xfeat)"
+        )
     oc = common.container(cfg.output)
     workers = int(cfg.get("workers") or 1)
     shard, num_shards = int(data.get("shard") or 0), int(data.get("num_shards") or 1)
     if not (num_shards >= 1 and 0 <= shard < num_shards):
-        raise common.UserError(f"data.shard must be in [0, data.num_shards={num_shards}), got {shard}")
+        raise common.UserError(
+            f"data.shard must be in [0, data.num_shards={num_shards}), got {shard}"
+        )
     if workers < 1:
         raise common.UserError(f"workers must be a positive integer, got {workers}")
     mf, white = open_model_folder(data)
     sequence = bool(data.get("sequence"))
     setup = WorkerSetup(
-        model_path=str(Path(mf.path).resolve()), method=method_cfg, matcher=common.container(cfg.get("matcher")),
-        out_dir=str(out), iteration=mf.iteration, white_background=white, backend=backend,
-        resize=data.get("resize"), folders=bool(oc.get("photo_folders")), output=OutputOptions.from_dict(oc),
-        thumbs=bool(oc.get("contact_sheet")), thumb_side=int(oc.get("thumb_side") or 192),
-        config=common.container(cfg), seed=int(cfg.seed))
+        model_path=str(Path(mf.path).resolve()),
+        method=method_cfg,
+        matcher=common.container(cfg.get("matcher")),
+        out_dir=str(out),
+        iteration=mf.iteration,
+        white_background=white,
+        backend=backend,
+        resize=data.get("resize"),
+        folders=bool(oc.get("photo_folders")),
+        output=OutputOptions.from_dict(oc),
+        thumbs=bool(oc.get("contact_sheet")),
+        thumb_side=int(oc.get("thumb_side") or 192),
+        config=common.container(cfg),
+        seed=int(cfg.seed),
+    )
     bar = _Bar(bool(oc.get("progress")), "frame" if sequence else "photo")
     t0 = time.perf_counter()
     try:
         if sequence:
             if num_shards > 1 or workers > 1:
-                raise common.UserError("a sequence is tracked frame after frame: data.num_shards and workers "
-                                       "must be 1 with data.sequence")
+                raise common.UserError(
+                    "a sequence is tracked frame after frame: data.num_shards and workers "
+                    "must be 1 with data.sequence"
+                )
             res = _run_sequence(cfg, data, mf, setup, matcher, out, bar)
         else:
             if workers > 1 and backend == "cuda":
-                raise common.UserError("workers > 1 shares one GPU between processes: use workers=1 with "
-                                       "renderer=cuda")
+                raise common.UserError(
+                    "workers > 1 shares one GPU between processes: use workers=1 with "
+                    "renderer=cuda"
+                )
             plan, _ = plan_batch(data, mf)
-            ledger = PosesLedger(out, {**run_identity("batch", data, setup.model_path),
-                                       "config": common.container(cfg)}, len(plan.tasks), shard, num_shards)
-            summ = run_batch(plan, setup, ledger, workers=workers, threads_per_worker=int(cfg.get("threads") or 1),
-                             retry_failed=bool(oc.get("retry_failed")), progress=bar,
-                             model_folder=mf if workers == 1 else None, matcher=matcher if workers == 1 else None)
-            res = {"kind": "batch", "done_now": summ.done_now, "skipped": summ.skipped,
-                   "photos_per_minute": summ.photos_per_minute, "seconds": summ.seconds}
+            ledger = PosesLedger(
+                out,
+                {**run_identity("batch", data, setup.model_path), "config": common.container(cfg)},
+                len(plan.tasks),
+                shard,
+                num_shards,
+            )
+            summ = run_batch(
+                plan,
+                setup,
+                ledger,
+                workers=workers,
+                threads_per_worker=int(cfg.get("threads") or 1),
+                retry_failed=bool(oc.get("retry_failed")),
+                progress=bar,
+                model_folder=mf if workers == 1 else None,
+                matcher=matcher if workers == 1 else None,
+            )
+            res = {
+                "kind": "batch",
+                "done_now": summ.done_now,
+                "skipped": summ.skipped,
+                "photos_per_minute": summ.photos_per_minute,
+                "seconds": summ.seconds,
+            }
             rows = ledger.all_rows()
             if setup.thumbs and rows:
                 from icomma_plugin.visualize import contact_sheet
@@ -219,11 +299,21 @@ def _run_many(cfg: DictConfig, out: Path) -> Dict[str, Any]:
             res["rows"] = rows
     finally:
         bar.close()
-    exports = export_rows(out, res["rows"], list(oc.get("export") or []),
-                          tuple(oc.get("export_verdicts") or ("ok", "uncertain"))) if oc.get("export") else {}
+    exports = (
+        export_rows(
+            out,
+            res["rows"],
+            list(oc.get("export") or []),
+            tuple(oc.get("export_verdicts") or ("ok", "uncertain")),
+        )
+        if oc.get("export")
+        else {}
+    )
     doc = json.loads((out / "poses.json").read_text())
     doc["summary"] = {k: v for k, v in res.items() if k != "rows"}
-    doc["summary"].update({"exports": exports, "output_dir": str(out), "seconds_total": time.perf_counter() - t0})
+    doc["summary"].update(
+        {"exports": exports, "output_dir": str(out), "seconds_total": time.perf_counter() - t0}
+    )
     return doc
 
 
@@ -231,7 +321,12 @@ def _run_sequence(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, An
     from icomma_plugin.localization.batch import BatchWorker, run_identity, start_poses
     from icomma_plugin.localization.inputs import photo_intrinsics, read_poses_file
     from icomma_plugin.localization.ledger import PosesLedger
-    from icomma_plugin.localization.tracking import FrameSource, TrackingConfig, track, write_tracking_video
+    from icomma_plugin.localization.tracking import (
+        FrameSource,
+        TrackingConfig,
+        track,
+        write_tracking_video,
+    )
 
     oc = common.container(cfg.output)
     source = FrameSource.open(data["sequence"], int(data.get("every") or 1), data.get("limit"))
@@ -242,21 +337,29 @@ def _run_sequence(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, An
             table = read_poses_file(g[k], f"data.gt.{k}")
     gt_of = None if table is None else table.get
     first = "frame_000000" if source.is_video else source.names[0]
-    mode, inits, errs = start_poses(data.get("init"), [first], [None if gt_of is None else gt_of(first)], mf)
+    mode, inits, errs = start_poses(
+        data.get("init"), [first], [None if gt_of is None else gt_of(first)], mf
+    )
     if errs[0]:
         raise common.UserError(errs[0])
     it = data.get("intrinsics") or {}
-    photo_intrinsics((1000, 1000), dict(it, width=None, height=None), mf.cameras)  # a config error now
+    photo_intrinsics(
+        (1000, 1000), dict(it, width=None, height=None), mf.cameras
+    )  # a config error now
 
     def intrinsics_of(size):
         return photo_intrinsics(size, it, mf.cameras)
 
     worker = BatchWorker(setup, mf, matcher)
-    ledger = PosesLedger(out, {**run_identity("sequence", data, setup.model_path),
-                               "config": common.container(cfg)}, source.count() or 0)
+    ledger = PosesLedger(
+        out,
+        {**run_identity("sequence", data, setup.model_path), "config": common.container(cfg)},
+        source.count() or 0,
+    )
     tc = common.container(cfg.get("tracking")) or {}
-    summ = track(worker, source, ledger, intrinsics_of, inits[0], gt_of,
-                 TrackingConfig(**tc), progress=bar)
+    summ = track(
+        worker, source, ledger, intrinsics_of, inits[0], gt_of, TrackingConfig(**tc), progress=bar
+    )
     ledger.total = max(ledger.total, len(ledger.all_rows()))
     ledger.flush()
     rows = ledger.all_rows()
@@ -265,20 +368,37 @@ def _run_sequence(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, An
         if oc.get("trajectory_plot") and rows:
             from icomma_plugin.visualize import plot_trajectory
 
-            plot_trajectory(out / "trajectory.png", [None if r.get("c2w") is None else np.asarray(r["c2w"])
-                                                     for r in rows], [e.c2w for e in mf.cameras],
-                            [None if r.get("gt_c2w") is None else np.asarray(r["gt_c2w"]) for r in rows],
-                            [r["status"] for r in rows], title=f"{len(rows)} frames of {data['sequence']}")
+            plot_trajectory(
+                out / "trajectory.png",
+                [None if r.get("c2w") is None else np.asarray(r["c2w"]) for r in rows],
+                [e.c2w for e in mf.cameras],
+                [None if r.get("gt_c2w") is None else np.asarray(r["gt_c2w"]) for r in rows],
+                [r["status"] for r in rows],
+                title=f"{len(rows)} frames of {data['sequence']}",
+            )
             files.append("trajectory.png")
         if oc.get("video") and rows:
-            p = write_tracking_video(out / "tracking.mp4", worker, source, rows, intrinsics_of,
-                                     float(oc.get("video_fps") or 10))
+            p = write_tracking_video(
+                out / "tracking.mp4",
+                worker,
+                source,
+                rows,
+                intrinsics_of,
+                float(oc.get("video_fps") or 10),
+            )
             files.append(p.name)
     except Exception as e:  # noqa: BLE001 - a picture never fails the run
         log.warning("could not draw every picture: %s: %s", type(e).__name__, e)
-    return {"kind": "sequence", "done_now": summ.done_now, "skipped": summ.skipped,
-            "frames_per_second": summ.frames_per_second, "seconds": summ.seconds,
-            "relocalized": summ.relocalized, "files": files, "rows": rows}
+    return {
+        "kind": "sequence",
+        "done_now": summ.done_now,
+        "skipped": summ.skipped,
+        "frames_per_second": summ.frames_per_second,
+        "seconds": summ.seconds,
+        "relocalized": summ.relocalized,
+        "files": files,
+        "rows": rows,
+    }
 
 
 def many_summary(doc: Dict[str, Any]) -> str:
@@ -286,15 +406,28 @@ def many_summary(doc: Dict[str, Any]) -> str:
     c = doc.get("counts", {})
     rows = doc.get("photos", [])
     errs = [r["rot_err_deg"] for r in rows if r.get("rot_err_deg") is not None]
-    rate = (f"{s['photos_per_minute']:.2f} photos/min" if s.get("photos_per_minute")
-            else f"{s['frames_per_second']:.3f} frames/s" if s.get("frames_per_second") else "nothing new to do")
-    lines = ["=" * 72,
-             f"{s.get('kind')}: {doc.get('done')} of {doc.get('total')} done ({doc.get('status')}); this run "
-             f"{s.get('done_now')} in {s.get('seconds', 0):.1f} s ({rate}), {s.get('skipped')} skipped (resume)",
-             f"  verdicts     ok {c.get('ok', 0)}  uncertain {c.get('uncertain', 0)}  failed {c.get('failed', 0)}"]
+    rate = (
+        f"{s['photos_per_minute']:.2f} photos/min"
+        if s.get("photos_per_minute")
+        else (
+            f"{s['frames_per_second']:.3f} frames/s"
+            if s.get("frames_per_second")
+            else "nothing new to do"
+        )
+    )
+    lines = [
+        "=" * 72,
+        f"{s.get('kind')}: {doc.get('done')} of {doc.get('total')} done ({doc.get('status')}); "
+        f"this run {s.get('done_now')} in {s.get('seconds', 0):.1f} s ({rate}), "
+        f"{s.get('skipped')} skipped (resume)",
+        f"  verdicts     ok {c.get('ok', 0)}  uncertain {c.get('uncertain', 0)}  "
+        f"failed {c.get('failed', 0)}",
+    ]
     if errs:
-        lines.append(f"  rotation error (truth known, {len(errs)}): median {np.median(errs):.3f} deg, "
-                     f"max {np.max(errs):.3f} deg")
+        lines.append(
+            f"  rotation error (truth known, {len(errs)}): median {np.median(errs):.3f} deg, "
+            f"max {np.max(errs):.3f} deg"
+        )
     for f, paths in (s.get("exports") or {}).items():
         lines.append(f"  export {f}: {', '.join(paths)}")
     lines.append(f"  outputs in {s.get('output_dir')} (poses.json, poses.csv)")
@@ -321,7 +454,11 @@ def summary(res: Dict[str, Any], output_dir: Path) -> str:
         lines += [
             f"  rotation     {f(init_r, '8.3f')} deg -> {res['final_rotation_error_deg']:.4f} deg",
             f"  translation  {f(init_t, '8.4f')}     -> {res['final_translation_error']:.5f}"
-            + ("" if rel is None else f"  ({100 * rel:.3f}% of the scene scale {res['scene_scale']:.3g})"),
+            + (
+                ""
+                if rel is None
+                else f"  ({100 * rel:.3f}% of the scene scale {res['scene_scale']:.3g})"
+            ),
             f"  success (< 0.5 deg, < 1% scale): {res['success']}",
         ]
     c = np.asarray(res["estimated_c2w"])

@@ -9,6 +9,7 @@ OpenCV's ``mp4v`` (MPEG-4 part 2) encoder; when neither can encode, the frames g
 beside the requested name, with a warning, and the GIF's path is returned. Files are written to
 a temporary name in the same folder and moved into place (a reader never sees half a video).
 """
+
 from __future__ import annotations
 
 import logging
@@ -23,7 +24,14 @@ logger = logging.getLogger(__name__)
 
 PathLike = Union[str, os.PathLike]
 
-__all__ = ["VIDEO_SUFFIXES", "VideoError", "is_video_file", "read_video_frames", "video_info", "write_video"]
+__all__ = [
+    "VIDEO_SUFFIXES",
+    "VideoError",
+    "is_video_file",
+    "read_video_frames",
+    "video_info",
+    "write_video",
+]
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv", ".gif")
 
@@ -54,14 +62,19 @@ def video_info(path: PathLike) -> Tuple[int, int, int, float]:
 
     cap = _open(Path(path))
     try:
-        return (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)),
-                max(0, int(cap.get(cv2.CAP_PROP_FRAME_COUNT))), float(cap.get(cv2.CAP_PROP_FPS) or 0.0))
+        return (
+            int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)),
+            int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)),
+            max(0, int(cap.get(cv2.CAP_PROP_FRAME_COUNT))),
+            float(cap.get(cv2.CAP_PROP_FPS) or 0.0),
+        )
     finally:
         cap.release()
 
 
-def read_video_frames(path: PathLike, every: int = 1, start: int = 0,
-                      limit: Optional[int] = None) -> Iterator[Tuple[int, np.ndarray]]:
+def read_video_frames(
+    path: PathLike, every: int = 1, start: int = 0, limit: Optional[int] = None
+) -> Iterator[Tuple[int, np.ndarray]]:
     """Yield ``(frame index, [H, W, 3] uint8 RGB)`` for every ``every``-th frame from ``start``,
     at most ``limit`` frames. Frames skipped are grabbed, not decoded."""
     if isinstance(every, bool) or not isinstance(every, int) or every < 1:
@@ -105,8 +118,9 @@ def _write_imageio(tmp: Path, frames: list, fps: float) -> bool:
     except ImportError:
         return False
     try:
-        with imageio.get_writer(str(tmp), format="FFMPEG", fps=fps, codec="libx264", quality=8,
-                                macro_block_size=1) as w:
+        with imageio.get_writer(
+            str(tmp), format="FFMPEG", fps=fps, codec="libx264", quality=8, macro_block_size=1
+        ) as w:
             for f in frames:
                 w.append_data(f)
         return tmp.stat().st_size > 0
@@ -158,7 +172,11 @@ def write_video(path: PathLike, frames: Iterable, fps: float = 10.0) -> Path:
             if tmp.exists():
                 tmp.unlink()
         gif = path.with_suffix(".gif")
-        logger.warning("no MP4 encoder works here (imageio-ffmpeg missing, OpenCV's mp4v failed): "
-                       "wrote %s instead of %s", gif.name, path.name)
+        logger.warning(
+            "no MP4 encoder works here (imageio-ffmpeg missing, OpenCV's mp4v failed): "
+            "wrote %s instead of %s",
+            gif.name,
+            path.name,
+        )
         path = gif
     return save_gif(path, arr, fps=fps)

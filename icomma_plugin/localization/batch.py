@@ -13,6 +13,7 @@ model's cameras (same pose as its known truth) has that camera left out, as a be
 A photo that cannot be read, has the wrong size or no start pose becomes a ``failed`` row whose
 ``error`` says why; the batch goes on.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -37,14 +38,30 @@ from .types import LocalizationResult, Query
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["BatchPlan", "BatchSummary", "BatchWorker", "PhotoTask", "WorkerSetup", "export_rows",
-           "failure_row", "make_matcher_from_spec", "open_model_folder", "plan_batch", "resize_query",
-           "result_row", "run_batch", "run_identity", "safe_name", "start_poses"]
+__all__ = [
+    "BatchPlan",
+    "BatchSummary",
+    "BatchWorker",
+    "PhotoTask",
+    "WorkerSetup",
+    "export_rows",
+    "failure_row",
+    "make_matcher_from_spec",
+    "open_model_folder",
+    "plan_batch",
+    "resize_query",
+    "result_row",
+    "run_batch",
+    "run_identity",
+    "safe_name",
+    "start_poses",
+]
 
 INIT_KEYS = ("camera", "c2w_file", "rot_deg", "poses_file", "cameras_json")
 
 
 # ---------------------------------------------------------------------------------- planning
+
 
 @dataclass
 class PhotoTask:
@@ -82,12 +99,18 @@ def open_model_folder(data: Dict[str, Any]):
 
     mp_s = data.get("model_path")
     if not mp_s or mp_s == "???":
-        raise ProblemError("data.model_path is required with data=model_folder (a trained 3DGS output folder)")
+        raise ProblemError(
+            "data.model_path is required with data=model_folder (a trained 3DGS output folder)"
+        )
     mp = Path(str(mp_s)).expanduser()
     if not mp.is_dir():
         raise ProblemError(f"data.model_path: model folder not found: {mp}")
     mf = load_model_folder(mp, iteration=data.get("iteration"))
-    white = mf.white_background if data.get("white_background") is None else bool(data["white_background"])
+    white = (
+        mf.white_background
+        if data.get("white_background") is None
+        else bool(data["white_background"])
+    )
     return mf, white
 
 
@@ -100,8 +123,9 @@ def _positive(d, key, default=None):
     return v
 
 
-def start_poses(ini_cfg, names: Sequence[str], gts: Sequence[Optional[np.ndarray]], mf) \
-        -> Tuple[str, List[Optional[np.ndarray]], List[Optional[str]]]:
+def start_poses(
+    ini_cfg, names: Sequence[str], gts: Sequence[Optional[np.ndarray]], mf
+) -> Tuple[str, List[Optional[np.ndarray]], List[Optional[str]]]:
     """(mode, start c2w per photo, error per photo) from the ``data.init`` group.
 
     none (``data.init=none``): no start pose; constant: ``camera`` / ``c2w_file``; per_photo:
@@ -117,13 +141,17 @@ def start_poses(ini_cfg, names: Sequence[str], gts: Sequence[Optional[np.ndarray
         return "none", [None] * n, [None] * n
     chosen = [k for k in INIT_KEYS if ini.get(k) is not None]
     if len(chosen) != 1:
-        raise ProblemError("choose exactly one start pose for the photos: data.init.poses_file, "
-                           "data.init.cameras_json, data.init.c2w_file, data.init.camera or data.init.rot_deg, or "
-                           f"none with data.init=none (got {chosen or 'none of them'})")
+        raise ProblemError(
+            "choose exactly one start pose for the photos: data.init.poses_file, "
+            "data.init.cameras_json, data.init.c2w_file, data.init.camera or data.init.rot_deg, or "
+            f"none with data.init=none (got {chosen or 'none of them'})"
+        )
     key = chosen[0]
     if key == "camera":
         if not mf.cameras:
-            raise ProblemError(f"data.init.camera={ini['camera']!r}: the model folder has no cameras.json")
+            raise ProblemError(
+                f"data.init.camera={ini['camera']!r}: the model folder has no cameras.json"
+            )
         try:
             c2w = np.asarray(find_entry(mf.cameras, ini["camera"]).c2w, np.float64)
         except ValueError as e:
@@ -137,8 +165,10 @@ def start_poses(ini_cfg, names: Sequence[str], gts: Sequence[Optional[np.ndarray
         for i, gt in enumerate(gts):
             if gt is None:
                 out.append(None)
-                errs.append("data.init.rot_deg perturbs the ground truth, which is unknown for this photo "
-                            "(set data.gt.poses_file, or use a dataset folder as data.queries)")
+                errs.append(
+                    "data.init.rot_deg perturbs the ground truth, which is unknown for this photo "
+                    "(set data.gt.poses_file, or use a dataset folder as data.queries)"
+                )
                 continue
             sub = dict(ini, seed=int(ini.get("seed") or 0) + i)
             out.append(_perturbed(gt, sub, None, mf))
@@ -153,9 +183,12 @@ def start_poses(ini_cfg, names: Sequence[str], gts: Sequence[Optional[np.ndarray
     for name in names:
         c2w = table.get(name)
         out.append(c2w)
-        errs.append(None if c2w is not None or missing == "none" else
-                    f"no start pose for {name!r} in {what} ({table.source}); add it, or set "
-                    "data.init.missing=none to search the candidate views")
+        errs.append(
+            None
+            if c2w is not None or missing == "none"
+            else f"no start pose for {name!r} in {what} ({table.source}); add it, or set "
+            "data.init.missing=none to search the candidate views"
+        )
     return "per_photo", out, errs
 
 
@@ -163,8 +196,10 @@ def _truths(gt_cfg, names: Sequence[str], views) -> List[Optional[np.ndarray]]:
     g = gt_cfg or {}
     for k in ("camera", "c2w_file"):
         if g.get(k) is not None:
-            raise ProblemError(f"data.gt.{k} is one pose for one photo; for a batch use data.gt.poses_file "
-                               "or data.gt.cameras_json (poses by name)")
+            raise ProblemError(
+                f"data.gt.{k} is one pose for one photo; for a batch use data.gt.poses_file "
+                "or data.gt.cameras_json (poses by name)"
+            )
     table: Optional[PoseTable] = None
     for k in ("poses_file", "cameras_json"):
         if g.get(k) is not None:
@@ -197,10 +232,16 @@ def plan_batch(data: Dict[str, Any], mf=None) -> Tuple[BatchPlan, Any]:
     if mf is None:
         mf, white = open_model_folder(data)
     else:
-        white = mf.white_background if data.get("white_background") is None else bool(data["white_background"])
+        white = (
+            mf.white_background
+            if data.get("white_background") is None
+            else bool(data["white_background"])
+        )
     every, limit = _positive(data, "every", 1), _positive(data, "limit")
     resize = _positive(data, "resize")
-    photos = list_photos(data.get("queries"), "data.queries", str(data.get("queries_split") or "all"), white)
+    photos = list_photos(
+        data.get("queries"), "data.queries", str(data.get("queries_split") or "all"), white
+    )
     keep = select(photos.names, every, limit)
     names = [photos.names[i] for i in keep]
     paths = [photos.paths[i] for i in keep]
@@ -222,23 +263,42 @@ def plan_batch(data: Dict[str, Any], mf=None) -> Tuple[BatchPlan, Any]:
                 raise
             except Exception as e:  # noqa: BLE001 - an unreadable photo is a per-photo failure
                 err = err or f"cannot read the image {paths[i]} ({type(e).__name__}: {e})"
-        tasks.append(PhotoTask(i, name, str(paths[i]), None if views is None else views[i], intr,
-                               inits[i], gts[i], err))
-    plan = BatchPlan(tasks, str(Path(mf.path).resolve()), mf.iteration, white, resize, mode,
-                     data.get("queries"))
+        tasks.append(
+            PhotoTask(
+                i,
+                name,
+                str(paths[i]),
+                None if views is None else views[i],
+                intr,
+                inits[i],
+                gts[i],
+                err,
+            )
+        )
+    plan = BatchPlan(
+        tasks, str(Path(mf.path).resolve()), mf.iteration, white, resize, mode, data.get("queries")
+    )
     return plan, mf
 
 
 def run_identity(kind: str, data: Dict[str, Any], model_path: str) -> Dict[str, Any]:
     """What a resumed run must share with the poses.json it continues."""
-    def norm(v):
-        return [str(x) for x in v] if isinstance(v, (list, tuple)) else (None if v is None else str(v))
 
-    return {"kind": kind, "model_path": str(model_path), "queries": norm(data.get("queries")),
-            "sequence": norm(data.get("sequence"))}
+    def norm(v):
+        return (
+            [str(x) for x in v] if isinstance(v, (list, tuple)) else (None if v is None else str(v))
+        )
+
+    return {
+        "kind": kind,
+        "model_path": str(model_path),
+        "queries": norm(data.get("queries")),
+        "sequence": norm(data.get("sequence")),
+    }
 
 
 # ---------------------------------------------------------------------------------- the worker
+
 
 def make_matcher_from_spec(spec: Optional[Dict[str, Any]]):
     """A matcher from a matcher group mapping (``name`` + keyword arguments, optionally
@@ -308,43 +368,77 @@ def resize_query(q: Query, side: Optional[int]) -> Query:
 
 
 def _intrinsics_json(intr: Intrinsics) -> Dict[str, Any]:
-    return {"width": intr.width, "height": intr.height, "fx": intr.fx, "fy": intr.fy, "cx": intr.cx,
-            "cy": intr.cy}
+    return {
+        "width": intr.width,
+        "height": intr.height,
+        "fx": intr.fx,
+        "fy": intr.fy,
+        "cx": intr.cx,
+        "cy": intr.cy,
+    }
 
 
-def failure_row(task: PhotoTask, reason: str, error: Optional[str] = None, seconds: float = 0.0) -> Dict[str, Any]:
+def failure_row(
+    task: PhotoTask, reason: str, error: Optional[str] = None, seconds: float = 0.0
+) -> Dict[str, Any]:
     """The row of a photo that could not be localized at all."""
-    return {"index": task.index, "name": task.name, "image": task.path, "status": "failed",
-            "reason": reason, "error": error or reason, "c2w": None,
-            "init_c2w": None if task.init_c2w is None else np.asarray(task.init_c2w).tolist(),
-            "gt_c2w": None if task.gt_c2w is None else np.asarray(task.gt_c2w).tolist(),
-            "rot_err_deg": None, "trans_err": None, "trans_err_rel": None, "initial_rot_err_deg": None,
-            "seconds": seconds, "intrinsics": None if task.intrinsics is None else _intrinsics_json(task.intrinsics)}
+    return {
+        "index": task.index,
+        "name": task.name,
+        "image": task.path,
+        "status": "failed",
+        "reason": reason,
+        "error": error or reason,
+        "c2w": None,
+        "init_c2w": None if task.init_c2w is None else np.asarray(task.init_c2w).tolist(),
+        "gt_c2w": None if task.gt_c2w is None else np.asarray(task.gt_c2w).tolist(),
+        "rot_err_deg": None,
+        "trans_err": None,
+        "trans_err_rel": None,
+        "initial_rot_err_deg": None,
+        "seconds": seconds,
+        "intrinsics": None if task.intrinsics is None else _intrinsics_json(task.intrinsics),
+    }
 
 
-def result_row(task: PhotoTask, problem: Problem, result: LocalizationResult, seconds: float,
-               folder: Optional[str] = None, thumb: Optional[str] = None) -> Dict[str, Any]:
+def result_row(
+    task: PhotoTask,
+    problem: Problem,
+    result: LocalizationResult,
+    seconds: float,
+    folder: Optional[str] = None,
+    thumb: Optional[str] = None,
+) -> Dict[str, Any]:
     """The poses.json row of one localized photo."""
     scale = problem.scene_scale
     te = result.final_translation_error
     v = result.verdict
     mc = result.match_counts or {}
     return {
-        "index": task.index, "name": task.name, "image": task.path,
+        "index": task.index,
+        "name": task.name,
+        "image": task.path,
         "status": v.status if v is not None else "uncertain",
         "reason": v.reason if v is not None else "no verdict",
         "error": None,
         "c2w": result.c2w.tolist(),
         "init_c2w": None if problem.init_c2w is None else problem.init_c2w.tolist(),
         "gt_c2w": None if problem.gt_c2w is None else problem.gt_c2w.tolist(),
-        "rot_err_deg": result.final_rotation_error_deg, "trans_err": te,
+        "rot_err_deg": result.final_rotation_error_deg,
+        "trans_err": te,
         "trans_err_rel": None if te is None or not scale else te / scale,
         "initial_rot_err_deg": result.initial_rotation_error_deg,
-        "seconds": seconds, "localize_seconds": result.seconds, "iterations": result.iterations,
-        "method": result.method, "inliers": mc.get("inliers"), "matches": mc.get("matches"),
+        "seconds": seconds,
+        "localize_seconds": result.seconds,
+        "iterations": result.iterations,
+        "method": result.method,
+        "inliers": mc.get("inliers"),
+        "matches": mc.get("matches"),
         "intrinsics": _intrinsics_json(task.intrinsics),
         "work_size": [problem.query.intrinsics.width, problem.query.intrinsics.height],
-        "folder": folder, "thumb": thumb, "worker": os.getpid(),
+        "folder": folder,
+        "thumb": thumb,
+        "worker": os.getpid(),
     }
 
 
@@ -357,7 +451,7 @@ def _seeded(seed: Optional[int]) -> Iterator[None]:
     state = np.random.get_state()
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
-        np.random.seed(seed % (2 ** 32))
+        np.random.seed(seed % (2**32))
         try:
             yield
         finally:
@@ -372,7 +466,11 @@ class BatchWorker:
         from ..pose.convert import cameras_extent
 
         self.setup = setup
-        self.mf = model_folder if model_folder is not None else load_model_folder(setup.model_path, setup.iteration)
+        self.mf = (
+            model_folder
+            if model_folder is not None
+            else load_model_folder(setup.model_path, setup.iteration)
+        )
         self.model = self.mf.model
         if setup.backend == "cuda":
             self.model = self.model.to("cuda")
@@ -395,11 +493,23 @@ class BatchWorker:
         cs = self._candidates.get(intr)
         if cs is None:
             t = time.perf_counter()
-            cs = CandidateSet.for_model(self.model, intr, self.matcher, self.bg,
-                                        [e.c2w for e in self.cameras], cfg.candidates, self.setup.backend,
-                                        [e.img_name for e in self.cameras])
-            logger.info("candidate set for %dx%d: %d views in %.1f s", intr.width, intr.height, len(cs.c2w),
-                        time.perf_counter() - t)
+            cs = CandidateSet.for_model(
+                self.model,
+                intr,
+                self.matcher,
+                self.bg,
+                [e.c2w for e in self.cameras],
+                cfg.candidates,
+                self.setup.backend,
+                [e.img_name for e in self.cameras],
+            )
+            logger.info(
+                "candidate set for %dx%d: %d views in %.1f s",
+                intr.width,
+                intr.height,
+                len(cs.c2w),
+                time.perf_counter() - t,
+            )
             self._candidates[intr] = cs
         return cs
 
@@ -415,8 +525,12 @@ class BatchWorker:
         if not drop:
             return cs
         keep = [i for i in range(len(cs.c2w)) if i not in drop]
-        return CandidateSet([cs.c2w[i] for i in keep], [cs.source[i] for i in keep], cs.intrinsics,
-                            [cs.features[i] for i in keep])
+        return CandidateSet(
+            [cs.c2w[i] for i in keep],
+            [cs.source[i] for i in keep],
+            cs.intrinsics,
+            [cs.features[i] for i in keep],
+        )
 
     # ------------------------------------------------------------------ one photo
     def load_query(self, task: PhotoTask) -> Query:
@@ -427,31 +541,61 @@ class BatchWorker:
             rgb, alpha = read_query_image(task.path, self.bg)
             W, H = int(rgb.shape[2]), int(rgb.shape[1])
             if (W, H) != (task.intrinsics.width, task.intrinsics.height):
-                raise ProblemError(f"the photo {task.path} is {W}x{H}, not the {task.intrinsics.width}x"
-                                   f"{task.intrinsics.height} its intrinsics were planned for")
+                raise ProblemError(
+                    f"the photo {task.path} is {W}x{H}, not the {task.intrinsics.width}x"
+                    f"{task.intrinsics.height} its intrinsics were planned for"
+                )
             q = Query(rgb, task.intrinsics, alpha, None, task.name)
         return resize_query(q, self.setup.resize)
 
     def problem(self, task: PhotoTask, query: Query) -> Problem:
-        return Problem(model=self.model, query=query, init_c2w=task.init_c2w, gt_c2w=task.gt_c2w, bg=self.bg,
-                       scene_scale=self.scene_scale, cameras=self.cameras,
-                       info={"model_path": self.setup.model_path, "iteration": self.mf.iteration,
-                             "num_gaussians": self.model.num_gaussians, "batch_index": task.index})
+        return Problem(
+            model=self.model,
+            query=query,
+            init_c2w=task.init_c2w,
+            gt_c2w=task.gt_c2w,
+            bg=self.bg,
+            scene_scale=self.scene_scale,
+            cameras=self.cameras,
+            info={
+                "model_path": self.setup.model_path,
+                "iteration": self.mf.iteration,
+                "num_gaussians": self.model.num_gaussians,
+                "batch_index": task.index,
+            },
+        )
 
-    def localize(self, problem: Problem, init_c2w: Optional[np.ndarray], progress=None) -> LocalizationResult:
+    def localize(
+        self, problem: Problem, init_c2w: Optional[np.ndarray], progress=None
+    ) -> LocalizationResult:
         from ..localize import localize
 
         q = problem.query
         init_w2c = None if init_c2w is None else np.linalg.inv(init_c2w)
         gt_w2c = None if problem.gt_c2w is None else np.linalg.inv(problem.gt_c2w)
         cs = self.candidates_without(q.intrinsics, problem.gt_c2w)
-        return localize(self.model, q.rgb, q.intrinsics, init_w2c, self.matcher, self.setup.method,
-                        gt_w2c=gt_w2c, query_alpha=q.alpha, query_valid=q.valid, backend=self.setup.backend,
-                        bg=self.bg, progress=progress, cameras_c2w=problem.candidate_c2ws(),
-                        camera_names=None, candidate_set=cs, query_name=q.name)
+        return localize(
+            self.model,
+            q.rgb,
+            q.intrinsics,
+            init_w2c,
+            self.matcher,
+            self.setup.method,
+            gt_w2c=gt_w2c,
+            query_alpha=q.alpha,
+            query_valid=q.valid,
+            backend=self.setup.backend,
+            bg=self.bg,
+            progress=progress,
+            cameras_c2w=problem.candidate_c2ws(),
+            camera_names=None,
+            candidate_set=cs,
+            query_name=q.name,
+        )
 
-    def write_pictures(self, problem: Problem, result: LocalizationResult, seconds: float) \
-            -> Tuple[Optional[str], Optional[str]]:
+    def write_pictures(
+        self, problem: Problem, result: LocalizationResult, seconds: float
+    ) -> Tuple[Optional[str], Optional[str]]:
         """The photo's folder (when asked) and its thumbnail; (folder, thumb) relative paths."""
         from .output import write_outputs
 
@@ -459,16 +603,31 @@ class BatchWorker:
         safe = safe_name(problem.name)
         if self.setup.folders:
             rel = f"photos/{safe}"
-            write_outputs(self.out_dir / rel, problem, result, matcher=self.matcher, options=self.setup.output,
-                          backend=self.setup.backend, config=self.setup.config, seconds_total=seconds)
+            write_outputs(
+                self.out_dir / rel,
+                problem,
+                result,
+                matcher=self.matcher,
+                options=self.setup.output,
+                backend=self.setup.backend,
+                config=self.setup.config,
+                seconds_total=seconds,
+            )
             folder = rel
         if self.setup.thumbs:
             try:
                 from ..visualize import save_thumbnail
 
                 rel = f"thumbs/{safe}.png"
-                save_thumbnail(self.out_dir / rel, self.model, problem.query, result.c2w, problem.bg,
-                               self.setup.thumb_side, backend=self.setup.backend)
+                save_thumbnail(
+                    self.out_dir / rel,
+                    self.model,
+                    problem.query,
+                    result.c2w,
+                    problem.bg,
+                    self.setup.thumb_side,
+                    backend=self.setup.backend,
+                )
                 thumb = rel
             except Exception as e:  # noqa: BLE001 - a picture never fails a photo
                 logger.warning("no thumbnail for %s: %s: %s", problem.name, type(e).__name__, e)
@@ -484,8 +643,10 @@ class BatchWorker:
                 query = self.load_query(task)
                 problem = self.problem(task, query)
                 if task.init_c2w is None and not self._can_search():
-                    raise ProblemError("no start pose for this photo, and the paper's method (optimizer=icomma) "
-                                       "needs one: use optimizer=robust or give data.init")
+                    raise ProblemError(
+                        "no start pose for this photo, and the paper's method (optimizer=icomma) "
+                        "needs one: use optimizer=robust or give data.init"
+                    )
                 result = self.localize(problem, task.init_c2w)
             folder, thumb = self.write_pictures(problem, result, time.perf_counter() - t0)
             return result_row(task, problem, result, time.perf_counter() - t0, folder, thumb)
@@ -534,13 +695,23 @@ class BatchSummary:
 
     @property
     def photos_per_minute(self) -> Optional[float]:
-        return None if self.done_now == 0 or self.seconds <= 0 else 60.0 * self.done_now / self.seconds
+        return (
+            None if self.done_now == 0 or self.seconds <= 0 else 60.0 * self.done_now / self.seconds
+        )
 
 
-def run_batch(plan: BatchPlan, setup: WorkerSetup, ledger: PosesLedger, *, workers: int = 1,
-              threads_per_worker: int = 1, retry_failed: bool = False,
-              progress: Optional[Callable[[Dict[str, Any]], Any]] = None, model_folder=None,
-              matcher=None) -> BatchSummary:
+def run_batch(
+    plan: BatchPlan,
+    setup: WorkerSetup,
+    ledger: PosesLedger,
+    *,
+    workers: int = 1,
+    threads_per_worker: int = 1,
+    retry_failed: bool = False,
+    progress: Optional[Callable[[Dict[str, Any]], Any]] = None,
+    model_folder=None,
+    matcher=None,
+) -> BatchSummary:
     """Localize this shard's unfinished photos of ``plan``, recording each in ``ledger``.
 
     Args:
@@ -568,7 +739,15 @@ def run_batch(plan: BatchPlan, setup: WorkerSetup, ledger: PosesLedger, *, worke
     t0 = time.perf_counter()
     rows: List[Dict[str, Any]] = []
     if progress is not None:
-        progress({"row": None, "counts": ledger.counts(), "done": 0, "todo": len(todo), "skipped": skipped})
+        progress(
+            {
+                "row": None,
+                "counts": ledger.counts(),
+                "done": 0,
+                "todo": len(todo),
+                "skipped": skipped,
+            }
+        )
 
     def take(row):
         ledger.record(row)
@@ -583,18 +762,28 @@ def run_batch(plan: BatchPlan, setup: WorkerSetup, ledger: PosesLedger, *, worke
                 take(w.run(t))
         else:
             ctx = multiprocessing.get_context("spawn")
-            with ctx.Pool(min(workers, len(todo)), initializer=_init_worker,
-                          initargs=(setup, threads_per_worker)) as pool:
+            with ctx.Pool(
+                min(workers, len(todo)),
+                initializer=_init_worker,
+                initargs=(setup, threads_per_worker),
+            ) as pool:
                 for row in pool.imap_unordered(_work, todo, chunksize=1):
                     take(row)
     ledger.flush()
-    return BatchSummary(ledger.counts(), len(rows), skipped, len(todo), time.perf_counter() - t0, rows)
+    return BatchSummary(
+        ledger.counts(), len(rows), skipped, len(todo), time.perf_counter() - t0, rows
+    )
 
 
 # ---------------------------------------------------------------------------------- exports
 
-def export_rows(out_dir, rows: Sequence[Dict[str, Any]], formats: Sequence[str],
-                verdicts: Sequence[str] = ("ok", "uncertain")) -> Dict[str, List[str]]:
+
+def export_rows(
+    out_dir,
+    rows: Sequence[Dict[str, Any]],
+    formats: Sequence[str],
+    verdicts: Sequence[str] = ("ok", "uncertain"),
+) -> Dict[str, List[str]]:
     """Write the estimated poses of ``rows`` (those with a verdict in ``verdicts``) in each of
     ``formats`` (``io.export.FORMATS``) under ``out_dir/exports``; returns format -> files.
 
@@ -606,8 +795,11 @@ def export_rows(out_dir, rows: Sequence[Dict[str, Any]], formats: Sequence[str],
     bad = [f for f in formats if f not in FORMATS]
     if bad:
         raise ProblemError(f"output.export: unknown format(s) {bad}; choose from {sorted(FORMATS)}")
-    poses = [NamedPose(r["name"], np.asarray(r["c2w"]), Intrinsics(**r["intrinsics"]))
-             for r in rows if r.get("c2w") is not None and r.get("status") in verdicts and r.get("intrinsics")]
+    poses = [
+        NamedPose(r["name"], np.asarray(r["c2w"]), Intrinsics(**r["intrinsics"]))
+        for r in rows
+        if r.get("c2w") is not None and r.get("status") in verdicts and r.get("intrinsics")
+    ]
     out: Dict[str, List[str]] = {}
     if not poses:
         logger.warning("no pose with a verdict in %s to export", list(verdicts))

@@ -17,6 +17,7 @@ axes) per image name:
 
 A photo is looked up by its name, then by its file name, then by its stem (no extension).
 """
+
 from __future__ import annotations
 
 import glob
@@ -33,8 +34,16 @@ import numpy as np
 from ..camera import Intrinsics
 from .problem import ProblemError, _is_rigid
 
-__all__ = ["PhotoList", "PhotoMismatch", "PoseTable", "list_photos", "natural_key", "photo_intrinsics", "read_poses_file",
-           "DATASET_KINDS"]
+__all__ = [
+    "PhotoList",
+    "PhotoMismatch",
+    "PoseTable",
+    "list_photos",
+    "natural_key",
+    "photo_intrinsics",
+    "read_poses_file",
+    "DATASET_KINDS",
+]
 
 #: Dataset folders that ``data.queries`` reads as views (a plain cameras.json folder is not one).
 DATASET_KINDS = ("colmap", "blender", "transforms_json", "llff")
@@ -101,7 +110,9 @@ def _expand(spec: str, what: str) -> List[Path]:
     try:
         lines = p.read_text().splitlines()
     except (OSError, UnicodeDecodeError) as e:
-        raise ProblemError(f"{what}: {p} is neither an image nor a readable list file ({e})") from None
+        raise ProblemError(
+            f"{what}: {p} is neither an image nor a readable list file ({e})"
+        ) from None
     out = []
     for n, line in enumerate(lines, 1):
         line = line.split("#", 1)[0].strip()
@@ -110,16 +121,19 @@ def _expand(spec: str, what: str) -> List[Path]:
         q = Path(line).expanduser()
         q = q if q.is_absolute() else p.parent / q
         if not _is_image(q):
-            raise ProblemError(f"{what}: line {n} of the list file {p} names {line!r}, which is not an "
-                               "image file")
+            raise ProblemError(
+                f"{what}: line {n} of the list file {p} names {line!r}, which is not an "
+                "image file"
+            )
         out.append(q)
     if not out:
         raise ProblemError(f"{what}: the list file {p} names no images")
     return out
 
 
-def list_photos(spec, what: str = "data.queries", split: str = "all",
-                white_background: Optional[bool] = None) -> PhotoList:
+def list_photos(
+    spec, what: str = "data.queries", split: str = "all", white_background: Optional[bool] = None
+) -> PhotoList:
     """The photos named by ``spec`` (see the module docstring), in order.
 
     Args:
@@ -129,7 +143,9 @@ def list_photos(spec, what: str = "data.queries", split: str = "all",
         white_background: composite RGBA dataset images over white (Blender scenes).
     """
     if spec is None or (isinstance(spec, str) and not spec.strip()):
-        raise ProblemError(f"{what} is empty: give a folder, a glob, a list file or a dataset folder")
+        raise ProblemError(
+            f"{what} is empty: give a folder, a glob, a list file or a dataset folder"
+        )
     if isinstance(spec, str):
         root = Path(spec).expanduser()
         if not _GLOB.search(spec) and root.is_dir() and _dataset_kind(root):
@@ -138,7 +154,9 @@ def list_photos(spec, what: str = "data.queries", split: str = "all",
     elif isinstance(spec, (list, tuple)):
         specs = [str(s) for s in spec]
     else:
-        raise ProblemError(f"{what} must be a path, a glob or a list of them, got {type(spec).__name__}")
+        raise ProblemError(
+            f"{what} must be a path, a glob or a list of them, got {type(spec).__name__}"
+        )
     paths: List[Path] = []
     for s in specs:
         paths += _expand(s, what)
@@ -153,7 +171,9 @@ def list_photos(spec, what: str = "data.queries", split: str = "all",
     return PhotoList(uniq, names)
 
 
-def _dataset_photos(root: Path, what: str, split: str, white_background: Optional[bool]) -> PhotoList:
+def _dataset_photos(
+    root: Path, what: str, split: str, white_background: Optional[bool]
+) -> PhotoList:
     from ..io.datasets import read_dataset
 
     if split not in ("train", "test", "all"):
@@ -174,6 +194,7 @@ def _dataset_photos(root: Path, what: str, split: str, white_background: Optiona
 
 
 # ---------------------------------------------------------------------------------- poses files
+
 
 class PoseTable:
     """Camera-to-world poses by image name, looked up by name, file name or stem."""
@@ -212,10 +233,14 @@ def _matrix(v, what: str) -> np.ndarray:
     elif a.size == 16:
         a = a.reshape(4, 4)
     else:
-        raise ProblemError(f"{what}: expected a 4x4 (or 3x4) camera-to-world matrix, got {a.size} numbers")
+        raise ProblemError(
+            f"{what}: expected a 4x4 (or 3x4) camera-to-world matrix, got {a.size} numbers"
+        )
     if not _is_rigid(a):
-        raise ProblemError(f"{what}: not a rigid camera-to-world matrix (rotation not orthonormal with "
-                           "det +1, or last row not 0 0 0 1)")
+        raise ProblemError(
+            f"{what}: not a rigid camera-to-world matrix (rotation not orthonormal with "
+            "det +1, or last row not 0 0 0 1)"
+        )
     return a
 
 
@@ -275,18 +300,25 @@ def _text_poses(text: str, p: Path, what: str) -> Dict[str, np.ndarray]:
         try:
             nums = [float(x) for x in parts[1:]]
         except ValueError:
-            raise ProblemError(f"{what}: line {n} of {p}: expected 'name' and 16 (or 12) numbers, got "
-                               f"{line[:80]!r}") from None
+            raise ProblemError(
+                f"{what}: line {n} of {p}: expected 'name' and 16 (or 12) numbers, got "
+                f"{line[:80]!r}"
+            ) from None
         if len(nums) not in (12, 16):
-            raise ProblemError(f"{what}: line {n} of {p}: expected 'name' and 16 (or 12) numbers, got "
-                               f"{len(nums)} numbers")
+            raise ProblemError(
+                f"{what}: line {n} of {p}: expected 'name' and 16 (or 12) numbers, got "
+                f"{len(nums)} numbers"
+            )
         out[parts[0]] = _matrix(nums, f"{what}: line {n} of {p}")
     return out
 
 
 # ---------------------------------------------------------------------------------- intrinsics
 
-def photo_intrinsics(size: Tuple[int, int], it: Dict[str, Any], cameras: Sequence[Any]) -> Intrinsics:
+
+def photo_intrinsics(
+    size: Tuple[int, int], it: Dict[str, Any], cameras: Sequence[Any]
+) -> Intrinsics:
     """Intrinsics of a photo of ``size`` (W, H) from the ``data.intrinsics`` group.
 
     ``fx`` (with ``fy``, ``cx``, ``cy``) are for the size ``width x height`` when those are set,
@@ -302,20 +334,29 @@ def photo_intrinsics(size: Tuple[int, int], it: Dict[str, Any], cameras: Sequenc
         w0 = int(it["width"]) if it.get("width") is not None else W
         h0 = int(it["height"]) if it.get("height") is not None else H
         if (w0, h0) != (W, H):
-            raise PhotoMismatch(f"the photo is {W}x{H} but data.intrinsics.width/height say {w0}x{h0} "
-                               "(resize the photo, or give intrinsics for its size)")
+            raise PhotoMismatch(
+                f"the photo is {W}x{H} but data.intrinsics.width/height say {w0}x{h0} "
+                "(resize the photo, or give intrinsics for its size)"
+            )
         fy = it.get("fy") if it.get("fy") is not None else it["fx"]
         try:
-            return Intrinsics(W, H, float(it["fx"]), float(fy),
-                              None if it.get("cx") is None else float(it["cx"]),
-                              None if it.get("cy") is None else float(it["cy"]))
+            return Intrinsics(
+                W,
+                H,
+                float(it["fx"]),
+                float(fy),
+                None if it.get("cx") is None else float(it["cx"]),
+                None if it.get("cy") is None else float(it["cy"]),
+            )
         except ValueError as e:
             raise ProblemError(f"data.intrinsics: {e}") from None
     if it.get("camera") is not None:
         from ..io.cameras_json import entry_to_intrinsics, find_entry
 
         if not cameras:
-            raise ProblemError(f"data.intrinsics.camera={it['camera']!r}: the model folder has no cameras.json")
+            raise ProblemError(
+                f"data.intrinsics.camera={it['camera']!r}: the model folder has no cameras.json"
+            )
         try:
             src = entry_to_intrinsics(find_entry(cameras, it["camera"]))
         except ValueError as e:
@@ -323,8 +364,12 @@ def photo_intrinsics(size: Tuple[int, int], it: Dict[str, Any], cameras: Sequenc
         if (src.width, src.height) == (W, H):
             return src
         if not math.isclose(src.width / src.height, W / H, rel_tol=0.01):
-            raise PhotoMismatch(f"the photo is {W}x{H} but data.intrinsics.camera={it['camera']!r} is "
-                               f"{src.width}x{src.height} (another aspect ratio)")
+            raise PhotoMismatch(
+                f"the photo is {W}x{H} but data.intrinsics.camera={it['camera']!r} is "
+                f"{src.width}x{src.height} (another aspect ratio)"
+            )
         return Intrinsics(W, H, src.fx * W / src.width, src.fy * H / src.height)
-    raise ProblemError("the photos' intrinsics are unknown: set data.intrinsics.fx (and fy, cx, cy, "
-                       "width, height) or data.intrinsics.camera (a cameras.json entry)")
+    raise ProblemError(
+        "the photos' intrinsics are unknown: set data.intrinsics.fx (and fy, cx, cy, "
+        "width, height) or data.intrinsics.camera (a cameras.json entry)"
+    )

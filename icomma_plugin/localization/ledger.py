@@ -15,6 +15,7 @@ Shards (``num_shards > 1``, e.g. the array tasks of a SLURM job): every shard wr
 so whichever shard merges last leaves every shard's rows in ``poses.json``. The lock is
 ``fcntl.flock`` on ``.poses.lock`` (a no-op where fcntl is missing).
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -33,8 +34,19 @@ logger = logging.getLogger(__name__)
 __all__ = ["CSV_COLUMNS", "LedgerError", "PosesLedger", "counts_of", "read_poses_json"]
 
 #: Columns of poses.csv (errors are blank when the truth is unknown).
-CSV_COLUMNS = ("index", "name", "verdict", "rot_err_deg", "trans_err", "trans_err_rel", "seconds",
-               "initial_rot_err_deg", "relocalized", "reason", "error")
+CSV_COLUMNS = (
+    "index",
+    "name",
+    "verdict",
+    "rot_err_deg",
+    "trans_err",
+    "trans_err_rel",
+    "seconds",
+    "initial_rot_err_deg",
+    "relocalized",
+    "reason",
+    "error",
+)
 
 #: Keys of ``run`` that must agree between a run and the poses.json it resumes.
 RUN_IDENTITY = ("kind", "model_path", "queries", "sequence")
@@ -57,12 +69,15 @@ def counts_of(rows: Sequence[Dict[str, Any]]) -> Dict[str, int]:
 
 
 def read_poses_json(path) -> Dict[str, Any]:
-    """A poses.json (or a shard part) as a dict with a ``photos`` list; LedgerError if unreadable."""
+    """A poses.json (or a shard part) as a dict with a ``photos`` list; LedgerError if it is
+    unreadable."""
     p = Path(path)
     try:
         doc = json.loads(p.read_text())
     except (OSError, json.JSONDecodeError) as e:
-        raise LedgerError(f"cannot read {p} ({type(e).__name__}: {e}); move it away to start over") from None
+        raise LedgerError(
+            f"cannot read {p} ({type(e).__name__}: {e}); move it away to start over"
+        ) from None
     if not isinstance(doc, dict) or not isinstance(doc.get("photos"), list):
         raise LedgerError(f"{p} is not a poses.json of icomma (no 'photos' list)")
     return doc
@@ -104,7 +119,9 @@ class PosesLedger:
         shard, num_shards: this process's share of the run.
     """
 
-    def __init__(self, out_dir, run: Dict[str, Any], total: int, shard: int = 0, num_shards: int = 1):
+    def __init__(
+        self, out_dir, run: Dict[str, Any], total: int, shard: int = 0, num_shards: int = 1
+    ):
         if not (isinstance(num_shards, int) and num_shards >= 1):
             raise ValueError(f"num_shards must be a positive int, got {num_shards!r}")
         if not (isinstance(shard, int) and 0 <= shard < num_shards):
@@ -141,8 +158,10 @@ class PosesLedger:
         for k in RUN_IDENTITY:
             if theirs.get(k) != self.run.get(k):
                 raise LedgerError(
-                    f"{path} belongs to another run ({k} {theirs.get(k)!r}, this run {self.run.get(k)!r}); "
-                    "choose another output folder (output.dir or hydra.run.dir) to start a new one")
+                    f"{path} belongs to another run ({k} {theirs.get(k)!r}, "
+                    f"this run {self.run.get(k)!r}); "
+                    "choose another output folder (output.dir or hydra.run.dir) to start a new one"
+                )
 
     def _load(self) -> None:
         sources = ([self.poses_path] if self.poses_path.is_file() else []) + self._part_paths()
@@ -155,8 +174,11 @@ class PosesLedger:
         mine = self.part_path if self.num_shards > 1 else self.poses_path
         if mine.is_file():  # keep this shard's earlier rows in its part
             for r in read_poses_json(mine)["photos"]:
-                if isinstance(r, dict) and isinstance(r.get("name"), str) \
-                        and (self.num_shards == 1 or r.get("shard", self.shard) == self.shard):
+                if (
+                    isinstance(r, dict)
+                    and isinstance(r.get("name"), str)
+                    and (self.num_shards == 1 or r.get("shard", self.shard) == self.shard)
+                ):
                     self.rows[r["name"]] = r
 
     def finished(self, retry_failed: bool = False) -> Dict[str, Dict[str, Any]]:
@@ -181,11 +203,16 @@ class PosesLedger:
     def _document(self, rows: List[Dict[str, Any]], status: Optional[str] = None) -> Dict[str, Any]:
         done = len(rows)
         return {
-            "format": "icomma-poses", "version": FORMAT_VERSION,
+            "format": "icomma-poses",
+            "version": FORMAT_VERSION,
             "status": status or ("complete" if done >= self.total else "running"),
-            "total": self.total, "done": done, "counts": counts_of(rows),
-            "conventions": "c2w / w2c: 4x4, OpenCV camera axes (x right, y down, z forward), column vectors",
-            "run": self.run, "photos": rows,
+            "total": self.total,
+            "done": done,
+            "counts": counts_of(rows),
+            "conventions": "c2w / w2c: 4x4, OpenCV camera axes (x right, y down, z forward), "
+            "column vectors",
+            "run": self.run,
+            "photos": rows,
         }
 
     def _write_csv(self, rows: List[Dict[str, Any]]) -> None:
@@ -219,14 +246,20 @@ class PosesLedger:
                     logger.warning("skipping %s: %s", p, e)
                     continue
                 for r in doc["photos"]:
-                    if isinstance(r, dict) and isinstance(r.get("name"), str) and r["name"] not in self.rows:
+                    if (
+                        isinstance(r, dict)
+                        and isinstance(r.get("name"), str)
+                        and r["name"] not in self.rows
+                    ):
                         self._seen[r["name"]] = r
             self._write_merged()
 
     def record(self, row: Dict[str, Any]) -> None:
         """Add one photo's row and rewrite the files (atomically)."""
         if not isinstance(row.get("name"), str) or row.get("status") not in VERDICTS:
-            raise ValueError(f"a ledger row needs a name and a status in {VERDICTS}, got {row!r:.200}")
+            raise ValueError(
+                f"a ledger row needs a name and a status in {VERDICTS}, got {row!r:.200}"
+            )
         row = dict(row)
         if self.num_shards > 1:
             row["shard"] = self.shard

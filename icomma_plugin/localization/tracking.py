@@ -11,6 +11,7 @@ the first frame it had not finished, with the same predictions.
     source = FrameSource.open("walk.mp4", every=2)
     summary = track(worker, source, ledger, intrinsics_of=..., init_c2w=None)
 """
+
 from __future__ import annotations
 
 import logging
@@ -32,7 +33,14 @@ from .types import Query
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["FrameSource", "TrackingConfig", "TrackingSummary", "predict_w2c", "track", "write_tracking_video"]
+__all__ = [
+    "FrameSource",
+    "TrackingConfig",
+    "TrackingSummary",
+    "predict_w2c",
+    "track",
+    "write_tracking_video",
+]
 
 _RANK = {"ok": 2, "uncertain": 1, "failed": 0}
 
@@ -46,7 +54,9 @@ class TrackingConfig:
     relocalize: bool = True
 
 
-def predict_w2c(history: Sequence[Tuple[int, np.ndarray]], index: int, velocity: bool = True) -> Optional[np.ndarray]:
+def predict_w2c(
+    history: Sequence[Tuple[int, np.ndarray]], index: int, velocity: bool = True
+) -> Optional[np.ndarray]:
     """Start pose (w2c) of frame ``index`` from the ``(frame index, w2c)`` of earlier frames that
     did not fail, oldest first: constant velocity from the last two, the last one alone, or None."""
     if not history:
@@ -81,7 +91,9 @@ class FrameSource:
     names: Optional[List[str]] = None
 
     @classmethod
-    def open(cls, spec, every: int = 1, limit: Optional[int] = None, what: str = "data.sequence") -> "FrameSource":
+    def open(
+        cls, spec, every: int = 1, limit: Optional[int] = None, what: str = "data.sequence"
+    ) -> "FrameSource":
         from ..io.video import VIDEO_SUFFIXES, VideoError, video_info
 
         if spec is None or not str(spec).strip():
@@ -94,7 +106,9 @@ class FrameSource:
                 raise ProblemError(f"{what}: {e}") from None
             return cls(str(p), every, limit)
         if p.is_file():
-            raise ProblemError(f"{what}: {p} is not a video file ({', '.join(VIDEO_SUFFIXES)}) or a folder")
+            raise ProblemError(
+                f"{what}: {p} is not a video file ({', '.join(VIDEO_SUFFIXES)}) or a folder"
+            )
         photos = list_photos(str(spec), what)
         return cls(str(p), every, limit, list(photos.paths), list(photos.names))
 
@@ -151,10 +165,16 @@ def _query(rgb: np.ndarray, intr: Intrinsics, name: str, resize: Optional[int]) 
     return resize_query(Query(t.contiguous(), intr, None, None, name), resize)
 
 
-def track(worker: BatchWorker, source: FrameSource, ledger: PosesLedger,
-          intrinsics_of: Callable[[Tuple[int, int]], Intrinsics], init_c2w: Optional[np.ndarray] = None,
-          gt_of: Optional[Callable[[str], Optional[np.ndarray]]] = None, cfg: Optional[TrackingConfig] = None,
-          progress: Optional[Callable[[Dict[str, Any]], Any]] = None) -> TrackingSummary:
+def track(
+    worker: BatchWorker,
+    source: FrameSource,
+    ledger: PosesLedger,
+    intrinsics_of: Callable[[Tuple[int, int]], Intrinsics],
+    init_c2w: Optional[np.ndarray] = None,
+    gt_of: Optional[Callable[[str], Optional[np.ndarray]]] = None,
+    cfg: Optional[TrackingConfig] = None,
+    progress: Optional[Callable[[Dict[str, Any]], Any]] = None,
+) -> TrackingSummary:
     """Track the frames of ``source`` (module docstring), recording each in ``ledger``.
 
     Args:
@@ -179,8 +199,15 @@ def track(worker: BatchWorker, source: FrameSource, ledger: PosesLedger,
     skipped = relocs = 0
     total = source.count()
     if progress is not None:
-        progress({"row": None, "counts": ledger.counts(), "done": 0,
-                  "todo": None if total is None else max(0, total - len(done)), "skipped": len(done)})
+        progress(
+            {
+                "row": None,
+                "counts": ledger.counts(),
+                "done": 0,
+                "todo": None if total is None else max(0, total - len(done)),
+                "skipped": len(done),
+            }
+        )
     intr_cache: Dict[Tuple[int, int], Intrinsics] = {}
     for index, name, rgb in source:
         if name in done:
@@ -191,20 +218,34 @@ def track(worker: BatchWorker, source: FrameSource, ledger: PosesLedger,
         gt = gt_of(name) if gt_of is not None else None
         pred_w2c = predict_w2c(history, index, cfg.velocity)
         start = np.linalg.inv(pred_w2c) if pred_w2c is not None else init_c2w
-        task = PhotoTask(index, name, source.spec if source.is_video else str(source.paths[index]),
-                         None, None, start, gt)
+        task = PhotoTask(
+            index,
+            name,
+            source.spec if source.is_video else str(source.paths[index]),
+            None,
+            None,
+            start,
+            gt,
+        )
         try:
             if size not in intr_cache:
                 intr_cache[size] = intrinsics_of(size)
             task.intrinsics = intr_cache[size]
             problem = worker.problem(task, _query(rgb, task.intrinsics, name, worker.setup.resize))
             if start is None and not worker._can_search():
-                raise ProblemError("the first frame has no start pose and the paper's method (optimizer=icomma) "
-                                   "needs one: give data.init, or use optimizer=robust")
+                raise ProblemError(
+                    "the first frame has no start pose and the paper's method (optimizer=icomma) "
+                    "needs one: give data.init, or use optimizer=robust"
+                )
             result = worker.localize(problem, start)
             relocalized = False
-            if (result.verdict is not None and result.verdict.status == "failed" and start is not None
-                    and cfg.relocalize and worker._can_search()):
+            if (
+                result.verdict is not None
+                and result.verdict.status == "failed"
+                and start is not None
+                and cfg.relocalize
+                and worker._can_search()
+            ):
                 again = worker.localize(problem, None)
                 if again.verdict is not None and _RANK[again.verdict.status] > _RANK["failed"]:
                     result, relocalized = again, True
@@ -223,11 +264,19 @@ def track(worker: BatchWorker, source: FrameSource, ledger: PosesLedger,
         if progress is not None:
             progress({"row": row, "counts": ledger.counts(), "done": len(rows), "todo": total})
     ledger.flush()
-    return TrackingSummary(ledger.counts(), len(rows), skipped, time.perf_counter() - t0, relocs, rows)
+    return TrackingSummary(
+        ledger.counts(), len(rows), skipped, time.perf_counter() - t0, relocs, rows
+    )
 
 
-def write_tracking_video(path, worker: BatchWorker, source: FrameSource, rows: Sequence[Dict[str, Any]],
-                         intrinsics_of: Callable[[Tuple[int, int]], Intrinsics], fps: float = 10.0) -> Path:
+def write_tracking_video(
+    path,
+    worker: BatchWorker,
+    source: FrameSource,
+    rows: Sequence[Dict[str, Any]],
+    intrinsics_of: Callable[[Tuple[int, int]], Intrinsics],
+    fps: float = 10.0,
+) -> Path:
     """render | frame | blend | difference of every tracked frame (``visualize.overlay_panel``;
     the render at the frame's estimate, a frame without one shows black) as an MP4 (a GIF when no
     MP4 encoder works); returns the path written."""
@@ -242,11 +291,21 @@ def write_tracking_video(path, worker: BatchWorker, source: FrameSource, rows: S
         r = by_name.get(name)
         if r is None:
             continue
-        q = _query(rgb, intrinsics_of((int(rgb.shape[1]), int(rgb.shape[0]))), name, worker.setup.resize)
+        q = _query(
+            rgb, intrinsics_of((int(rgb.shape[1]), int(rgb.shape[0]))), name, worker.setup.resize
+        )
         if r.get("c2w") is not None:
-            w2c = torch.as_tensor(np.linalg.inv(np.asarray(r["c2w"])), dtype=model.dtype, device=model.device)
+            w2c = torch.as_tensor(
+                np.linalg.inv(np.asarray(r["c2w"])), dtype=model.dtype, device=model.device
+            )
             with torch.no_grad():
-                img = render(model, q.intrinsics, w2c, worker.bg.to(model.dtype), backend=worker.setup.backend).color
+                img = render(
+                    model,
+                    q.intrinsics,
+                    w2c,
+                    worker.bg.to(model.dtype),
+                    backend=worker.setup.backend,
+                ).color
             img = img.clamp(0, 1).float().cpu()
         else:
             img = torch.zeros_like(q.rgb)
