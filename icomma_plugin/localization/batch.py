@@ -479,6 +479,7 @@ class BatchWorker:
         self.cameras = list(self.mf.cameras or [])
         self.scene_scale = cameras_extent([e.c2w for e in self.cameras]) if self.cameras else None
         self._candidates: Dict[Intrinsics, Any] = {}
+        self.left_out = 0  # model cameras left out of the last photo's candidates (its own view)
         self.out_dir = Path(setup.out_dir)
 
     # ------------------------------------------------------------------ candidates
@@ -518,10 +519,12 @@ class BatchWorker:
         from .candidates import CandidateSet
 
         cs = self.candidates(intr)
+        self.left_out = 0
         if cs is None or gt_c2w is None:
             return cs
         n = len(self.cameras)
         drop = {i for i in range(n) if np.allclose(cs.c2w[i], gt_c2w, atol=1e-6)}
+        self.left_out = len(drop)  # reported in the photo's row
         if not drop:
             return cs
         keep = [i for i in range(len(cs.c2w)) if i not in drop]
@@ -649,7 +652,9 @@ class BatchWorker:
                     )
                 result = self.localize(problem, task.init_c2w)
             folder, thumb = self.write_pictures(problem, result, time.perf_counter() - t0)
-            return result_row(task, problem, result, time.perf_counter() - t0, folder, thumb)
+            row = result_row(task, problem, result, time.perf_counter() - t0, folder, thumb)
+            row["own_camera_left_out"] = self.left_out
+            return row
         except (ValueError, FileNotFoundError) as e:
             msg = str(e).splitlines()[0] if str(e) else type(e).__name__
             return failure_row(task, f"bad input: {msg}", msg, time.perf_counter() - t0)
