@@ -116,9 +116,9 @@ def build_matcher(mcfg) -> Tuple[Any, Optional[str]]:
     return instantiate(d, _convert_="all"), name
 
 
-def build_optimizer(ocfg):
+def build_optimizer(ocfg, key: str = "optimizer"):
     """The method config (``RobustConfig`` or the paper's ``LocalizerConfig``) of an optimizer
-    group; a group without ``_target_`` is read as the paper's config (older configs)."""
+    group mounted at ``key``; a group without ``_target_`` is read as the paper's config."""
     from hydra.utils import instantiate
 
     from icomma_plugin.localize import LocalizerConfig
@@ -131,5 +131,5 @@ def build_optimizer(ocfg):
     except Exception as e:  # noqa: BLE001 - instantiate wraps the config's own ValueError
         cause = e.__cause__ or e
         if isinstance(cause, (ValueError, TypeError)):
-            raise UserError(f"optimizer: {cause}") from None
+            raise UserError(f"{key}: {cause}") from None
         raise

@@ -71,7 +71,9 @@ def load_scene(cfg: DictConfig, spec: ProtocolSpec, backend: str):
             s.model_path, dataset=s.dataset, num_queries=spec.num_queries, split=str(s.split), query_indices=idx,
             image_scale=None if s.image_scale is None else float(s.image_scale),
             white_background=None if s.white_background is None else bool(s.white_background),
-            iteration=s.iteration, translation_unit=str(s.translation_unit))
+            iteration=s.iteration, translation_unit=str(s.translation_unit),
+            no_start_queries=spec.num_queries * spec.poses_per_query if any(iv.no_start for iv in spec.intervals)
+            else 0)
     raise common.UserError(f"scene.kind must be model_folder or synthetic, got {s.kind!r}")
 
 
@@ -106,7 +108,7 @@ def _run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
         raise common.UserError("optimizer must be the paper's group here (icomma or compare_only): it is the "
                                "base of the icomma / compare_only / match_only methods; the default method's "
                                "config is robust.*")
-    robust = common.build_optimizer(cfg.robust) if cfg.get("robust") is not None else RobustConfig()
+    robust = common.build_optimizer(cfg.robust, "robust") if cfg.get("robust") is not None else RobustConfig()
     needs = [m for m in spec.methods if m != "compare_only"]
     matcher, matcher_name = common.build_matcher(cfg.get("matcher")) if needs else (None, None)
     if needs and matcher is None:

@@ -160,8 +160,10 @@ class ProtocolSpec:
         return min(self.poses_per_query, self.method_poses_per_query.get(method, self.poses_per_query))
 
     def runs(self, method: str, interval: "Interval") -> int:
-        if interval.no_start and method in NEEDS_START:
-            return 0
+        """Planned runs of ``method`` in ``interval`` (a no-start interval runs each of
+        ``num_queries * poses_per_query`` distinct views once)."""
+        if interval.no_start:
+            return 0 if method in NEEDS_START else self.num_queries * self.poses_per_query
         return self.num_queries * self.poses_for(method)
 
     @classmethod

@@ -132,13 +132,21 @@ def run_protocol(
                              "scene with cameras)")
         pivot = np.asarray(scene.scene_centre, np.float64)
     records: List[Dict[str, Any]] = []
-    total = sum(0 if (iv.no_start and m in NEEDS_START) else len(queries) * spec.poses_for(m)
+    def plan(iv):
+        # A run without a start pose has nothing random to vary: each takes another view instead.
+        if iv.no_start:
+            qs = scene.no_start_queries[: spec.num_queries * spec.poses_per_query] or queries
+            return qs, 1
+        return queries, spec.poses_per_query
+
+    total = sum(0 if (iv.no_start and m in NEEDS_START) else len(plan(iv)[0]) * min(plan(iv)[1], spec.poses_for(m))
                 for iv in spec.intervals for m in spec.methods)
     count = 0
     for ii, iv in enumerate(spec.intervals):
-        for q in queries:
+        iv_queries, iv_poses = plan(iv)
+        for q in iv_queries:
             gt_w2c = np.linalg.inv(q.gt_c2w)
-            for k in range(spec.poses_per_query):
+            for k in range(iv_poses):
                 seed = pose_seed(spec.seed, ii, q.index, k)
                 init = None
                 if not iv.no_start:

@@ -60,6 +60,7 @@ class BenchScene:
     info: Dict[str, Any] = field(default_factory=dict)
     cameras_c2w: List[np.ndarray] = field(default_factory=list)
     scene_centre: Optional[np.ndarray] = None
+    no_start_queries: List[Query] = field(default_factory=list)  # distinct views for no-start runs
     _candidate_sets: Dict[Any, Any] = field(default_factory=dict)
 
     def candidate_set(self, query: Query, matcher, cfg, backend: str = "auto"):
@@ -144,7 +145,7 @@ def load_model_folder_scene(
     model_path, dataset=None, num_queries: int = 5, split: str = "test",
     query_indices: Optional[Sequence[int]] = None, image_scale: Optional[float] = None,
     white_background: Optional[bool] = None, iteration: Optional[int] = None,
-    translation_unit: str = "world",
+    translation_unit: str = "world", no_start_queries: int = 0,
 ) -> BenchScene:
     """Model folder + the dataset's ``split`` views as queries.
 
@@ -155,6 +156,8 @@ def load_model_folder_scene(
         image_scale: query scale; None = the scale the model was trained at (cfg_args
             ``resolution``, see :func:`training_scale`).
         white_background: None = cfg_args ``white_background``.
+        no_start_queries: also load this many evenly spaced views for the runs without a start
+            pose (they have nothing random to vary, so each run takes another view).
     """
     from ..io.datasets import read_dataset
     from ..io.model_folder import load_model_folder
@@ -187,12 +190,15 @@ def load_model_folder_scene(
     if image_scale is None:
         image_scale = training_scale(mf.cfg, mf.cameras, views[0].intrinsics.width)
     bg = torch.ones(3) if white else torch.zeros(3)
-    queries = []
-    for i in idx:
-        v = views[i]
-        q = query_from_view(v, bg, float(image_scale))
-        queries.append(Query(name=v.name, rgb=q.rgb, alpha=q.alpha, intrinsics=q.intrinsics,
-                             gt_c2w=np.asarray(v.c2w, np.float64), index=i, valid=q.valid))
+    def load(i):
+        q = query_from_view(views[i], bg, float(image_scale))
+        return Query(name=views[i].name, rgb=q.rgb, alpha=q.alpha, intrinsics=q.intrinsics,
+                     gt_c2w=np.asarray(views[i].c2w, np.float64), index=i, valid=q.valid)
+
+    queries = [load(i) for i in idx]
+    by_index = {q.index: q for q in queries}
+    extra = [by_index.get(i) or load(i) for i in select_indices(len(views), min(len(views), no_start_queries))] \
+        if no_start_queries > 0 else []
     radius = sd.scene_radius() if sd.train else camera_radius([v.c2w for v in views])
     # Candidate views: the model's cameras, never one at a pose of the queries' split (upstream's
     # cameras.json lists the test cameras too; a query must not find its own pose there).
@@ -205,6 +211,7 @@ def load_model_folder_scene(
     return BenchScene(
         model=mf.model, queries=queries, bg=bg, translation_scale=_scale_of(translation_unit, radius),
         translation_unit=translation_unit, scene_radius=radius, cameras_c2w=cams, scene_centre=centre,
+        no_start_queries=extra,
         info={"kind": "model_folder", "model_path": str(mp), "iteration": mf.iteration,
               "dataset": str(root), "split": split, "image_scale": float(image_scale),
               "white_background": white, "candidate_cameras": len(cams)},
