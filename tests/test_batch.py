@@ -407,7 +407,29 @@ def test_submitit_local_shards_merge_into_one_poses_json(scene, tmp_path):
     assert doc["status"] == "complete" and doc["done"] == 4
     assert [(r["index"], r["shard"]) for r in doc["photos"]] == [(0, 0), (1, 1), (2, 0), (3, 1)]
     parts = sorted(p.name for p in (sweep / "parts").iterdir())
-    assert parts == ["shard-000-of-002.json", "shard-001-of-002.json"]
+    assert parts == [f"shard-00{i}-of-002.{e}" for i in (0, 1) for e in ("json", "jsonl")]
     assert all(r["status"] != "failed" for r in doc["photos"])
     with open(sweep / "poses.csv") as fh:
         assert len(list(csv.DictReader(fh))) == 4
+
+
+def test_journal_keeps_every_row_between_rewrites(tmp_path):
+    """Past rewrite_rows, poses.json is rewritten only now and then; the journal has every row,
+    a line cut short by a kill is ignored, and the next run reads it all."""
+    run = {"kind": "batch", "model_path": "/m", "queries": "/q"}
+    led = PosesLedger(tmp_path, run, total=5, rewrite_rows=1, rewrite_seconds=3600)
+    for i in range(4):
+        led.record({"index": i, "name": f"p{i}.png", "status": "ok", "c2w": np.eye(4).tolist()})
+    assert json.loads((tmp_path / "poses.json").read_text())["done"] == 1  # rewritten once
+    with open(tmp_path / "poses.jsonl", "a") as fh:
+        fh.write('{"index": 4, "name": "p4.png", "sta')  # killed mid-line
+    again = PosesLedger(tmp_path, run, total=5)
+    assert sorted(again.finished()) == [f"p{i}.png" for i in range(4)]
+    again.record({"index": 4, "name": "p4.png", "status": "failed"})
+    doc = json.loads((tmp_path / "poses.json").read_text())
+    assert doc["status"] == "complete" and [r["name"] for r in doc["photos"]] == [
+        f"p{i}.png" for i in range(5)
+    ]
+    with pytest.raises(LedgerError, match="belongs to another run"):
+        (tmp_path / "poses.json").unlink()
+        PosesLedger(tmp_path, dict(run, model_path="/other"), total=5)

@@ -241,7 +241,7 @@ def _run_many(cfg: DictConfig, out: Path) -> Dict[str, Any]:
         resize=data.get("resize"),
         folders=bool(oc.get("photo_folders")),
         output=OutputOptions.from_dict(oc),
-        thumbs=bool(oc.get("contact_sheet")),
+        thumbs=bool(oc.get("contact_sheet")) and not sequence,  # the sheet is a batch's
         thumb_side=int(oc.get("thumb_side") or 192),
         config=common.container(cfg),
         seed=int(cfg.seed),

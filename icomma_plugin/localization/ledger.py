@@ -1,6 +1,12 @@
 """The record of a batch or a sequence: ``poses.json`` (one row per photo or frame) and
-``poses.csv``, rewritten atomically after every photo so that a run killed at any moment loses
-none that it finished, and restarted on the same folder skips them.
+``poses.csv``, so that a run killed at any moment loses no photo that it finished, and restarted
+on the same folder skips them.
+
+Every row is first appended to the journal ``poses.jsonl`` (one JSON line per photo, flushed to
+disk); then poses.json and poses.csv are rewritten atomically: after every photo while the run
+holds at most ``rewrite_rows`` photos, and at most every ``rewrite_seconds`` beyond (rewriting a
+big file after every photo would cost more than the photos), and always at the end. Resuming
+reads both; a line cut short by a kill is ignored.
 
     ledger = PosesLedger(out_dir, run={"model_path": ..., "queries": ...}, total=50)
     done = ledger.finished()                    # names recorded by any earlier run (or shard)
@@ -23,6 +29,8 @@ import csv
 import io
 import json
 import logging
+import os
+import time
 from pathlib import Path
 from typing import Any, Dict, Iterator, List, Optional, Sequence
 
@@ -111,16 +119,25 @@ class PosesLedger:
     """poses.json / poses.csv of one output folder (see the module docstring).
 
     Args:
-        out_dir: the output folder.
+        out_dir: the output folder (poses.json, poses.jsonl, poses.csv, parts/).
         run: what identifies the run (``kind``, ``model_path``, ``queries`` / ``sequence``) plus
             anything worth keeping (the config); a folder whose poses.json has another identity
             is refused (LedgerError).
         total: number of photos of the whole run (every shard), for the ``complete`` status.
         shard, num_shards: this process's share of the run.
+        rewrite_rows, rewrite_seconds: poses.json is rewritten after every photo up to this many
+            rows, then at most every ``rewrite_seconds`` (the journal has every row at once).
     """
 
     def __init__(
-        self, out_dir, run: Dict[str, Any], total: int, shard: int = 0, num_shards: int = 1
+        self,
+        out_dir,
+        run: Dict[str, Any],
+        total: int,
+        shard: int = 0,
+        num_shards: int = 1,
+        rewrite_rows: int = 1000,
+        rewrite_seconds: float = 10.0,
     ):
         if not (isinstance(num_shards, int) and num_shards >= 1):
             raise ValueError(f"num_shards must be a positive int, got {num_shards!r}")
@@ -132,6 +149,8 @@ class PosesLedger:
         self.shard, self.num_shards = shard, num_shards
         self.rows: Dict[str, Dict[str, Any]] = {}  # this process's rows (this shard's)
         self._seen: Dict[str, Dict[str, Any]] = {}  # rows of earlier runs and other shards
+        self.rewrite_rows, self.rewrite_seconds = int(rewrite_rows), float(rewrite_seconds)
+        self._last_write = float("-inf")
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self._load()
 
@@ -152,6 +171,49 @@ class PosesLedger:
         d = self.out_dir / "parts"
         return sorted(d.glob("shard-*.json")) if d.is_dir() else []
 
+    @property
+    def journal_path(self) -> Path:
+        """``poses.jsonl`` (a shard: ``parts/shard-<i>-of-<n>.jsonl``)."""
+        return (self.part_path if self.num_shards > 1 else self.poses_path).with_suffix(".jsonl")
+
+    def _journal_paths(self) -> List[Path]:
+        d = self.out_dir / "parts"
+        own = [self.out_dir / "poses.jsonl"] if (self.out_dir / "poses.jsonl").is_file() else []
+        return own + (sorted(d.glob("shard-*.jsonl")) if d.is_dir() else [])
+
+    def _read_journal(self, path: Path) -> List[Dict[str, Any]]:
+        """The rows of a journal; its first line names the run (checked), a broken line (a kill
+        in mid-write) is skipped."""
+        rows = []
+        try:
+            lines = path.read_text().splitlines()
+        except (OSError, UnicodeDecodeError) as e:
+            raise LedgerError(f"cannot read {path} ({e}); move it away to start over") from None
+        for n, line in enumerate(lines):
+            try:
+                obj = json.loads(line)
+            except json.JSONDecodeError:
+                logger.warning(
+                    "%s: line %d is cut short (a kill while writing); ignored", path, n + 1
+                )
+                continue
+            if isinstance(obj, dict) and "run" in obj and "name" not in obj:
+                self._check_identity(obj, path)
+            elif isinstance(obj, dict) and isinstance(obj.get("name"), str):
+                rows.append(obj)
+        return rows
+
+    def _append_journal(self, row: Dict[str, Any]) -> None:
+        p = self.journal_path
+        p.parent.mkdir(parents=True, exist_ok=True)
+        new = not p.is_file()
+        with open(p, "a") as fh:
+            if new:
+                fh.write(json.dumps({"run": {k: self.run.get(k) for k in RUN_IDENTITY}}) + "\n")
+            fh.write(json.dumps(row) + "\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+
     # ------------------------------------------------------------------ resume
     def _check_identity(self, doc: Dict[str, Any], path: Path) -> None:
         theirs = doc.get("run") or {}
@@ -171,15 +233,13 @@ class PosesLedger:
             for r in doc["photos"]:
                 if isinstance(r, dict) and isinstance(r.get("name"), str):
                     self._seen[r["name"]] = r
-        mine = self.part_path if self.num_shards > 1 else self.poses_path
-        if mine.is_file():  # keep this shard's earlier rows in its part
-            for r in read_poses_json(mine)["photos"]:
-                if (
-                    isinstance(r, dict)
-                    and isinstance(r.get("name"), str)
-                    and (self.num_shards == 1 or r.get("shard", self.shard) == self.shard)
-                ):
-                    self.rows[r["name"]] = r
+        for p in self._journal_paths():  # newer than the documents
+            for r in self._read_journal(p):
+                self._seen[r["name"]] = r
+        for name in list(self._seen):  # keep this shard's earlier rows in its own files
+            r = self._seen[name]
+            if self.num_shards == 1 or r.get("shard", self.shard) == self.shard:
+                self.rows[name] = self._seen.pop(name)
 
     def finished(self, retry_failed: bool = False) -> Dict[str, Dict[str, Any]]:
         """Rows recorded by earlier runs or other shards, by name (failed ones left out with
@@ -233,6 +293,7 @@ class PosesLedger:
         """Write poses.json / poses.csv (and this shard's part) now."""
         if self.num_shards == 1:
             self._write_merged()
+            self._last_write = time.monotonic()
             return
         mine = sorted(self.rows.values(), key=lambda r: (r.get("index", 0), r["name"]))
         part = self._document(mine, status="running")
@@ -252,10 +313,17 @@ class PosesLedger:
                         and r["name"] not in self.rows
                     ):
                         self._seen[r["name"]] = r
+            for p in self._journal_paths():
+                if p != self.journal_path:
+                    for r in self._read_journal(p):
+                        if r["name"] not in self.rows:
+                            self._seen[r["name"]] = r
             self._write_merged()
+        self._last_write = time.monotonic()
 
     def record(self, row: Dict[str, Any]) -> None:
-        """Add one photo's row and rewrite the files (atomically)."""
+        """Add one photo's row: to the journal at once, to poses.json / poses.csv when due
+        (module docstring)."""
         if not isinstance(row.get("name"), str) or row.get("status") not in VERDICTS:
             raise ValueError(
                 f"a ledger row needs a name and a status in {VERDICTS}, got {row!r:.200}"
@@ -263,9 +331,12 @@ class PosesLedger:
         row = dict(row)
         if self.num_shards > 1:
             row["shard"] = self.shard
+        self._append_journal(row)
         self.rows[row["name"]] = row
         self._seen.pop(row["name"], None)
-        self.flush()
+        n = len(self.rows) + len(self._seen)
+        if n <= self.rewrite_rows or time.monotonic() - self._last_write >= self.rewrite_seconds:
+            self.flush()
 
     def close(self) -> Dict[str, Any]:
         """Final write; returns the poses.json document."""
