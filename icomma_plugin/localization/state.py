@@ -87,16 +87,23 @@ class LocalizationState:
         self.bg = torch.as_tensor(self.bg, device=dev, dtype=dt).reshape(3)
         self._t0 = time.perf_counter()
         self._last_record = self._t0
+        self._nested: List[float] = []
 
     # ------------------------------------------------------------------ time
     @contextlib.contextmanager
     def timed(self, kind: str):
-        """Add the time spent in the block to ``seconds[kind]``."""
+        """Add the time spent in the block to ``seconds[kind]``, less the time of timed blocks
+        nested in it (they count as their own kind), so the kinds add up to the total."""
         t = time.perf_counter()
+        self._nested.append(0.0)
         try:
             yield
         finally:
-            self.seconds[kind] += time.perf_counter() - t
+            spent = time.perf_counter() - t
+            inner = self._nested.pop()
+            self.seconds[kind] += spent - inner
+            if self._nested:
+                self._nested[-1] += spent
 
     def elapsed(self) -> float:
         return time.perf_counter() - self._t0

@@ -245,3 +245,20 @@ def test_features_of_the_query_are_reused_and_match_like_match(demo, xfeat):
     assert len(a) == len(b) > 50 and torch.equal(a.kpts0, b.kpts0) and torch.equal(a.kpts1, b.kpts1)
     with pytest.raises(ValueError, match="features1"):
         xfeat.match(q, q[:, :64, :64].contiguous(), features1=xfeat.extract(q))
+
+
+def test_stage_seconds_are_exclusive_and_add_up(demo, monkeypatch):
+    """Nested timers count once each (a fake clock: no timing in tests)."""
+    from icomma_plugin.localization import state as state_mod
+
+    clock = [100.0]
+    monkeypatch.setattr(state_mod.time, "perf_counter", lambda: clock[0])
+    st = _state(demo)
+    with st.timed("verify"):
+        clock[0] += 2.0
+        with st.timed("render"):
+            clock[0] += 3.0
+        clock[0] += 1.0
+    clock[0] += 0.5
+    s = st.stage_seconds()
+    assert (s["verify"], s["render"], s["other"], s["total"]) == (3.0, 3.0, 0.5, 6.5)
