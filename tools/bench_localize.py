@@ -869,6 +869,7 @@ def _run(args, result: Dict[str, Any], out_dir: Path, paths: List[str], matcher,
         for method in args.methods:
             n = args.starts if method == "robust" else min(args.paper_starts, args.starts)
             block = {"load_before": load_average()}
+            result["blocks"][f"{scene_name}/{method}"] = block
             for st in starts[:n]:
                 order = paths if st.index % 2 == 0 else paths[::-1]
                 for path in order:
@@ -881,9 +882,8 @@ def _run(args, result: Dict[str, Any], out_dir: Path, paths: List[str], matcher,
                         f"render {rec['stage_seconds']['render']:.2f} s, final "
                         f"{_f(rec['final_rot_deg'], 3)} deg, {rec['verdict']}, load {load1()}"
                     )
+                block["load_after"] = load_average()
                 save()
-            block["load_after"] = load_average()
-            result["blocks"][f"{scene_name}/{method}"] = block
 
 
 if __name__ == "__main__":
