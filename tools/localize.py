@@ -15,17 +15,17 @@ matches_initial.png, convergence.png (optimisation.gif with ``output.gif=true``)
 the final rotation error in degrees (the final loss when no ground truth is known), so sweepers
 can minimise it.
 
-Many photos, or a video, against one model (README "Many photos, videos"):
+Many photos, or a video, against one model (docs/BATCHES.md):
 
     python tools/localize.py data=model_folder data.model_path=output/fox \
-        data.queries=photos/ data.intrinsics.camera=0001 data.init=none workers=2 \
+        data.queries=photos/ data.intrinsics.fx=1500 data.init=none workers=2 \
         output.dir=outputs/fox_batch output.export=[cameras_json,colmap]
     python tools/localize.py data=model_folder data.model_path=output/lego \
         data.sequence=walk.mp4 data.intrinsics.fx=277.8 data.init.c2w_file=start.txt
     python tools/localize.py -m hydra/launcher=slurm_cluster data=model_folder ... \
         data.shard=0,1,2,3 data.num_shards=4          # one SLURM array task per shard
 
-write poses.json / poses.csv (rewritten after every photo: rerun with the same output.dir to
+write poses.json / poses.csv (every photo journalled at once: rerun with the same output.dir to
 resume), contact_sheet.png (batch), trajectory.png and tracking.mp4 (sequence), exports/.
 
 Configuration: conf/localize.yaml (groups data, matcher, optimizer, renderer).
