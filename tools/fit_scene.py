@@ -1,19 +1,26 @@
 #!/usr/bin/env python
 """Fit a 3DGS model to a posed image set on CPU (gaussian_renderer_pose) and write a model folder.
 
-    python tools/fit_scene.py -s ../shared/data/nerf_synthetic/lego_400 -m /tmp/icomma_scenes/lego_200 -r 2
+    python tools/fit_scene.py -s ../shared/data/nerf_synthetic/lego_400 -m OUT/lego_200 -r 2
+    python tools/fit_scene.py -s ../shared/data/fox -m OUT/fox_270 -r 4 --iterations 4000
     python tools/fit_scene.py -s DATA -m OUT --iterations 3000 --eval-views 25 --eval-interval 1000
     python tools/fit_scene.py -s DATA -m OUT --set densify_grad_threshold=1e-4 --set max_gaussians=80000
+    python tools/fit_scene.py -m OUT/fox_270 --evaluate     # train / test PSNR of a model folder
+
+Input: any folder `icomma_plugin.io.datasets.read_dataset` reads (COLMAP, Blender, instant-ngp /
+nerfstudio transforms.json, LLFF). Distorted photos are undistorted and the pixels that fall
+outside the photo are left out of the losses and of PSNR (validity masks). A capture without a
+point cloud (transforms.json) starts from a plane sweep over its training views.
 
 Output (upstream 3DGS layout, loadable by icomma_plugin.io.model_folder.load_model_folder and by
 upstream render.py): cfg_args, cameras.json, input.ply, point_cloud/iteration_N/point_cloud.ply,
-plus metrics.json (test PSNR, iterations, Gaussian count, seconds, resolution). An existing
-model folder is replaced only with --overwrite.
+plus metrics.json (train and test PSNR on valid pixels, iterations, Gaussian count, wall and CPU
+seconds, resolution). An existing model folder is replaced only with --overwrite.
 
 Schedule: by default the densification / opacity-reset / SH schedule is scaled to --iterations
 (FitConfig.scaled_schedule): densify from 4 % to 50 % of the run every 2 %, opacity reset every
 30 %, SH degree +1 every 10 %; learning rates are upstream's. Any FitConfig field can be set with
---set name=value.
+--set name=value. The recipe, its comparison with upstream and measurements: docs/FITTING.md.
 """
 from __future__ import annotations
 
@@ -45,7 +52,7 @@ def default_data_root() -> Path:
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("-s", "--source", default=None,
-                   help="dataset folder (COLMAP / Blender / LLFF); default: "
+                   help="dataset folder (COLMAP / Blender / transforms.json / LLFF); default: "
                         "$ICOMMA_SHARED_DATA/nerf_synthetic/lego_400")
     p.add_argument("-m", "--model", required=True, help="model folder to write")
     p.add_argument("--iterations", type=int, default=5000)
@@ -73,6 +80,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--no-progress", action="store_true", help="no tqdm progress bar")
     p.add_argument("--log-every", type=int, default=0, help="also log loss / PSNR / count every N iterations")
     p.add_argument("--log-level", default="INFO")
+    p.add_argument("--evaluate", action="store_true",
+                   help="fit nothing: print train / test PSNR (valid pixels) of the model "
+                        "folder -m on its dataset (-s, default: its cfg_args source_path; -r "
+                        "likewise)")
     return p.parse_args(argv)
 
 
@@ -98,12 +109,29 @@ def build_config(args: argparse.Namespace) -> FitConfig:
     return FitConfig.scaled_schedule(args.iterations, **over)
 
 
+def evaluate(args: argparse.Namespace) -> int:
+    """--evaluate: PSNR of an existing model folder, printed as JSON."""
+    from icomma_plugin.fit import evaluate_model_folder
+
+    try:
+        res = evaluate_model_folder(args.model, args.source,
+                                    None if args.resolution == -1 else args.resolution,
+                                    backend=args.backend)
+    except ValueError as e:
+        log.error("%s", e)
+        return 2
+    print(json.dumps(res, indent=2))
+    return 0
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=getattr(logging, args.log_level.upper(), logging.INFO),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     torch.set_num_threads(choose_threads(args.threads or None))
     log.info("torch threads: %d", torch.get_num_threads())
+    if args.evaluate:
+        return evaluate(args)
     source = args.source or default_data_root() / "nerf_synthetic" / "lego_400"
     try:
         config = build_config(args)
@@ -144,8 +172,9 @@ def main(argv=None) -> int:
     if bar is not None:
         bar.close()
     m = res.metrics
-    summary = {k: m[k] for k in ("test_psnr", "test_views", "iterations", "num_gaussians", "seconds_train",
-                                 "seconds_total", "resolution", "backend", "threads")}
+    keys = ("test_psnr", "train_psnr", "test_views", "iterations", "num_gaussians", "seconds_train",
+            "seconds_cpu", "seconds_total", "resolution", "backend", "threads")
+    summary = {k: m[k] for k in keys}
     summary["model_path"] = str(res.model_path)
     summary["wall_seconds"] = round(time.perf_counter() - t0, 1)
     print(json.dumps(summary, indent=2))

@@ -3,8 +3,8 @@
 Learning rates, loss weights and densification thresholds are upstream 3DGS's
 (`arguments/__init__.py::OptimizationParams`, newer upstream opacity lr 2.5e-2). The iteration
 schedule is upstream's (30k iterations, densify 500..15k every 100, opacity reset every 3k,
-SH degree +1 every 1k) compressed for a CPU budget: see `FitConfig.cpu_default` and
-docs in tools/fit_scene.py.
+SH degree +1 every 1k) compressed for a CPU budget: see `FitConfig.scaled_schedule`,
+tools/fit_scene.py and docs/FITTING.md (the comparison with upstream, measured).
 """
 from __future__ import annotations
 
@@ -41,9 +41,17 @@ class FitConfig:
     min_opacity: float = 0.005
     max_screen_size: float = 20.0  # pixels; applied after the first opacity reset (as upstream)
     max_gaussians: int = 300_000  # densification budget (top screen-space gradients win)
+    # ... and at most this many per pixel of a training image (CPU time per step grows with
+    # the count; upstream's real scenes end near 1-3 per pixel of their ~1 Mpx images)
+    max_gaussians_per_pixel: float = 2.0
     # initialisation
     num_random_points: int = 10_000  # when the dataset has no point cloud (Blender)
     random_points_half_extent: float = 1.3  # upstream: cube [-1.3, 1.3]^3
+    # a capture without a point cloud whose reader gives a camera box (SceneData.init_box):
+    # "views" places num_sweep_points by a coarse plane sweep over the training views
+    # (init.plane_sweep_points), "random" draws num_random_points uniformly in the box
+    box_init: str = "views"
+    num_sweep_points: int = 20_000
     max_init_points: int = 200_000  # a bigger dataset cloud is subsampled
     init_opacity: float = 0.1
     # rendering / data
@@ -64,6 +72,7 @@ class FitConfig:
             "max_gaussians": 1,
             "num_random_points": 1,
             "max_init_points": 1,
+            "num_sweep_points": 1,
             "densify_from_iter": 0,
             "densify_until_iter": 0,
             "eval_interval": 0,
@@ -75,10 +84,17 @@ class FitConfig:
                 raise ValueError(f"FitConfig.{name} must be an int >= {lo}, got {v!r}")
         if not (isinstance(self.sh_degree, int) and 0 <= self.sh_degree <= 3):
             raise ValueError(f"FitConfig.sh_degree must be an int in 0..3, got {self.sh_degree!r}")
+        if not (isinstance(self.max_gaussians_per_pixel, (int, float))
+                and self.max_gaussians_per_pixel > 0):
+            raise ValueError(f"FitConfig.max_gaussians_per_pixel must be > 0, got "
+                             f"{self.max_gaussians_per_pixel!r}")
         if not 0.0 <= self.lambda_dssim <= 1.0:
             raise ValueError(f"FitConfig.lambda_dssim must be in [0, 1], got {self.lambda_dssim!r}")
         if not 0.0 < self.init_opacity < 1.0:
             raise ValueError(f"FitConfig.init_opacity must be in (0, 1), got {self.init_opacity!r}")
+        if self.box_init not in ("views", "random"):
+            raise ValueError(f"FitConfig.box_init must be 'views' or 'random', got "
+                             f"{self.box_init!r}")
         if self.backend not in ("auto", "reference", "cpu", "cuda"):
             raise ValueError(f"FitConfig.backend must be auto|reference|cpu|cuda, got {self.backend!r}")
         self.save_iterations = tuple(int(i) for i in self.save_iterations)

@@ -3,11 +3,15 @@
 Scales: log(sqrt(mean squared distance to the 3 nearest neighbours)), clamped at 1e-7 (simple-knn
 `distCUDA2`), isotropic; rotations identity; opacity `inverse_sigmoid(0.1)`; colour into the SH DC
 band (`RGB2SH`), higher bands zero.
+
+Where the points come from: the dataset's cloud (COLMAP, a PLY), `random_cube_points`
+(upstream's Blender init), or, for a posed capture without a cloud, `plane_sweep_points`.
 """
 from __future__ import annotations
 
 import math
-from typing import Optional, Tuple
+import warnings
+from typing import Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -85,3 +89,150 @@ def subsample_points(
         return xyz, rgb
     idx = np.sort(np.random.default_rng(seed).choice(n, size=max_points, replace=False))
     return xyz[idx], rgb[idx]
+
+
+
+def _view_arrays(v):
+    """(K [3, 3], w2c [4, 4], image [3, H, W], valid [H, W] bool or None) of a FitView, float64."""
+    i = v.intrinsics
+    K = np.array([[i.fx, 0.0, i.cx_px], [0.0, i.fy, i.cy_px], [0.0, 0.0, 1.0]])
+    w2c = v.w2c.detach().cpu().double().numpy() if isinstance(v.w2c, torch.Tensor) \
+        else np.asarray(v.w2c, dtype=np.float64)
+    valid = None if getattr(v, "valid", None) is None else v.valid.detach().cpu().numpy()[0] > 0.5
+    return K, w2c, v.image.detach().cpu().float(), valid
+
+
+def _sample(img: torch.Tensor, u: np.ndarray, r: np.ndarray) -> torch.Tensor:
+    """Bilinear samples [3, *u.shape] of img [3, H, W] at pixel coordinates (u, r)."""
+    H, W = img.shape[1:]
+    grid = torch.from_numpy(np.stack([2 * (u + 0.5) / W - 1, 2 * (r + 0.5) / H - 1], -1)).float()
+    out = torch.nn.functional.grid_sample(img[None], grid.reshape(1, -1, 1, 2), mode="bilinear",
+                                          padding_mode="border", align_corners=False)
+    return out[0, :, :, 0].reshape(3, *u.shape)
+
+
+def plane_sweep_points(
+    views,
+    center: Sequence[float],
+    half_extent: float,
+    n: int,
+    seed: int = 0,
+    depths: int = 64,
+    neighbours: int = 4,
+    distinct: float = 0.6,
+    near_frac: float = 0.25,
+    far_frac: float = 2.5,
+    min_contrast: float = 0.02,
+) -> Tuple[np.ndarray, np.ndarray]:
+    """Initial points for a posed capture without a point cloud: a coarse plane sweep.
+
+    For random pixels of every view, `depths` depth hypotheses (uniform in inverse depth from
+    `near_frac` to `far_frac` times the camera's distance to `center`) are projected into the
+    `neighbours` views with the nearest camera centres (looking the same way); the depth whose
+    colours agree best (mean L1 to the reference colour, on images blurred with a 3x3 box) is
+    kept when its cost is below `distinct` x the median cost along the ray and that median
+    exceeds `min_contrast` (uniform regions, whose depth is ambiguous, are dropped), refined to
+    the vertex of the parabola through its neighbours' costs. Points take the reference pixel colour. When fewer
+    than `n` points pass, the rest are uniform in the cube (grey), so that empty regions still
+    get Gaussians.
+
+    Args:
+        views: FitView-like objects (`image [3, H, W]`, `intrinsics`, `w2c [4, 4]`, `valid`).
+        center, half_extent: the cube holding the scene and the cameras.
+        n: number of points to return.
+        seed: seed of the pixel choice and of the filler points.
+        depths: depth hypotheses per pixel.
+        neighbours: views compared with each reference view.
+        distinct: how much better than the ray's median cost the chosen depth must be.
+        near_frac, far_frac: the depth range, in units of the camera's distance to `center`.
+        min_contrast: the ray's median cost must exceed this (a uniform region has no depth).
+
+    Returns:
+        (xyz [n, 3] float32, rgb [n, 3] float32 in [0, 1]).
+    """
+    if n < 1:
+        raise ValueError(f"n (number of points) must be >= 1, got {n!r}")
+    if len(views) < 2:
+        raise ValueError(f"views must hold at least 2 posed images, got {len(views)}")
+    rng = np.random.default_rng(seed)
+    arrays = [_view_arrays(v) for v in views]
+    blurred = [torch.nn.functional.avg_pool2d(a[2][None], 3, 1, 1, count_include_pad=False)[0]
+               for a in arrays]
+    centres = np.stack([-a[1][:3, :3].T @ a[1][:3, 3] for a in arrays])
+    axes = np.stack([a[1][2, :3] for a in arrays])  # viewing directions in world
+    c = np.asarray(center, np.float64)
+    per_view = int(math.ceil(2.0 * n / len(views)))  # about half the pixels pass
+    pts, cols = [], []
+    for r, (K, w2c, _, valid) in enumerate(arrays):
+        img = blurred[r]
+        H, W = img.shape[1:]
+        u = rng.uniform(0, W - 1, per_view)
+        v = rng.uniform(0, H - 1, per_view)
+        if valid is not None:
+            ok = valid[np.rint(v).astype(int), np.rint(u).astype(int)]
+            u, v = u[ok], v[ok]
+        ref = _sample(img, u, v)  # [3, P]
+        rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+        R, t = w2c[:3, :3], w2c[:3, 3]
+        d_c = max(float(np.linalg.norm(centres[r] - c)), 1e-3 * half_extent)
+        inv = np.linspace(1.0 / (near_frac * d_c), 1.0 / (far_frac * d_c), depths)
+        X = ((rays[:, None, :] / inv[None, :, None]) - t) @ R  # [P, D, 3] world (R^T (x - t))
+        cos = axes @ axes[r]
+        dist = np.linalg.norm(centres - centres[r], axis=1)
+        dist[(cos < 0.5) | (np.arange(len(arrays)) == r)] = np.inf
+        nb = [k for k in np.argsort(dist)[:neighbours] if np.isfinite(dist[k])]
+        if not nb:
+            continue
+        cost = np.zeros(X.shape[:2])
+        seen = np.zeros(X.shape[:2])
+        for k in nb:
+            Kk, wk, _, vk = arrays[k]
+            xc = X @ wk[:3, :3].T + wk[:3, 3]
+            z = xc[..., 2]
+            zs = np.where(z > 1e-6, z, 1.0)
+            uk = Kk[0, 0] * xc[..., 0] / zs + Kk[0, 2]
+            vk_ = Kk[1, 1] * xc[..., 1] / zs + Kk[1, 2]
+            Hk, Wk = blurred[k].shape[1:]
+            inside = (z > 1e-6) & (uk >= 0) & (uk <= Wk - 1) & (vk_ >= 0) & (vk_ <= Hk - 1)
+            if vk is not None:
+                ii = np.clip(np.rint(vk_).astype(int), 0, Hk - 1)
+                jj = np.clip(np.rint(uk).astype(int), 0, Wk - 1)
+                inside &= vk[ii, jj]
+            smp = _sample(blurred[k], np.where(inside, uk, 0.0), np.where(inside, vk_, 0.0))
+            d = (smp - ref[:, :, None]).abs().mean(0).numpy()
+            cost += np.where(inside, d, 0.0)
+            seen += inside
+        need = max(2, (len(nb) + 1) // 2)
+        mean_cost = np.where(seen >= need, cost / np.maximum(seen, 1), np.inf)
+        best = np.argmin(mean_cost, axis=1)
+        bc = mean_cost[np.arange(len(best)), best]
+        finite = np.where(np.isfinite(mean_cost), mean_cost, np.nan)
+        with warnings.catch_warnings():  # rays seen by no neighbour: all-NaN rows
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(finite, axis=1)
+        keep = np.isfinite(bc) & (bc < distinct * med) & (med > min_contrast)
+        # sub-sample refinement: the vertex of the parabola through the costs around the best
+        # hypothesis (in inverse depth, where the hypotheses are evenly spaced)
+        rows = np.arange(len(best))
+        lo, hi = np.clip(best - 1, 0, depths - 1), np.clip(best + 1, 0, depths - 1)
+        c0, c1, c2 = mean_cost[rows, lo], bc, mean_cost[rows, hi]
+        with np.errstate(all="ignore"):
+            curv = c0 - 2 * c1 + c2
+            shift = np.where((lo < best) & (hi > best) & np.isfinite(c0 + c2) & (curv > 0),
+                             0.5 * (c0 - c2) / curv, 0.0)
+        best_inv = inv[best] + np.clip(shift, -0.5, 0.5) * (inv[1] - inv[0])
+        Xb = ((rays / best_inv[:, None]) - t) @ R
+        pts.append(Xb[keep])
+        cols.append(ref.numpy().T[keep])
+    xyz = np.concatenate(pts) if pts else np.zeros((0, 3))
+    rgb = np.concatenate(cols) if cols else np.zeros((0, 3))
+    inbox = np.all(np.abs(xyz - c) <= half_extent, axis=1)
+    xyz, rgb = xyz[inbox], rgb[inbox]
+    if len(xyz) > n:
+        idx = rng.choice(len(xyz), size=n, replace=False)
+        xyz, rgb = xyz[idx], rgb[idx]
+    elif len(xyz) < n:
+        fill = (rng.random((n - len(xyz), 3)) * 2.0 - 1.0) * half_extent + c
+        xyz = np.concatenate([xyz, fill])
+        rgb = np.concatenate([rgb, np.full((len(fill), 3), 0.5)])
+    return xyz.astype(np.float32), np.clip(rgb, 0.0, 1.0).astype(np.float32)

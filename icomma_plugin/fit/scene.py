@@ -30,7 +30,7 @@ import torch
 
 from ..io.atomic import write_json_atomic
 from .config import FitConfig
-from .init import model_from_points, random_cube_points, subsample_points
+from .init import model_from_points, plane_sweep_points, random_cube_points, subsample_points
 from .trainer import FitResult, FitView, ProgressFn, Trainer
 
 log = logging.getLogger(__name__)
@@ -179,7 +179,17 @@ def fit_scene(
     log.info("images at %dx%d; %d test views for evaluation", W, H, len(test))
 
     # initial point cloud
-    if scene.points is not None and len(scene.points) > 0:
+    if scene.init_box is not None:  # the reader's points are a random placeholder
+        centre, half = scene.init_box
+        if config.box_init == "views":
+            xyz, rgb = plane_sweep_points(train, centre, half, config.num_sweep_points,
+                                          config.seed)
+            init_source = "views"
+        else:
+            xyz, rgb = random_cube_points(config.num_random_points, half, config.seed)
+            xyz = xyz + np.asarray(centre, np.float32)
+            init_source = "random_box"
+    elif scene.points is not None and len(scene.points) > 0:
         xyz, rgb = np.asarray(scene.points), np.asarray(scene.colors if scene.colors is not None
                                                          else np.full_like(scene.points, 0.5))
         xyz, rgb = subsample_points(xyz, rgb, config.max_init_points, config.seed)
@@ -213,13 +223,18 @@ def fit_scene(
     trainer = Trainer(init, train, extent, config, background=bg, test=test, progress=progress,
                       on_save=on_save, progress_every=progress_every)
     result = trainer.run()
+    train_psnr = trainer.evaluate(train)
+    log.info("final: train PSNR %.2f dB over %d views", train_psnr, len(train))
     metrics = {
         "test_psnr": result.test_psnr,
+        "train_psnr": train_psnr,
+        "train_views": len(train),
         "test_views": result.test_views,
         "test_views_total": len(scene.test),
         "iterations": result.iterations,
         "num_gaussians": result.num_gaussians,
         "seconds_train": round(result.seconds_train, 2),
+        "seconds_cpu": None if result.seconds_cpu is None else round(result.seconds_cpu, 2),
         "seconds_total": None,
         "resolution": [W, H],
         "white_background": bool(scene.white_background),
@@ -263,3 +278,50 @@ def _publish(staging: Path, final: Path, overwrite: bool) -> None:
         shutil.rmtree(old, ignore_errors=True)
     else:
         os.replace(staging, final)
+
+
+def evaluate_model_folder(model_path: PathLike, source_path: Optional[PathLike] = None,
+                          resolution: Optional[int] = None, backend: str = "auto",
+                          iteration: Optional[int] = None) -> Dict:
+    """Train and test PSNR of a model folder on its dataset, on valid pixels (as `fit_scene`).
+
+    Args:
+        model_path: a model folder (upstream layout).
+        source_path: the dataset; None: `source_path` of its cfg_args.
+        resolution: upstream `-r`; None: the cfg_args `resolution`.
+        backend: rasterizer backend.
+        iteration: the saved iteration (None: the last).
+
+    Returns:
+        {"train_psnr", "test_psnr" (None without test views), "train_views", "test_views",
+        "iteration", "num_gaussians", "resolution" [W, H], "per_view" {name: dB}}.
+    """
+    from ..io.datasets import read_dataset
+    from ..io.model_folder import load_model_folder
+    from ..render import render
+    from .losses import psnr
+
+    folder = load_model_folder(model_path, iteration)
+    src = source_path if source_path is not None else folder.cfg.get("source_path")
+    if not src:
+        raise ValueError(f"model folder {model_path}: cfg_args has no source_path; pass "
+                         "source_path")
+    res = folder.cfg.get("resolution", -1) if resolution is None else resolution
+    white = bool(folder.cfg.get("white_background", False))
+    scene = read_dataset(src, white_background=white)
+    bg = (1.0, 1.0, 1.0) if white else (0.0, 0.0, 0.0)
+    bg_t = torch.tensor(bg)
+    per_view: Dict[str, float] = {}
+    means = {}
+    size = None
+    for split, views in (("train", scene.train), ("test", scene.test)):
+        vals = []
+        for fv in views_to_fit(views, res, None, bg):
+            out = render(folder.model, fv.intrinsics, fv.w2c, bg_t, backend=backend)
+            vals.append(psnr(out.color, fv.image, fv.valid))
+            per_view[fv.name] = vals[-1]
+            size = [fv.intrinsics.width, fv.intrinsics.height]
+        means[split] = float(np.mean(vals)) if vals else None
+    return {"train_psnr": means["train"], "test_psnr": means["test"],
+            "train_views": len(scene.train), "test_views": len(scene.test), "iteration": folder.iteration,
+            "num_gaussians": folder.model.num_gaussians, "resolution": size, "per_view": per_view}

@@ -84,6 +84,7 @@ class FitResult:
     test_views: int
     history: List[Dict[str, float]]
     timings: Dict[str, float]
+    seconds_cpu: Optional[float] = None  # process CPU time of the loop (incl. evaluations)
 
 
 def render_state(state: GaussianTrainState, view: FitView, bg: torch.Tensor, backend: str = "auto",
@@ -148,6 +149,9 @@ class Trainer:
         self.history: List[Dict[str, float]] = []
         self.timings = {"render": 0.0, "loss": 0.0, "backward": 0.0, "stats": 0.0, "densify": 0.0, "adam": 0.0}
         self.max_steps = config.position_lr_max_steps or config.iterations
+        pixels = sum(v.intrinsics.width * v.intrinsics.height for v in self.train_views)
+        self.max_gaussians = min(config.max_gaussians, max(1, int(
+            config.max_gaussians_per_pixel * pixels / len(self.train_views))))
 
     # ------------------------------------------------------------------ helpers
     def _next_view(self) -> FitView:
@@ -196,7 +200,7 @@ class Trainer:
                 if it > c.densify_from_iter and it % c.densification_interval == 0:
                     size = c.max_screen_size if it > c.opacity_reset_interval else None
                     d = st.densify_and_prune(c.densify_grad_threshold, c.min_opacity, self.extent, size,
-                                             c.max_gaussians)
+                                             self.max_gaussians)
                     log.debug("iteration %d densify: %s", it, d)
                 if it % c.opacity_reset_interval == 0 or (self.white_background and it == c.densify_from_iter):
                     st.reset_opacity()
@@ -232,6 +236,7 @@ class Trainer:
     def run(self) -> FitResult:
         c = self.config
         t_start = time.perf_counter()
+        cpu_start = time.process_time()  # this process's CPU time: wall time on a busy machine
         t_eval = 0.0
         last = {}
         while self.iteration < c.iterations:
@@ -251,6 +256,7 @@ class Trainer:
             if self.on_save is not None and it in c.save_iterations and it != c.iterations:
                 self.on_save(it, self.state.to_model())
         seconds = time.perf_counter() - t_start - t_eval
+        seconds_cpu = time.process_time() - cpu_start
         test_psnr = None
         if self.test_views:
             test_psnr = self.evaluate()
@@ -264,5 +270,5 @@ class Trainer:
         return FitResult(
             model=model, iterations=self.iteration, num_gaussians=self.state.num_gaussians,
             seconds_train=seconds, test_psnr=test_psnr, test_views=len(self.test_views),
-            history=self.history, timings=dict(self.timings),
+            history=self.history, timings=dict(self.timings), seconds_cpu=seconds_cpu,
         )

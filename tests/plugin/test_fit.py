@@ -493,3 +493,96 @@ def test_fit_ignores_invalid_pixels():
     with pytest.raises(ValueError, match="valid"):
         FitView("v", torch.zeros(3, 8, 8), Intrinsics(8, 8, 9.0, 9.0), torch.eye(4),
                 valid=torch.zeros(1, 8, 6))
+
+
+# ------------------------------------------------------------------ initialisation from views
+def _plane_views(n=6, size=(48, 40)):
+    """Pinhole views (OpenCV axes) of the textured plane z = 0 from about 3 units above it,
+    rendered analytically (ray-plane intersection)."""
+    W, H = size
+    intr = Intrinsics(W, H, 40.0, 40.0)
+    views = []
+    for k in range(n):
+        a = 2 * math.pi * k / n
+        c = np.array([0.8 * math.cos(a), 0.8 * math.sin(a), 3.0])
+        w2c = _look_at_w2c(c, target=(0.1 * math.cos(a), 0.0, 0.0), up=(0.0, 1.0, 0.0))
+        c2w = np.linalg.inv(w2c)
+        u, v = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
+        d = np.stack([(u - intr.cx_px) / intr.fx, (v - intr.cy_px) / intr.fy, np.ones_like(u)], -1)
+        d = d @ c2w[:3, :3].T
+        t = -c[2] / d[..., 2]
+        X = c + t[..., None] * d
+        img = np.stack([_plane_texture(X[..., 0], X[..., 1], ch) for ch in range(3)], 0)
+        views.append(FitView(f"p{k}", torch.as_tensor(img, dtype=torch.float32), intr,
+                             torch.as_tensor(w2c, dtype=torch.float32)))
+    return views
+
+
+def _plane_texture(x, y, ch):
+    return 0.5 + 0.35 * np.sin(9.0 * x + 2.0 * ch) * np.cos(7.0 * y - ch)
+
+
+def test_plane_sweep_points_lie_on_the_photographed_surface():
+    from icomma_plugin.fit.init import plane_sweep_points
+
+    views = _plane_views()
+    xyz, rgb = plane_sweep_points(views, (0.0, 0.0, 1.0), 3.5, n=600, seed=1)
+    assert xyz.shape == (600, 3) and rgb.shape == (600, 3)
+    on = np.abs(xyz[:, 2]) < 0.1
+    assert on.mean() > 0.8, on.mean()  # the sweep finds the plane...
+    want = np.stack([_plane_texture(xyz[on, 0], xyz[on, 1], c) for c in range(3)], 1)
+    err = np.abs(rgb[on] - want)
+    assert np.median(err) < 0.05       # ...and its colours
+    # a random cloud in the same box is not on the plane
+    rnd, _ = random_cube_points(600, 3.5, seed=1)
+    assert (np.abs(rnd[:, 2] + 1.0) < 0.1).mean() < 0.1
+    # a uniform image gives no depth: the points fill the box uniformly (grey)
+    flat = [FitView(v.name, torch.full_like(v.image, 0.3), v.intrinsics, v.w2c) for v in views]
+    fill, frgb = plane_sweep_points(flat, (0.0, 0.0, 1.0), 3.5, n=600, seed=1)
+    assert fill.shape == (600, 3) and np.abs(fill - [0, 0, 1]).max() <= 3.5 + 1e-5
+    assert np.all(frgb == 0.5) and (np.abs(fill[:, 2]) < 0.1).mean() < 0.1
+    with pytest.raises(ValueError, match="2 posed images"):
+        plane_sweep_points(views[:1], (0, 0, 0), 1.0, n=10)
+
+
+def test_fit_scene_on_transforms_json_capture(tmp_path):
+    """A single-file transforms.json capture with lens distortion: masks reach the fit, the
+    points come from the plane sweep, and train / test PSNR are reported."""
+    from PIL import Image
+
+    from icomma_plugin.fit import fit_scene
+    from icomma_plugin.fit.scene import views_to_fit
+    from icomma_plugin.io.datasets import read_dataset
+
+    rendered = _render_views(_gt_model(), _ring_poses(9), size=32)
+    frames = []
+    for name, img, _, intr, w2c in rendered:
+        (tmp_path / "images").mkdir(exist_ok=True)
+        arr = (img.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
+        Image.fromarray(arr).save(tmp_path / "images" / f"{name}.png")
+        c2w = np.linalg.inv(w2c)
+        c2w[:3, 1:3] *= -1  # OpenCV -> OpenGL
+        frames.append({"file_path": f"images/{name}", "transform_matrix": c2w.tolist()})
+    frames.append({"file_path": "images/absent.png", "transform_matrix": np.eye(4).tolist()})
+    intr = rendered[0][3]
+    (tmp_path / "transforms.json").write_text(json.dumps({
+        "fl_x": intr.fx, "fl_y": intr.fy, "cx": 16.0, "cy": 16.0, "w": 32, "h": 32, "k1": 0.08,
+        "frames": frames}))
+    scene = read_dataset(tmp_path)
+    assert len(scene.train) == 7 and len(scene.test) == 2  # v0 and v8 held out
+    fv = views_to_fit(scene.train, -1, None, (0.0, 0.0, 0.0))
+    assert fv[0].valid is not None and 0.5 < float(fv[0].valid.mean()) < 1.0
+    cfg = FitConfig.scaled_schedule(40, sh_degree=1, num_sweep_points=300, backend=BACKEND)
+    res = fit_scene(tmp_path, tmp_path / "model", cfg)
+    m = res.metrics
+    assert m["init"] == {"source": "views", "points": 300}
+    assert m["train_views"] == 7 and m["test_views"] == 2
+    assert math.isfinite(m["train_psnr"]) and math.isfinite(m["test_psnr"])
+    assert m["seconds_cpu"] > 0 and m["white_background"] is False
+    # re-evaluating the written folder on its dataset gives the same figures
+    from icomma_plugin.fit import evaluate_model_folder
+
+    ev = evaluate_model_folder(tmp_path / "model")
+    assert ev["test_psnr"] == pytest.approx(m["test_psnr"], abs=1e-3)
+    assert ev["train_psnr"] == pytest.approx(m["train_psnr"], abs=1e-3)
+    assert ev["resolution"] == [32, 32] and set(ev["per_view"]) >= {"v0", "v8"}
