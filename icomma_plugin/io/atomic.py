@@ -11,6 +11,14 @@ from typing import Any, Iterator, Union
 PathLike = Union[str, os.PathLike]
 
 
+def _default_mode() -> int:
+    """0o666 less the process umask: the mode ``open()`` would give a new file (mkstemp's 0o600
+    would make results unreadable to the other users of a shared cluster)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
 @contextlib.contextmanager
 def atomic_path(path: PathLike) -> Iterator[Path]:
     """Yield a temporary path in the same folder; it replaces `path` only if the block succeeds."""
@@ -21,6 +29,8 @@ def atomic_path(path: PathLike) -> Iterator[Path]:
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        # keep the mode of the file being replaced, else that of a newly created file
+        os.chmod(tmp_path, path.stat().st_mode & 0o7777 if path.exists() else _default_mode())
         os.replace(tmp_path, path)
     finally:
         if tmp_path.exists():

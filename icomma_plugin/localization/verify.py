@@ -142,7 +142,7 @@ class VerdictConfig:
     ok_median_px: float = 1.0
     ok_mean_px: float = 0.6
     ok_spread: float = 0.04
-    ok_coverage: float = 0.3
+    ok_coverage: float = 0.1
     fail_inliers: int = 8
     fail_coverage: float = 0.02
 
