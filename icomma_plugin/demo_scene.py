@@ -33,7 +33,7 @@ import shutil
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Sequence, Tuple, Union
+from typing import Optional, Tuple, Union
 
 import numpy as np
 import torch
@@ -293,6 +293,76 @@ def textured_plane_model(n: int = 40, size: float = 2.0, seed: int = 0, style: s
         means=f32(pts), sh_dc=rgb_to_sh(f32(rgb))[:, None, :], sh_rest=torch.zeros(P, 0, 3),
         opacity_logit=torch.full((P, 1), math.log(0.98 / 0.02)), scale_log=torch.log(f32(scales)),
         quat=f32(quat), sh_degree=0,
+    )
+
+
+def blob_model(num_gaussians: int = 300, seed: int = 0, extent: float = 1.0) -> GaussianModel:
+    """Colourful anisotropic blobs in ``[-extent, extent]^3`` (SH degree 0, float32)."""
+    g = torch.Generator().manual_seed(int(seed))
+    P = int(num_gaussians)
+    means = (torch.rand(P, 3, generator=g) * 2 - 1) * extent
+    rgb = torch.rand(P, 3, generator=g) * 0.9 + 0.05
+    scales = torch.exp(torch.randn(P, 3, generator=g) * 0.3) * (0.12 * extent)
+    quat = torch.randn(P, 4, generator=g)
+    return GaussianModel(
+        means=means, sh_dc=rgb_to_sh(rgb)[:, None, :], sh_rest=torch.zeros(P, 0, 3),
+        opacity_logit=torch.full((P, 1), 2.0), scale_log=scales.log(), quat=quat, sh_degree=0,
+    )
+
+
+def raster_bench_scene(num_gaussians: int, resolution: int, seed: int = 0) -> dict:
+    """Raw rasterizer inputs for timing (``tools/bench_rasterizer.py``): ``num_gaussians`` SH-3
+    Gaussians 2-8 units in front of a ``resolution``-square camera (a few just off screen), with
+    footprints of 0.5-4 px, as the keyword arguments of the backend contract (docs/CONTRACTS.md)
+    plus ``settings``."""
+    g = torch.Generator().manual_seed(seed)
+    P, H, W = num_gaussians, resolution, resolution
+    tanfov = 0.5
+    focal = W / (2 * tanfov)
+
+    def U(*shape, lo=0.0, hi=1.0):
+        return torch.rand(*shape, generator=g) * (hi - lo) + lo
+
+    z = U(P, lo=2.0, hi=8.0)
+    x = U(P, lo=-1.1, hi=1.1) * tanfov * z  # a few just off screen
+    y = U(P, lo=-1.1, hi=1.1) * tanfov * z
+    means_cam = torch.stack([x, y, z], -1)
+    # camera: a mild rotation + translation (w2c), means moved to the world
+    angle = 0.2
+    c, s = math.cos(angle), math.sin(angle)
+    w2c = torch.tensor([[c, 0, s, 0.1], [0, 1, 0, -0.2], [-s, 0, c, 0.3], [0, 0, 0, 1]], dtype=torch.float32)
+    c2w = torch.linalg.inv(w2c)
+    means3D = means_cam @ c2w[:3, :3].T + c2w[:3, 3]
+    # footprint: sigma of 0.5..4 pixels, anisotropic
+    sigma_px = torch.exp(U(P, 3, lo=math.log(0.5), hi=math.log(4.0)))
+    scales = sigma_px * z[:, None] / focal
+    rotations = torch.randn(P, 4, generator=g)
+    rotations = rotations / rotations.norm(dim=-1, keepdim=True)
+    opacities = U(P, 1, lo=0.05, hi=0.99)
+    shs = torch.randn(P, 16, 3, generator=g) * 0.2
+    shs[:, 0] = torch.randn(P, 3, generator=g) * 0.8
+    znear, zfar = 0.01, 100.0
+    proj = torch.zeros(4, 4)
+    proj[0, 0] = 1 / tanfov
+    proj[1, 1] = 1 / tanfov
+    proj[3, 2] = 1.0
+    proj[2, 2] = zfar / (zfar - znear)
+    proj[2, 3] = -(zfar * znear) / (zfar - znear)
+    return dict(
+        means3D=means3D.contiguous(),
+        means2D=torch.zeros(P, 3),
+        opacities=opacities,
+        shs=shs,
+        colors_precomp=None,
+        scales=scales.contiguous(),
+        rotations=rotations,
+        cov3D_precomp=None,
+        bg=torch.tensor([0.1, 0.2, 0.3]),
+        viewmatrix=w2c.T.contiguous(),
+        projmatrix=(proj @ w2c).T.contiguous(),
+        campos=c2w[:3, 3].contiguous(),
+        settings=dict(image_height=H, image_width=W, tanfovx=tanfov, tanfovy=tanfov, scale_modifier=1.0,
+                      sh_degree=3, prefiltered=False, antialiasing=False),
     )
 
 

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import statistics
 import sys
@@ -35,6 +34,8 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from icomma_plugin.demo_scene import raster_bench_scene  # noqa: E402  (the one home of synthetic scenes)
+
 MODES = ("fwd", "fwd+bwd", "fwd+bwd+pose")
 DEFAULT_SIZES = (10_000, 50_000, 200_000)
 DEFAULT_RES = (200, 400, 800)
@@ -47,58 +48,6 @@ def log(msg: str) -> None:
 # ----------------------------------------------------------------------------------------------
 # Synthetic scene: P Gaussians in front of the camera, each a few pixels on screen.
 # ----------------------------------------------------------------------------------------------
-def make_bench_scene(num_gaussians: int, resolution: int, seed: int = 0) -> Dict[str, object]:
-    g = torch.Generator().manual_seed(seed)
-    P, H, W = num_gaussians, resolution, resolution
-    tanfov = 0.5
-    focal = W / (2 * tanfov)
-
-    def U(*shape, lo=0.0, hi=1.0):
-        return torch.rand(*shape, generator=g) * (hi - lo) + lo
-
-    z = U(P, lo=2.0, hi=8.0)
-    x = U(P, lo=-1.1, hi=1.1) * tanfov * z  # a few just off screen
-    y = U(P, lo=-1.1, hi=1.1) * tanfov * z
-    means_cam = torch.stack([x, y, z], -1)
-    # camera: a mild rotation + translation (w2c), means moved to the world
-    angle = 0.2
-    c, s = math.cos(angle), math.sin(angle)
-    w2c = torch.tensor([[c, 0, s, 0.1], [0, 1, 0, -0.2], [-s, 0, c, 0.3], [0, 0, 0, 1]], dtype=torch.float32)
-    c2w = torch.linalg.inv(w2c)
-    means3D = means_cam @ c2w[:3, :3].T + c2w[:3, 3]
-    # footprint: sigma of 0.5..4 pixels, anisotropic
-    sigma_px = torch.exp(U(P, 3, lo=math.log(0.5), hi=math.log(4.0)))
-    scales = sigma_px * z[:, None] / focal
-    rotations = torch.randn(P, 4, generator=g)
-    rotations = rotations / rotations.norm(dim=-1, keepdim=True)
-    opacities = U(P, 1, lo=0.05, hi=0.99)
-    shs = torch.randn(P, 16, 3, generator=g) * 0.2
-    shs[:, 0] = torch.randn(P, 3, generator=g) * 0.8
-    znear, zfar = 0.01, 100.0
-    proj = torch.zeros(4, 4)
-    proj[0, 0] = 1 / tanfov
-    proj[1, 1] = 1 / tanfov
-    proj[3, 2] = 1.0
-    proj[2, 2] = zfar / (zfar - znear)
-    proj[2, 3] = -(zfar * znear) / (zfar - znear)
-    return dict(
-        means3D=means3D.contiguous(),
-        means2D=torch.zeros(P, 3),
-        opacities=opacities,
-        shs=shs,
-        colors_precomp=None,
-        scales=scales.contiguous(),
-        rotations=rotations,
-        cov3D_precomp=None,
-        bg=torch.tensor([0.1, 0.2, 0.3]),
-        viewmatrix=w2c.T.contiguous(),
-        projmatrix=(proj @ w2c).T.contiguous(),
-        campos=c2w[:3, 3].contiguous(),
-        settings=dict(image_height=H, image_width=W, tanfovx=tanfov, tanfovy=tanfov, scale_modifier=1.0,
-                      sh_degree=3, prefiltered=False, antialiasing=False),
-    )
-
-
 # ----------------------------------------------------------------------------------------------
 # Backends: name -> (callable with the contract signature, None) or (None, reason unavailable).
 # "cuda" runs the same native function on a copy of the scene on the GPU (BACKEND_DEVICE).
@@ -215,7 +164,7 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     results = []
     for P, R in scenes:
-        scene_cpu = make_bench_scene(P, R, seed=args.seed)
+        scene_cpu = raster_bench_scene(P, R, seed=args.seed)
         on_device = {"cpu": scene_cpu}
         row = {"gaussians": P, "resolution": R, "ms": {}}
         for b in backends:

@@ -66,10 +66,11 @@ def load_scene(cfg: DictConfig, spec: ProtocolSpec, backend: str):
         if not Path(str(s.model_path)).expanduser().is_dir():
             raise common.UserError(f"scene.model_path: model folder not found: {s.model_path} (fit one with "
                                    "`make scenes` or tools/fit_scene.py, or use scene.kind=synthetic)")
-        idx = None if s.query_indices is None else [int(i) for i in s.query_indices]
+        q = s.query
+        idx = None if q.indices is None else [int(i) for i in q.indices]
         return load_model_folder_scene(
-            s.model_path, dataset=s.dataset, num_queries=spec.num_queries, split=str(s.split), query_indices=idx,
-            image_scale=None if s.image_scale is None else float(s.image_scale),
+            s.model_path, dataset=q.dataset, num_queries=spec.num_queries, split=str(q.split), query_indices=idx,
+            image_scale=None if q.image_scale is None else float(q.image_scale),
             white_background=None if s.white_background is None else bool(s.white_background),
             iteration=s.iteration, translation_unit=str(s.translation_unit),
             no_start_queries=spec.num_queries * spec.poses_per_query if any(iv.no_start for iv in spec.intervals)

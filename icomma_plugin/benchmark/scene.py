@@ -99,9 +99,10 @@ def default_lego_dataset() -> Path:
 
 
 def camera_radius(c2ws: Sequence[np.ndarray]) -> float:
-    """3DGS ``getNerfppNorm`` radius of camera centres: 1.1 x max distance from their mean."""
-    c = np.stack([np.asarray(T, np.float64)[:3, 3] for T in c2ws])
-    return float(1.1 * np.linalg.norm(c - c.mean(0), axis=1).max())
+    """3DGS ``getNerfppNorm`` radius of camera centres (``pose.convert.cameras_extent``)."""
+    from ..pose.convert import cameras_extent
+
+    return cameras_extent(c2ws)
 
 
 def select_indices(n: int, num: int, indices: Optional[Sequence[int]] = None) -> List[int]:
@@ -174,7 +175,7 @@ def load_model_folder_scene(
         dataset = src if src and Path(str(src)).is_dir() else default_lego_dataset()
     root = Path(str(dataset)).expanduser()
     if not root.is_dir():
-        raise FileNotFoundError(f"dataset folder not found: {root} (set scene.dataset or ICOMMA_SHARED_DATA)")
+        raise FileNotFoundError(f"dataset folder not found: {root} (set scene.query.dataset or ICOMMA_SHARED_DATA)")
     try:
         sd = read_dataset(root, white_background=white)
     except ValueError as e:
@@ -218,22 +219,6 @@ def load_model_folder_scene(
     )
 
 
-def synthetic_model(num_gaussians: int = 300, seed: int = 0, extent: float = 1.0) -> GaussianModel:
-    """Colourful anisotropic blobs in ``[-extent, extent]^3`` (SH degree 0, float32)."""
-    from ..gaussians import rgb_to_sh
-
-    g = torch.Generator().manual_seed(int(seed))
-    P = int(num_gaussians)
-    means = (torch.rand(P, 3, generator=g) * 2 - 1) * extent
-    rgb = torch.rand(P, 3, generator=g) * 0.9 + 0.05
-    scales = torch.exp(torch.randn(P, 3, generator=g) * 0.3) * (0.12 * extent)
-    quat = torch.randn(P, 4, generator=g)
-    return GaussianModel(
-        means=means, sh_dc=rgb_to_sh(rgb)[:, None, :], sh_rest=torch.zeros(P, 0, 3),
-        opacity_logit=torch.full((P, 1), 2.0), scale_log=scales.log(), quat=quat, sh_degree=0,
-    )
-
-
 def synthetic_scene(
     num_gaussians: int = 300, width: int = 64, height: int = 64, num_queries: int = 2,
     seed: int = 0, radius: float = 4.0, fov_deg: float = 40.0, translation_unit: str = "world",
@@ -244,7 +229,9 @@ def synthetic_scene(
     from ..pose.convert import look_at_c2w
     from ..render import render
 
-    model = synthetic_model(num_gaussians, seed)
+    from ..demo_scene import blob_model
+
+    model = blob_model(num_gaussians, seed)
     intr = Intrinsics.from_fov(int(width), int(height), math.radians(float(fov_deg)))
 
     def cam(az_deg, el_deg):
