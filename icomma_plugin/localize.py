@@ -33,7 +33,7 @@ from .localization.robust import RobustConfig, localize_robust
 from .localization.state import LocalizationState
 from .localization.types import LocalizationResult, Query, TraceRecord, Verdict
 from .localization.verify import VerdictConfig, decide, score_observation
-from .pose.convert import invert_rigid
+from .pose.convert import invert_rigid, rigid_problem
 
 logger = logging.getLogger(__name__)
 
@@ -45,21 +45,13 @@ Config = Union[LocalizerConfig, RobustConfig]
 
 def as_pose(T, name: str) -> np.ndarray:
     """A rigid ``[4, 4]`` pose from numpy or torch as float64 numpy; ValueError naming ``name``."""
+    problem = rigid_problem(T, atol=1e-3)
+    if problem is not None:
+        raise ValueError(f"{name} must be a rigid 4x4 transform (orthonormal rotation, det +1, last "
+                         f"row 0 0 0 1): {problem}")
     if isinstance(T, torch.Tensor):
-        T = T.detach().to(torch.float64).cpu().numpy()
-    if not isinstance(T, np.ndarray):
-        raise ValueError(f"{name} must be a 4x4 numpy array or torch tensor, got {type(T).__name__}")
-    if tuple(T.shape) != (4, 4):
-        raise ValueError(f"{name} must have shape [4, 4], got {list(T.shape)}")
-    T = np.asarray(T, np.float64)
-    if not np.all(np.isfinite(T)):
-        raise ValueError(f"{name} contains NaN or infinite values")
-    R = T[:3, :3]
-    if float(np.abs(R @ R.T - np.eye(3)).max()) > 1e-3 or float(np.linalg.det(R)) < 0 \
-            or float(np.abs(T[3] - [0, 0, 0, 1]).max()) > 1e-6:
-        raise ValueError(f"{name} must be a rigid transform (orthonormal rotation, det +1, last row "
-                         "0 0 0 1)")
-    return T
+        T = T.detach().cpu()
+    return np.asarray(T, np.float64)
 
 
 def _verify_final(state: LocalizationState, w2c: np.ndarray, scale: float, converged: Optional[bool],

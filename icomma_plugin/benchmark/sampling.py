@@ -31,6 +31,8 @@ from typing import Sequence, Tuple, Union
 
 import numpy as np
 
+from ..pose.convert import random_unit_vector, rotation_about_axis
+
 __all__ = ["InitialPose", "pose_seed", "pose_rng", "sample_axis", "sample_initial_pose",
            "rotation_matrix", "TRANSLATION_MODES", "PIVOTS"]
 
@@ -80,21 +82,14 @@ def pose_rng(seed_seq: Sequence[int]) -> np.random.Generator:
 
 
 def sample_axis(rng: np.random.Generator) -> np.ndarray:
-    """Uniform direction on the unit sphere."""
-    while True:
-        v = rng.standard_normal(3)
-        n = float(np.linalg.norm(v))
-        if n > 1e-9:
-            return v / n
+    """Uniform direction on the unit sphere (``pose.convert.random_unit_vector``)."""
+    return random_unit_vector(rng)
 
 
 def rotation_matrix(axis: np.ndarray, angle_deg: float) -> np.ndarray:
-    """Rodrigues rotation (float64 [3, 3]) by ``angle_deg`` about the unit ``axis``."""
-    a = np.asarray(axis, np.float64)
-    a = a / np.linalg.norm(a)
-    th = math.radians(float(angle_deg))
-    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + math.sin(th) * K + (1.0 - math.cos(th)) * (K @ K)
+    """Rodrigues rotation (float64 [3, 3]) by ``angle_deg`` about ``axis``
+    (``pose.convert.rotation_about_axis``)."""
+    return rotation_about_axis(axis, angle_deg)
 
 
 def _range(value, name: str, allow_neg: bool = False) -> Tuple[float, float]:

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from ..camera import Intrinsics
-from ..pose.convert import cameras_extent, perturb_pose
+from ..pose.convert import cameras_extent, perturb_pose, rigid_problem
 from .types import Query
 
 logger = logging.getLogger(__name__)
@@ -65,9 +65,7 @@ class Problem:
 
 
 def _is_rigid(T: np.ndarray) -> bool:
-    R = T[:3, :3]
-    return (bool(np.all(np.isfinite(T))) and np.allclose(R @ R.T, np.eye(3), atol=1e-4)
-            and np.linalg.det(R) > 0 and np.allclose(T[3], [0, 0, 0, 1], atol=1e-6))
+    return rigid_problem(T) is None
 
 
 def load_c2w_file(path, what: str) -> np.ndarray:

@@ -9,7 +9,7 @@ input's kind, dtype and device; metrics are computed in float64.
 from __future__ import annotations
 
 import math
-from typing import Union
+from typing import Optional, Union
 
 import numpy as np
 import torch
@@ -26,10 +26,12 @@ __all__ = [
     "look_at_c2w",
     "rotation_about_axis",
     "random_rotation_about_axis",
+    "random_unit_vector",
     "rotation_error_deg",
     "translation_error",
     "perturb_pose",
     "cameras_extent",
+    "rigid_problem",
 ]
 
 
@@ -65,6 +67,27 @@ def invert_rigid(T: ArrayLike) -> ArrayLike:
     out[..., :3, :3] = Rt
     out[..., :3, 3:4] = -(Rt @ T[..., :3, 3:4])
     return out
+
+
+def rigid_problem(T, atol: float = 1e-4) -> Optional[str]:
+    """Why ``T`` is not a rigid ``[4, 4]`` transform, or None when it is (within ``atol``; JSON
+    files store rotations orthonormal to about float32 precision). Callers raise their own error
+    type with this reason, naming their argument or file."""
+    A = _to_np64(T) if isinstance(T, (np.ndarray, torch.Tensor)) else None
+    if A is None:
+        return f"expected a 4x4 numpy array or torch tensor, got {type(T).__name__}"
+    if A.shape != (4, 4):
+        return f"expected shape [4, 4], got {list(A.shape)}"
+    if not np.all(np.isfinite(A)):
+        return "it contains NaN or infinite values"
+    R = A[:3, :3]
+    err = float(np.abs(R @ R.T - np.eye(3)).max())
+    if err > atol or np.linalg.det(R) < 0:
+        return (f"its rotation is not orthonormal with det +1 (max |R R^T - I| = {err:.2g}, "
+                f"det = {np.linalg.det(R):.4f})")
+    if not np.allclose(A[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
+        return f"its last row must be [0, 0, 0, 1], got {A[3].tolist()}"
+    return None
 
 
 def c2w_to_w2c(c2w: ArrayLike) -> ArrayLike:
@@ -174,6 +197,11 @@ class _Rng:
             n = np.linalg.norm(v)
             if n > 1e-9:
                 return v / n
+
+
+def random_unit_vector(generator: GeneratorLike = None) -> np.ndarray:
+    """A direction uniform on the unit sphere (a normalised Gaussian draw), float64 ``[3]``."""
+    return _Rng(generator).direction()
 
 
 def random_rotation_about_axis(

@@ -249,9 +249,9 @@ def se3_log(T: torch.Tensor) -> torch.Tensor:
 
 
 def se3_inverse(T: torch.Tensor) -> torch.Tensor:
-    """Inverse of a rigid transform ``[..., 4, 4]`` via ``[R^T, -R^T t]`` (differentiable)."""
+    """Inverse of a rigid transform ``[..., 4, 4]`` via ``[R^T, -R^T t]`` (differentiable;
+    ``pose.convert.invert_rigid`` for tensors)."""
+    from .convert import invert_rigid
+
     _check_last(T, "T", (4, 4))
-    Rt = T[..., :3, :3].transpose(-1, -2)
-    t = -(Rt @ T[..., :3, 3:4])
-    top = torch.cat([Rt, t], dim=-1)
-    return torch.cat([top, T[..., 3:4, :]], dim=-2)
+    return invert_rigid(T)
