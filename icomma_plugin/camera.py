@@ -6,6 +6,7 @@ from dataclasses import dataclass, replace
 from typing import Optional
 
 import torch
+from .checks import check_int, check_real
 
 
 @dataclass(frozen=True)
@@ -21,17 +22,11 @@ class Intrinsics:
 
     def __post_init__(self):
         for name in ("width", "height"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v <= 0:
-                raise ValueError(f"Intrinsics.{name} must be a positive int, got {v!r}")
+            check_int(getattr(self, name), f"Intrinsics.{name}", 1)
         for name in ("fx", "fy"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"Intrinsics.{name} must be a positive finite number, got {v!r}")
+            check_real(getattr(self, name), f"Intrinsics.{name}", 0.0, lo_open=True)
         for name in ("cx", "cy"):
-            v = getattr(self, name)
-            if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v)):
-                raise ValueError(f"Intrinsics.{name} must be a finite number or None, got {v!r}")
+            check_real(getattr(self, name), f"Intrinsics.{name}", optional=True)
 
     @property
     def cx_px(self) -> float:

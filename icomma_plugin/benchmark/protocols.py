@@ -137,7 +137,7 @@ class ProtocolSpec:
                              f"got {self.methods!r}")
         for name in ("num_queries", "poses_per_query", "max_iterations"):
             v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+            if not (isinstance(v, int) and not isinstance(v, bool)) or v < 1:
                 raise ValueError(f"benchmark_protocol.{name} must be a positive int, got {v!r}")
         if self.translation_mode not in TRANSLATION_MODES:
             raise ValueError(f"benchmark_protocol.translation_mode must be one of {TRANSLATION_MODES}, "

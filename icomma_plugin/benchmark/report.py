@@ -193,8 +193,8 @@ def markdown(spec: ProtocolSpec, summary: Dict[str, Any], matcher: Optional[str]
     lines.append(f"- size: {size}")
     for k, v in h.items():
         lines.append(f"- {k}: {v}")
-    lines.append(f"- thresholds: " + ", ".join(f"< {a:g} deg and < {b:g}" for a, b in spec.thresholds))
-    lines.append(f"- methods: " + "; ".join(f"`{m}` = {METHODS[m]}" for m in spec.methods))
+    lines.append("- thresholds: " + ", ".join(f"< {a:g} deg and < {b:g}" for a, b in spec.thresholds))
+    lines.append("- methods: " + "; ".join(f"`{m}` = {METHODS[m]}" for m in spec.methods))
     lines.append("")
     rows = table_rows(spec, summary, matcher)
     lines.append("| interval | method | metric | n | ours | paper | Δ (ours − paper) | paper source |")

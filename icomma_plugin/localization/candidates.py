@@ -16,6 +16,7 @@ from typing import List, Optional, Sequence
 import numpy as np
 
 from ..camera import Intrinsics
+from ..checks import check_int, check_real
 from ..gaussians import GaussianModel
 from ..matchers.base import mutual_nn_count
 from ..pose.convert import look_at_c2w
@@ -41,6 +42,12 @@ class CandidateConfig:
     rank_side: int = 128
     top_k: int = 4
     min_cosine: float = 0.8
+
+    def __post_init__(self):
+        check_int(self.num_sampled, "CandidateConfig.num_sampled", 0)
+        check_int(self.rank_side, "CandidateConfig.rank_side", 16)
+        check_int(self.top_k, "CandidateConfig.top_k", 1)
+        check_real(self.min_cosine, "CandidateConfig.min_cosine", -1.0, 1.0)
 
 
 def scene_frame(model: GaussianModel, cameras_c2w: Sequence[np.ndarray]):

@@ -17,6 +17,7 @@ from typing import List, Optional
 
 import numpy as np
 
+from ..checks import check_bool, check_int, check_real
 from ..pose.convert import rotation_error_deg
 from .geometry import PnPResult, lift_keypoints, solve_pnp
 from .state import LocalizationState, Observation
@@ -56,6 +57,19 @@ class GeometricConfig:
     inlier_px: float = 2.0
     stop_rot_deg: float = 0.05
     stop_trans_rel: float = 1e-3
+
+    def __post_init__(self):
+        n = "GeometricConfig."
+        check_int(self.max_rounds, n + "max_rounds", 1)
+        check_int(self.min_pnp_inliers, n + "min_pnp_inliers", 6)
+        check_int(self.subpixel_inliers, n + "subpixel_inliers", 0)
+        for name in ("ransac_px", "inlier_px"):
+            check_real(getattr(self, name), n + name, 0.0, lo_open=True)
+        check_real(self.min_alpha, n + "min_alpha", 0.0, 1.0)
+        check_real(self.max_depth_jump, n + "max_depth_jump", 0.0, lo_open=True, optional=True)
+        check_real(self.stop_rot_deg, n + "stop_rot_deg", 0.0)
+        check_real(self.stop_trans_rel, n + "stop_trans_rel", 0.0)
+        check_bool(self.subpixel, n + "subpixel")
 
 
 @dataclass

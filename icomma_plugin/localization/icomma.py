@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import math
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -56,6 +55,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 import torch
 
+from ..checks import check_bool, check_choice, check_int, check_real
 from ..losses import compare_loss, match_loss, reprojection_match_loss
 from ..pose.convert import invert_rigid, rotation_error_deg
 from ..pose.se3 import se3_exp
@@ -70,10 +70,6 @@ __all__ = ["GRADIENT_MODES", "IcommaOutcome", "LocalizerConfig", "run_icomma"]
 GRADIENT_MODES = ("image", "depth")
 STAGE_MATCH = Stage.MATCH
 STAGE_COMPARE = Stage.COMPARE
-
-
-def _is_num(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
 @dataclass
@@ -139,44 +135,31 @@ class LocalizerConfig:
 
     def validate(self) -> "LocalizerConfig":
         """Raise ValueError naming the field when a value is out of range."""
-        def bad(name, want):
-            raise ValueError(f"LocalizerConfig.{name} must be {want}, got {getattr(self, name)!r}")
+        def n(field: str) -> str:
+            return f"LocalizerConfig.{field}"
 
         if isinstance(self.betas, list):
             self.betas = tuple(self.betas)
         for name in ("lr", "lr_decay_steps", "image_scale"):
-            v = getattr(self, name)
-            if not (_is_num(v) and v > 0):
-                bad(name, "a positive finite number")
+            check_real(getattr(self, name), n(name), 0.0, lo_open=True)
         for name in ("switch_threshold", "converge_rot_deg", "converge_trans_rel", "adam_eps",
                      "confidence_threshold", "depth_min_alpha"):
-            v = getattr(self, name)
-            if not (_is_num(v) and v >= 0):
-                bad(name, "a non-negative finite number")
-        if not (_is_num(self.lambda_match) and 0.0 <= self.lambda_match <= 1.0):
-            bad("lambda_match", "a number in [0, 1]")
-        if not (_is_num(self.lr_decay_base) and 0.0 < self.lr_decay_base <= 1.0):
-            bad("lr_decay_base", "a number in (0, 1]")
-        if not (isinstance(self.betas, tuple) and len(self.betas) == 2
-                and all(_is_num(b) and 0.0 <= b < 1.0 for b in self.betas)):
-            bad("betas", "a pair of numbers in [0, 1)")
-        for name in ("min_matches", "max_iterations", "converge_patience", "min_iterations"):
-            v = getattr(self, name)
-            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
-                bad(name, "a non-negative int")
-        if self.max_iterations < 1:
-            bad("max_iterations", "a positive int")
-        if self.max_stage1_iterations is not None and not (
-            isinstance(self.max_stage1_iterations, int) and self.max_stage1_iterations >= 0
-        ):
-            bad("max_stage1_iterations", "a non-negative int or None")
-        if self.gradient_mode not in GRADIENT_MODES:
-            bad("gradient_mode", f"one of {GRADIENT_MODES}")
-        if self.sh_degree is not None and self.sh_degree not in (0, 1, 2, 3):
-            bad("sh_degree", "0..3 or None")
+            check_real(getattr(self, name), n(name), 0.0)
+        check_real(self.lambda_match, n("lambda_match"), 0.0, 1.0)
+        check_real(self.lr_decay_base, n("lr_decay_base"), 0.0, 1.0, lo_open=True)
+        if not (isinstance(self.betas, tuple) and len(self.betas) == 2):
+            raise ValueError(f"{n('betas')} must be a pair of numbers in [0, 1), got {self.betas!r}")
+        for i, b in enumerate(self.betas):
+            check_real(b, f"{n('betas')}[{i}]", 0.0, 1.0, hi_open=True)
+        for name in ("min_matches", "converge_patience", "min_iterations"):
+            check_int(getattr(self, name), n(name), 0)
+        check_int(self.max_iterations, n("max_iterations"), 1)
+        check_int(self.max_stage1_iterations, n("max_stage1_iterations"), 0, optional=True)
+        check_choice(self.gradient_mode, n("gradient_mode"), GRADIENT_MODES)
+        if self.sh_degree is not None:
+            check_choice(self.sh_degree, n("sh_degree"), (0, 1, 2, 3))
         for name in ("use_matching", "use_query_mask", "antialiasing", "record_trace"):
-            if not isinstance(getattr(self, name), bool):
-                bad(name, "a bool")
+            check_bool(getattr(self, name), n(name))
         return self
 
     @classmethod

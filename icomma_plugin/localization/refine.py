@@ -20,13 +20,14 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Optional, Sequence, Tuple
+from typing import Optional, Tuple
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
 from ..camera import Intrinsics
+from ..checks import check_bool, check_choice, check_int, check_real
 from ..losses import compare_loss
 from ..pose.se3 import se3_exp
 from .state import LocalizationState, Observation
@@ -96,10 +97,15 @@ class RefineConfig:
             raise ValueError(f"RefineConfig.scales must lie in (0, 4], got {self.scales}")
         if any(not (0 <= b <= 32) for b in self.blur):
             raise ValueError(f"RefineConfig.blur must lie in [0, 32] px, got {self.blur}")
-        if self.hessian not in HESSIANS:
-            raise ValueError(f"RefineConfig.hessian must be one of {HESSIANS}, got {self.hessian!r}")
+        check_choice(self.hessian, "RefineConfig.hessian", HESSIANS)
         if any(i < 0 for i in self.iterations):
             raise ValueError(f"RefineConfig.iterations must be >= 0, got {self.iterations}")
+        check_real(self.lambda_init, "RefineConfig.lambda_init", 0.0, lo_open=True)
+        check_real(self.fd_step, "RefineConfig.fd_step", 0.0, 0.1, lo_open=True)
+        check_int(self.hessian_every, "RefineConfig.hessian_every", 0)
+        check_bool(self.secant, "RefineConfig.secant")
+        for name in ("stop_rot_deg", "stop_trans_rel", "still_rot_deg", "still_trans_rel"):
+            check_real(getattr(self, name), f"RefineConfig.{name}", 0.0)
 
 
 @dataclass

@@ -18,6 +18,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from ..checks import check_bool, check_choice, check_int, check_real
 from .candidates import CandidateConfig, CandidateSet, usable
 from .geometric import GeometricConfig, GeometricOutcome, run_geometric
 from .refine import RefineConfig, refine_photometric
@@ -70,6 +71,16 @@ class RobustConfig:
             if isinstance(v, dict) and f.default_factory is not dataclasses.MISSING:
                 kind = type(f.default_factory())
                 setattr(self, f.name, _from_dict(kind, v, f"RobustConfig.{f.name}"))
+        n = "RobustConfig."
+        check_int(self.work_side, n + "work_side", 16, optional=True)
+        for name in ("min_start_inliers", "good_inliers"):
+            check_int(getattr(self, name), n + name, 0)
+        check_real(self.rollback_inliers, n + "rollback_inliers", 0.0, 1.0)
+        check_real(self.rollback_median_px, n + "rollback_median_px", 0.0)
+        if self.sh_degree is not None:
+            check_choice(self.sh_degree, n + "sh_degree", (0, 1, 2, 3))
+        for name in ("use_candidates", "antialiasing", "record_trace"):
+            check_bool(getattr(self, name), n + name)
 
     @classmethod
     def from_dict(cls, d: Dict[str, Any]) -> "RobustConfig":

@@ -20,6 +20,7 @@ from typing import Any, Dict, Optional
 import numpy as np
 import torch
 
+from ..checks import check_int, check_real
 from .state import LocalizationState, Observation
 from .types import Verdict
 
@@ -148,17 +149,11 @@ class VerdictConfig:
 
     def __post_init__(self):
         for name in ("inlier_px", "ok_median_px", "ok_mean_px"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"VerdictConfig.{name} must be a positive number, got {v!r}")
+            check_real(getattr(self, name), f"VerdictConfig.{name}", 0.0, lo_open=True)
         for name in ("ok_ratio", "ok_spread", "ok_coverage", "fail_coverage"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and 0.0 <= v <= 1.0):
-                raise ValueError(f"VerdictConfig.{name} must be in [0, 1], got {v!r}")
+            check_real(getattr(self, name), f"VerdictConfig.{name}", 0.0, 1.0)
         for name in ("ok_inliers", "fail_inliers"):
-            v = getattr(self, name)
-            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
-                raise ValueError(f"VerdictConfig.{name} must be a non-negative int, got {v!r}")
+            check_int(getattr(self, name), f"VerdictConfig.{name}", 0)
 
 
 def decide(score: Optional[PoseScore], cfg: VerdictConfig, converged: Optional[bool] = None,

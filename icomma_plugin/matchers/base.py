@@ -9,13 +9,13 @@ coordinates (the 3DGS convention: the first pixel's centre is `(0, 0)`, the imag
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass
 from typing import Any, Dict, Optional, Tuple
 
 import torch
 
 from .refine import refine_render_keypoints
+from ..checks import check_bool, check_int, check_real
 
 logger = logging.getLogger(__name__)
 
@@ -80,9 +80,7 @@ class Matches:
 
     def filter(self, min_confidence: float) -> "Matches":
         """The matches whose confidence is >= `min_confidence`."""
-        if not isinstance(min_confidence, (int, float)) or isinstance(min_confidence, bool) \
-                or not math.isfinite(min_confidence):
-            raise ValueError(f"min_confidence must be a finite number, got {min_confidence!r}")
+        check_real(min_confidence, "min_confidence")
         return self.select(self.confidence >= min_confidence)
 
     def to(self, device=None, dtype: Optional[torch.dtype] = None) -> "Matches":
@@ -165,12 +163,8 @@ class Matcher:
 
     def __init__(self, *, min_confidence: float = 0.0, max_matches: Optional[int] = None,
                  refine: Optional[Dict[str, Any]] = None):
-        if not isinstance(min_confidence, (int, float)) or isinstance(min_confidence, bool) \
-                or not math.isfinite(min_confidence):
-            raise ValueError(f"min_confidence must be a finite number, got {min_confidence!r}")
-        if max_matches is not None and (not isinstance(max_matches, int) or isinstance(max_matches, bool)
-                                        or max_matches < 1):
-            raise ValueError(f"max_matches must be a positive int or None, got {max_matches!r}")
+        check_real(min_confidence, "min_confidence")
+        check_int(max_matches, "max_matches", 1, optional=True)
         if refine is not None and not isinstance(refine, dict):
             raise ValueError(f"refine must be a dict of refine_render_keypoints arguments, got {refine!r}")
         self.min_confidence = float(min_confidence)
@@ -232,8 +226,7 @@ class Matcher:
         """
         check_image(image0, "image0")
         check_image(image1, "image1")
-        if not isinstance(differentiable, bool):
-            raise ValueError(f"differentiable must be a bool, got {differentiable!r}")
+        check_bool(differentiable, "differentiable")
         if differentiable and not self.supports_image_gradient:
             raise ValueError(f"differentiable=True is not supported by the {self.name!r} matcher")
         if features1 is not None:

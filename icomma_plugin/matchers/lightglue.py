@@ -15,6 +15,7 @@ import torch.nn.functional as F
 
 from .base import Features, Matcher, Matches
 from .weights import resolve
+from ..checks import check_int
 
 logger = logging.getLogger(__name__)
 
@@ -95,8 +96,7 @@ class _LightGlueMatcher(Matcher):
     def __init__(self, max_keypoints: int = 1024, filter_threshold: float = 0.1,
                  glue_weights: Optional[str] = None, **kwargs):
         super().__init__(**kwargs)
-        if not isinstance(max_keypoints, int) or isinstance(max_keypoints, bool) or max_keypoints < 1:
-            raise ValueError(f"max_keypoints must be a positive int, got {max_keypoints!r}")
+        check_int(max_keypoints, "max_keypoints", 1)
         if not isinstance(filter_threshold, (int, float)) or not 0.0 <= filter_threshold < 1.0:
             raise ValueError(f"filter_threshold must be in [0, 1), got {filter_threshold!r}")
         self.max_keypoints = max_keypoints

@@ -8,6 +8,7 @@ import numpy as np
 import torch
 
 from .base import Matcher, Matches
+from ..checks import check_int
 
 
 def _to_gray_u8(image: torch.Tensor) -> np.ndarray:
@@ -89,8 +90,7 @@ class OrbMatcher(Matcher):
 
     def __init__(self, max_keypoints: int = 5000, max_distance: int = 64, fast_threshold: int = 10, **kwargs):
         super().__init__(**kwargs)
-        if not isinstance(max_keypoints, int) or isinstance(max_keypoints, bool) or max_keypoints < 1:
-            raise ValueError(f"max_keypoints must be a positive int, got {max_keypoints!r}")
+        check_int(max_keypoints, "max_keypoints", 1)
         self.max_keypoints = max_keypoints
         self.max_distance = int(max_distance)
         self.fast_threshold = int(fast_threshold)

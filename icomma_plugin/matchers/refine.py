@@ -32,6 +32,7 @@ from typing import Tuple, Union
 
 import torch
 import torch.nn.functional as F
+from ..checks import check_bool, check_int, check_real
 
 _GRAY = (0.299, 0.587, 0.114)
 _MODE = "bilinear"
@@ -175,9 +176,7 @@ def _check_tensor(value, name: str, shape_desc: str) -> torch.Tensor:
 
 
 def _check_int(value, name: str, lo: int) -> int:
-    if not isinstance(value, int) or isinstance(value, bool) or value < lo:
-        raise ValueError(f"{name} must be an int >= {lo}, got {value!r}")
-    return value
+    return check_int(value, name, lo)
 
 
 def refine_render_keypoints(
@@ -238,13 +237,9 @@ def refine_render_keypoints(
     _check_int(radius, "radius", 1)
     _check_int(iterations, "iterations", 0)
     _check_int(chunk, "chunk", 1)
-    if not isinstance(temperature, (int, float)) or isinstance(temperature, bool) \
-            or not math.isfinite(temperature) or temperature <= 0:
-        raise ValueError(f"temperature must be a positive number, got {temperature!r}")
-    if not isinstance(blur, (int, float)) or isinstance(blur, bool) or not math.isfinite(blur) or blur < 0:
-        raise ValueError(f"blur must be a number >= 0, got {blur!r}")
-    if not isinstance(implicit, bool):
-        raise ValueError(f"implicit must be a bool, got {implicit!r}")
+    check_real(temperature, "temperature", 0.0, lo_open=True)
+    check_real(blur, "blur", 0.0)
+    check_bool(implicit, "implicit")
 
     device = render.device
     dtype = render.dtype if render.dtype in (torch.float32, torch.float64) else torch.float32

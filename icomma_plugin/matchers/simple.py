@@ -7,6 +7,7 @@ from typing import Callable, Optional
 import torch
 
 from .base import Matcher, Matches, check_image
+from ..checks import check_int, check_real
 
 
 class NoneMatcher(Matcher):
@@ -80,12 +81,9 @@ class FakeMatcher(Matcher):
             raise ValueError(f"mapping must be callable, got {type(mapping).__name__}")
         self.mapping = mapping
         for nm, v, lo in (("grid_step", grid_step, 1), ("border", border, 0), ("seed", seed, 0)):
-            if not isinstance(v, int) or isinstance(v, bool) or v < lo:
-                raise ValueError(f"{nm} must be an int >= {lo}, got {v!r}")
-        if not isinstance(noise, (int, float)) or noise < 0:
-            raise ValueError(f"noise must be a number >= 0, got {noise!r}")
-        if not isinstance(outlier_fraction, (int, float)) or not 0.0 <= outlier_fraction <= 1.0:
-            raise ValueError(f"outlier_fraction must be in [0, 1], got {outlier_fraction!r}")
+            check_int(v, nm, lo)
+        check_real(noise, "noise", 0.0)
+        check_real(outlier_fraction, "outlier_fraction", 0.0, 1.0)
         self.grid_step, self.border, self.seed = grid_step, border, seed
         self.noise, self.outlier_fraction, self.confidence = float(noise), float(outlier_fraction), float(confidence)
 

@@ -14,6 +14,7 @@ import torch
 from .base import Features, Matcher, Matches
 from .lightglue import _check_missing, build_lightglue, load_checkpoint, pad_to_multiple, run_lightglue
 from .weights import resolve
+from ..checks import check_int
 
 logger = logging.getLogger(__name__)
 
@@ -41,8 +42,7 @@ class XFeatMatcher(Matcher):
 
         if glue not in (None, True, False):
             raise ValueError(f"glue must be True, False or None (auto), got {glue!r}")
-        if not isinstance(max_keypoints, int) or isinstance(max_keypoints, bool) or max_keypoints < 1:
-            raise ValueError(f"max_keypoints must be a positive int, got {max_keypoints!r}")
+        check_int(max_keypoints, "max_keypoints", 1)
         path = resolve("xfeat", weights)
         self.model = XFeat(top_k=max_keypoints, detection_threshold=float(detection_threshold))
         result = self.model.net.load_state_dict(load_checkpoint(path), strict=False)
