@@ -88,3 +88,32 @@ def test_bad_input_is_one_line(tmp_path, capsys):
     assert "error: --model: model folder not found" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["--scenes", "mars"])
+
+
+def test_cpu_stages_add_up_and_a_raising_run_is_recorded(small_demo, tmp_path, monkeypatch):
+    import icomma_plugin.localize as loc
+    from tools.bench_localize import STAGES, main
+
+    real = loc.localize
+
+    def flaky(*a, **kw):  # the paper's method raises (as a matcher check can mid-run)
+        if type(a[5]).__name__ == "LocalizerConfig":
+            raise ValueError("image0 must hold values in [0, 1]")
+        return real(*a, **kw)
+
+    monkeypatch.setattr(loc, "localize", flaky)
+    out = tmp_path / "bench"
+    rc = main(["--scenes", "demo", "--demo-path", str(small_demo), "--demo-size", "64",
+               "--starts", "1", "--paper-starts", "1", "--threads", "1", "--out", str(out)])
+    assert rc == 0
+    res = json.loads((out / "results.json").read_text())
+    robust, paper = (next(r for r in res["records"] if r["method"] == m) for m in ("robust", "icomma"))
+    assert paper["error"] == "ValueError: image0 must hold values in [0, 1]" and not paper["success"]
+    assert robust["error"] is None
+    cpu = robust["stage_cpu_seconds"]
+    kinds = sum(cpu[k] for k in STAGES[:-2])
+    assert cpu["render"] > 0 and cpu["matcher"] > 0
+    assert kinds <= cpu["total"] * 1.001 + 1e-3  # nested blocks are not counted twice
+    rows = {r["method"]: r for r in res["rows"]}
+    assert rows["icomma"]["errors"] == 1 and rows["icomma"]["success"] == 0.0
+    assert rows["icomma"]["wall_s"] is None and rows["robust"]["errors"] == 0

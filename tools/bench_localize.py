@@ -272,20 +272,25 @@ def render_path(name: str) -> Iterator[None]:
 @contextlib.contextmanager
 def cpu_stage_seconds(into: Dict[str, float]) -> Iterator[None]:
     """Inside the block, ``LocalizationState.timed(kind)`` also adds the process CPU seconds of
-    its block to ``into[kind]`` (the stage timers measure wall time, which a loaded machine
-    inflates; with one thread the CPU time is the work done)."""
+    its block to ``into[kind]``, less those of timed blocks nested in it, as the library does with
+    wall time (a loaded machine inflates wall time; with one thread the CPU time is the work)."""
     from icomma_plugin.localization.state import LocalizationState
 
     original = LocalizationState.timed
+    nested: List[float] = []
 
     @contextlib.contextmanager
     def timed(self, kind: str):
         c = time.process_time()
+        nested.append(0.0)
         try:
             with original(self, kind):
                 yield
         finally:
-            into[kind] = into.get(kind, 0.0) + time.process_time() - c
+            spent = time.process_time() - c
+            into[kind] = into.get(kind, 0.0) + spent - nested.pop()
+            if nested:
+                nested[-1] += spent
 
     LocalizationState.timed = timed
     try:
@@ -322,27 +327,7 @@ def run_start(scene, st: Start, method: str, path: str, matcher, args) -> Dict[s
     q = st.query
     torch.manual_seed(int(np.random.SeedSequence(list(st.seed)).generate_state(1)[0]))
     cpu_stages: Dict[str, float] = {}
-    with render_path(path), cpu_stage_seconds(cpu_stages):
-        c0, t0 = time.process_time(), time.perf_counter()
-        res = localize(
-            scene.model,
-            q.rgb,
-            q.intrinsics,
-            np.linalg.inv(st.init_c2w),
-            matcher,
-            cfg,
-            gt_w2c=np.linalg.inv(q.gt_c2w),
-            query_alpha=q.alpha,
-            query_valid=q.valid,
-            backend=args.backend,
-            bg=scene.bg,
-            cameras_c2w=scene.cameras_c2w,
-            candidate_set=candidates,
-            query_name=q.name,
-        )
-        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    rot, trans = res.final_rotation_error_deg, res.final_translation_error
-    return {
+    rec: Dict[str, Any] = {
         "start": st.index,
         "query": q.name,
         "query_index": q.index,
@@ -352,6 +337,44 @@ def run_start(scene, st: Start, method: str, path: str, matcher, args) -> Dict[s
         "init_trans": st.trans_world,
         "method": method,
         "render_path": path,
+    }
+    c0, t0 = time.process_time(), time.perf_counter()
+    try:
+        with render_path(path), cpu_stage_seconds(cpu_stages):
+            res = localize(
+                scene.model,
+                q.rgb,
+                q.intrinsics,
+                np.linalg.inv(st.init_c2w),
+                matcher,
+                cfg,
+                gt_w2c=np.linalg.inv(q.gt_c2w),
+                query_alpha=q.alpha,
+                query_valid=q.valid,
+                backend=args.backend,
+                bg=scene.bg,
+                cameras_c2w=scene.cameras_c2w,
+                candidate_set=candidates,
+                query_name=q.name,
+            )
+    except Exception as e:  # a run that raises is a failed run (recorded), not the end of all
+        log(f"start {st.index} ({method}, {path}) raised {type(e).__name__}: {e}")
+        rec.update(
+            error=f"{type(e).__name__}: {e}",
+            success=False,
+            verdict=None,
+            final_rot_deg=None,
+            final_trans=None,
+            iterations=None,
+            wall_s=time.perf_counter() - t0,
+            cpu_s=time.process_time() - c0,
+        )
+        return rec
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    rot, trans = res.final_rotation_error_deg, res.final_translation_error
+    return {
+        **rec,
+        "error": None,
         "wall_s": wall,
         "cpu_s": cpu,
         "stage_seconds": {k: float(res.stage_seconds.get(k, 0.0)) for k in STAGES},
@@ -394,18 +417,39 @@ def render_timings(scene, repeats: int, backend: str) -> Dict[str, Any]:
     }
     ps = prepare_scene(state.model)
     intr, dt = q.intrinsics, ps.dtype
-    mats = grp.camera_matrices(w2c.to(dt), intr.fx, intr.fy, intr.width, intr.height, intr.cx,
-                               intr.cy)
+    mats = grp.camera_matrices(
+        w2c.to(dt), intr.fx, intr.fy, intr.width, intr.height, intr.cx, intr.cy
+    )
     kernel = _dispatch.select_backend(backend, ps.device, dt)
-    settings = dict(image_height=intr.height, image_width=intr.width, tanfovx=mats.tanfovx,
-                    tanfovy=mats.tanfovy, scale_modifier=1.0, sh_degree=ps.sh_degree,
-                    prefiltered=False, antialiasing=False)
+    settings = dict(
+        image_height=intr.height,
+        image_width=intr.width,
+        tanfovx=mats.tanfovx,
+        tanfovy=mats.tanfovy,
+        scale_modifier=1.0,
+        sh_degree=ps.sh_degree,
+        prefiltered=False,
+        antialiasing=False,
+    )
 
     def kernel_call(grad: bool):
-        cam = [t.detach().contiguous().requires_grad_(grad)
-               for t in (mats.viewmatrix, mats.projmatrix, mats.campos)]
-        color = kernel(ps.means, None, ps.opacities, ps.shs, ps.colors, ps.scales, ps.rotations,
-                       None, state.bg, *cam, **settings)[0]
+        cam = [
+            t.detach().contiguous().requires_grad_(grad)
+            for t in (mats.viewmatrix, mats.projmatrix, mats.campos)
+        ]
+        color = kernel(
+            ps.means,
+            None,
+            ps.opacities,
+            ps.shs,
+            ps.colors,
+            ps.scales,
+            ps.rotations,
+            None,
+            state.bg,
+            *cam,
+            **settings,
+        )[0]
         if grad:
             color.square().sum().backward()
 
@@ -455,25 +499,27 @@ def summarize(records: List[Dict[str, Any]]) -> List[Dict[str, Any]]:
         key=lambda k: (SCENES.index(k[0]), METHODS.index(k[1]), RENDER_PATHS.index(k[2])),
     )
     for scene, method, path in keys:
-        rs = [
+        every = [
             r
             for r in records
             if (r["scene"], r["method"], r["render_path"]) == (scene, method, path)
         ]
+        rs = [r for r in every if not r.get("error")]  # timings: the runs that finished
         rows.append(
             {
                 "scene": scene,
                 "method": method,
                 "render_path": path,
-                "n": len(rs),
+                "n": len(every),
+                "errors": len(every) - len(rs),
                 "wall_s": _median(r["wall_s"] for r in rs),
                 "cpu_s": _median(r["cpu_s"] for r in rs),
                 "stages": {k: _median(r["stage_seconds"][k] for r in rs) for k in STAGES},
                 "stages_cpu": {k: _median(r["stage_cpu_seconds"][k] for r in rs) for k in STAGES},
                 "final_rot_deg": _median(r["final_rot_deg"] for r in rs),
                 "final_trans": _median(r["final_trans"] for r in rs),
-                "success": sum(r["success"] for r in rs) / len(rs),
-                "ok": sum(r["verdict"] == "ok" for r in rs) / len(rs),
+                "success": sum(r["success"] for r in every) / len(every),
+                "ok": sum(r["verdict"] == "ok" for r in every) / len(every),
                 "iterations": _median(r["iterations"] for r in rs),
             }
         )
@@ -485,15 +531,19 @@ def _paired(records, scene, key_a, key_b, field="wall_s") -> Tuple[Optional[floa
     a = {
         r["start"]: r[field]
         for r in records
-        if r["scene"] == scene and (r["method"], r["render_path"]) == key_a
+        if r["scene"] == scene and (r["method"], r["render_path"]) == key_a and not r.get("error")
     }
     b = {
         r["start"]: r[field]
         for r in records
-        if r["scene"] == scene and (r["method"], r["render_path"]) == key_b
+        if r["scene"] == scene and (r["method"], r["render_path"]) == key_b and not r.get("error")
     }
     common = sorted(set(a) & set(b))
     return (_median(a[k] / b[k] for k in common if b[k] > 0), len(common))
+
+
+def _ratio(a: Optional[float], b: Optional[float]) -> Optional[float]:
+    return None if a is None or not b else a / b
 
 
 def ratios(records: List[Dict[str, Any]], rows: List[Dict[str, Any]]) -> List[Dict[str, Any]]:
@@ -510,7 +560,7 @@ def ratios(records: List[Dict[str, Any]], rows: List[Dict[str, Any]]) -> List[Di
                     {
                         "scene": scene,
                         "what": f"paper / default ({path})",
-                        "of_medians": a["wall_s"] / b["wall_s"],
+                        "of_medians": _ratio(a["wall_s"], b["wall_s"]),
                         "paired_median": pr,
                         "paired_n": n,
                         "paired_cpu_median": pc,
@@ -526,7 +576,7 @@ def ratios(records: List[Dict[str, Any]], rows: List[Dict[str, Any]]) -> List[Di
                     {
                         "scene": scene,
                         "what": f"plain / prepared ({method})",
-                        "of_medians": a["wall_s"] / b["wall_s"],
+                        "of_medians": _ratio(a["wall_s"], b["wall_s"]),
                         "paired_median": pr,
                         "paired_n": n,
                         "paired_cpu_median": pc,
@@ -542,11 +592,13 @@ def _pose_difference(records, scene, method) -> Optional[float]:
         r["start"]: np.asarray(r["w2c"])
         for r in records
         if (r["scene"], r["method"], r["render_path"]) == (scene, method, "plain")
+        and not r.get("error")
     }
     b = {
         r["start"]: np.asarray(r["w2c"])
         for r in records
         if (r["scene"], r["method"], r["render_path"]) == (scene, method, "prepared")
+        and not r.get("error")
     }
     common = set(a) & set(b)
     return max(float(np.abs(a[k] - b[k]).max()) for k in common) if common else None
@@ -554,6 +606,10 @@ def _pose_difference(records, scene, method) -> Optional[float]:
 
 def _f(v, digits=2, unit="") -> str:
     return "—" if v is None else f"{v:.{digits}f}{unit}"
+
+
+def _x(v: Optional[float]) -> str:
+    return "—" if v is None else f"{v:.2f}x"
 
 
 def _load(la) -> str:
@@ -569,6 +625,7 @@ def markdown(result: Dict[str, Any]) -> str:
         "n",
         "wall s",
         "CPU s",
+        "errors",
         "final rot deg",
         "final trans",
         "success",
@@ -602,6 +659,7 @@ def markdown(result: Dict[str, Any]) -> str:
                     name(r),
                     r["render_path"],
                     str(r["n"]),
+                    str(r.get("errors", 0)),
                     _f(r["wall_s"]),
                     _f(r["cpu_s"]),
                     _f(r["final_rot_deg"], 3),
@@ -645,10 +703,9 @@ def markdown(result: Dict[str, Any]) -> str:
                     [
                         q["scene"],
                         q["what"],
-                        _f(q["of_medians"]) + "x",
-                        _f(q["paired_median"]) + "x",
-                        _f(q.get("paired_cpu_median"))
-                        + ("x" if q.get("paired_cpu_median") is not None else ""),
+                        _x(q["of_medians"]),
+                        _x(q["paired_median"]),
+                        _x(q.get("paired_cpu_median")),
                         str(q["paired_n"]),
                         "—" if q.get("max_pose_diff") is None else f"{q['max_pose_diff']:.1e}",
                     ]
@@ -688,10 +745,11 @@ def markdown(result: Dict[str, Any]) -> str:
             )
     lines += [
         "",
-        "Stage columns are medians, each on its own (they need not add up to the total). Wall: "
-        "`LocalizationResult.stage_seconds`; CPU: the process CPU time of the same timed blocks. "
-        "`verify` and `candidates` include the renders and matcher calls made inside them (also "
-        "counted under render / matcher), so `other` (total minus the rest) is a lower bound.",
+        "Stage columns are medians, each on its own (medians need not add up to the total). "
+        "Wall: `LocalizationResult.stage_seconds`; CPU: the process CPU time of the same timed "
+        "blocks. A block nested in another counts as its own kind only (a render inside `verify` "
+        "is render time). Timings and errors are over the runs that finished (`errors`: runs that "
+        "raised, counted as failures in success and ok).",
     ]
     return "\n".join(lines) + "\n"
 
@@ -879,7 +937,7 @@ def _run(args, result: Dict[str, Any], out_dir: Path, paths: List[str], matcher,
                     log(
                         f"[{scene_name}] {method:6s} {path:8s} start {st.index:2d} "
                         f"({st.rot_deg:4.1f} deg): {rec['wall_s']:6.2f} s, "
-                        f"render {rec['stage_seconds']['render']:.2f} s, final "
+                        f"render {rec.get('stage_seconds', {}).get('render', 0.0):.2f} s, final "
                         f"{_f(rec['final_rot_deg'], 3)} deg, {rec['verdict']}, load {load1()}"
                     )
                 block["load_after"] = load_average()
