@@ -118,6 +118,7 @@ class RefineOutcome:
     converged: bool
     last_step_rot_deg: Optional[float] = None
     last_step_trans: Optional[float] = None
+    observation: Optional[Observation] = None  # the render at ``w2c`` (unmatched), if one was made
 
 
 def _filled_depth(depth: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
@@ -212,22 +213,28 @@ def _bfgs_update(hess: torch.Tensor, s: torch.Tensor, y: torch.Tensor) -> torch.
     return hess - torch.outer(Hs, Hs) / sHs + torch.outer(y, y) / ys
 
 
-def _evaluate(state: LocalizationState, w2c: np.ndarray, scale: float, mask: torch.Tensor,
+def _evaluate(state: LocalizationState, w2c: np.ndarray, scale: float, mask: Optional[torch.Tensor],
               best: Optional[float], blur: float = 0.0, query: Optional[torch.Tensor] = None):
     """Loss at ``w2c``; if it beats ``best`` (or ``best`` is None), also its gradient w.r.t. the
-    camera-frame twist and the render. Returns (loss, grad or None, render or None)."""
+    camera-frame twist and the render. ``mask`` None: the coverage mask of this very render
+    (detached), set into ``state``'s level. Returns (loss, grad or None, render or None, mask)."""
     xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
     w2c_t = se3_exp(xi) @ torch.as_tensor(w2c, dtype=torch.float64)
     out = state.render(w2c_t, scale)
+    if mask is None:
+        mask = coverage_mask(Observation(w2c, scale, out.color.detach(), out.depth.detach(),
+                                         out.alpha.detach()), state)
+        if float(mask.sum()) < 16:
+            return float("nan"), None, None, mask
     if query is None:
         query = state.query_at(scale).rgb
     loss = compare_loss(gaussian_blur(out.color, blur), query.to(out.color.dtype), mask)
     val = float(loss.detach())
     if best is not None and not val < best:
-        return val, None, None
+        return val, None, None, mask
     with state.timed("backward"):
         loss.backward()
-    return val, xi.grad.detach().clone(), out
+    return val, xi.grad.detach().clone(), out, mask
 
 
 def refine_photometric(state: LocalizationState, w2c_start: np.ndarray, cfg: RefineConfig,
@@ -239,6 +246,7 @@ def refine_photometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Ref
     """
     w2c = np.asarray(w2c_start, np.float64).copy()
     total, accepted, loss0, loss = 0, 0, None, None
+    last_out, last_scale = None, None
     converged = False
     last_rot = last_trans = None
     for scale_rel, blur, n_it in zip(cfg.scales, cfg.blur, cfg.iterations):
@@ -248,13 +256,11 @@ def refine_photometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Ref
         intr = state.intrinsics_at(scale)
         if min(intr.width, intr.height) < 8:
             continue
-        with torch.no_grad():
-            out0 = state.render(w2c, scale)
-        mask = coverage_mask(Observation(w2c, scale, out0.color, out0.depth, out0.alpha), state)
-        if float(mask.sum()) < 16:
-            continue
         query = gaussian_blur(state.query_at(scale).rgb, blur)
-        loss, grad, out = _evaluate(state, w2c, scale, mask, None, blur, query)
+        loss, grad, out, mask = _evaluate(state, w2c, scale, None, None, blur, query)
+        if grad is None:  # the render covers (almost) nothing: no photometric signal here
+            continue
+        last_out, last_scale = out, scale
         if loss0 is None:
             loss0 = loss
         hess = _hessian(state, cfg, w2c, scale, out, mask, intr, blur)
@@ -269,7 +275,7 @@ def refine_photometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Ref
                 break
             predicted = -float(grad @ step + 0.5 * step @ hess @ step)
             w2c_try = (se3_exp(step) @ torch.as_tensor(w2c)).numpy()
-            loss_try, grad_try, out_try = _evaluate(state, w2c_try, scale, mask, loss, blur, query)
+            loss_try, grad_try, out_try, _ = _evaluate(state, w2c_try, scale, mask, loss, blur, query)
             ok = grad_try is not None
             rec = state.new_record(Stage.REFINE, w2c_try, loss=loss_try, loss_compare=loss_try,
                                    accepted=ok, hypothesis=hypothesis, scale=scale, lr=lam)
@@ -283,6 +289,7 @@ def refine_photometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Ref
                 accepted += 1
                 grad_prev = grad
                 w2c, loss, grad = w2c_try, loss_try, grad_try
+                last_out = out_try
                 if cfg.hessian == "motion_field" or (cfg.hessian_every and accepted % cfg.hessian_every == 0):
                     hess = _hessian(state, cfg, w2c, scale, out_try, mask, intr, blur)
                 elif cfg.secant:
@@ -301,4 +308,8 @@ def refine_photometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Ref
                     break
         converged = level_converged or (
             last_rot is not None and last_rot < cfg.still_rot_deg and last_trans < cfg.still_trans_rel * scene_depth)
-    return RefineOutcome(w2c, total, accepted, loss0, loss, converged, last_rot, last_trans)
+    final = None
+    if last_out is not None:  # the render at the returned pose (the verification reuses it)
+        final = Observation(w2c, last_scale, last_out.color.detach().clamp(0.0, 1.0), last_out.depth.detach(),
+                            last_out.alpha.detach())
+    return RefineOutcome(w2c, total, accepted, loss0, loss, converged, last_rot, last_trans, final)

@@ -222,7 +222,10 @@ def localize_robust(
         if bool((best.observation.alpha > 0.5).any()) else 1.0
     ref = refine_photometric(state, best.w2c, cfg.refine, base_scale=scale, scene_depth=depth)
     with state.timed("verify"):
-        obs = state.observe(ref.w2c, scale)
+        obs = ref.observation
+        if obs is None or obs.scale != scale:
+            obs = state.observe(ref.w2c, scale, match=False)
+        obs.matches = state.match(obs.color, scale)
         sc = score_observation(obs, state, cfg.verdict.inlier_px)
     geo = best.score
     keep = (sc.inliers >= cfg.rollback_inliers * geo.inliers
