@@ -264,6 +264,17 @@ def save_plots(spec: ProtocolSpec, summary: Dict[str, Any], out_dir, matcher: Op
         _save(fig, out_dir / name)
         plt.close(fig)
         files.append(name)
+        # the same curves with the paper's final numbers drawn beside them (where it has them)
+        from ..visualize import plot_curves_vs_paper
+
+        def paper(iv, m, metric):
+            key = "success_rate" if spec.kind == "time" else metric
+            return paper_value(spec.name, iv, paper_method(m, matcher), key, spec.paper_dataset)
+
+        name = f"curves_vs_paper_{spec.name}.png"
+        plot_curves_vs_paper(out_dir / name, summary, paper, title=f"{spec.name}: ours (lines) and the "
+                             "paper (dotted, where it reports a number)")
+        files.append(name)
 
     def bars(metric_keys: List[str], title: str, name: str, ylabel: str, scale: float = 1.0):
         fig, axes = plt.subplots(1, len(ivs), figsize=(4.2 * len(ivs), 3.2), squeeze=False, sharey=True)
