@@ -117,3 +117,25 @@ def test_cpu_stages_add_up_and_a_raising_run_is_recorded(small_demo, tmp_path, m
     rows = {r["method"]: r for r in res["rows"]}
     assert rows["icomma"]["errors"] == 1 and rows["icomma"]["success"] == 0.0
     assert rows["icomma"]["wall_s"] is None and rows["robust"]["errors"] == 0
+
+
+def test_markdown_rows_match_the_header():
+    from tools.bench_localize import STAGES, markdown
+
+    row = {"scene": "demo", "method": "robust", "render_path": "prepared", "n": 4, "errors": 1,
+           "wall_s": 2.5, "cpu_s": 1.5, "final_rot_deg": 0.01, "final_trans": 0.001,
+           "success": 0.75, "ok": 0.5, "iterations": 7.0,
+           "stages": {k: 0.1 for k in STAGES}, "stages_cpu": {k: 0.2 for k in STAGES}}
+    md = markdown({"machine": {"torch_threads": 1, "cores": 2, "cpu": "x", "torch": "t",
+                               "commit": None},
+                   "args": {"rot": [20, 40], "trans": [0, 0.2], "seed": 1}, "load_before": None,
+                   "load_after": None, "rows": [row], "blocks": {}, "ratios": [],
+                   "render_timings": {}})
+    lines = md.splitlines()
+    i = next(k for k, l in enumerate(lines) if l.startswith("| scene | method"))
+    header = [c.strip() for c in lines[i].strip("|").split("|")]
+    cells = [c.strip() for c in lines[i + 2].strip("|").split("|")]
+    assert len(header) == len(cells)
+    got = dict(zip(header, cells))
+    assert (got["n"], got["errors"], got["wall s"], got["CPU s"]) == ("4", "1", "2.50", "1.50")
+    assert (got["success"], got["verdict ok"], got["iterations"]) == ("75 %", "50 %", "7")
