@@ -107,8 +107,10 @@ def test_cpu_stages_add_up_and_a_raising_run_is_recorded(small_demo, tmp_path, m
                "--starts", "1", "--paper-starts", "1", "--threads", "1", "--out", str(out)])
     assert rc == 0
     res = json.loads((out / "results.json").read_text())
-    robust, paper = (next(r for r in res["records"] if r["method"] == m) for m in ("robust", "icomma"))
-    assert paper["error"] == "ValueError: image0 must hold values in [0, 1]" and not paper["success"]
+    robust, paper = (next(r for r in res["records"] if r["method"] == m)
+                     for m in ("robust", "icomma"))
+    assert paper["error"] == "ValueError: image0 must hold values in [0, 1]"
+    assert not paper["success"]
     assert robust["error"] is None
     cpu = robust["stage_cpu_seconds"]
     kinds = sum(cpu[k] for k in STAGES[:-2])
