@@ -8,7 +8,7 @@ tools/fit_scene.py and docs/FITTING.md (the comparison with upstream, measured).
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, fields
 from typing import Optional, Tuple
 
 
