@@ -843,7 +843,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Optional[List[str]] = None) -> int:
     args = build_parser().parse_args(argv)
-    from icomma_plugin.runtime import torch_threads
+    if __package__:
+        from ._common import torch_threads
+    else:
+        from tools._common import torch_threads
 
     if args.quick:
         args.starts, args.paper_starts = min(args.starts, 3), min(args.paper_starts, 1)
