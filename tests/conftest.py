@@ -1,7 +1,6 @@
 """Shared fixtures: the shared data folder, a network guard, seeds."""
 from __future__ import annotations
 
-import os
 import socket
 from pathlib import Path
 
@@ -13,7 +12,9 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 
 def shared_data_root() -> Path:
     """Folder of the shared test data (`ICOMMA_SHARED_DATA`, default `../shared/data`)."""
-    return Path(os.environ.get("ICOMMA_SHARED_DATA", REPO_ROOT.parent / "shared" / "data"))
+    from icomma_plugin.io.datasets import shared_data_root as root
+
+    return root()
 
 
 @pytest.fixture

@@ -28,7 +28,6 @@ import argparse
 import ast
 import json
 import logging
-import os
 import sys
 import time
 from pathlib import Path
@@ -39,14 +38,19 @@ if str(REPO_ROOT) not in sys.path:
 
 import torch  # noqa: E402
 
-from icomma_plugin.runtime import choose_threads  # noqa: E402
+if __package__:
+    from ._common import choose_threads  # noqa: E402
+else:  # run as a script from a checkout
+    from tools._common import choose_threads  # noqa: E402
 from icomma_plugin.fit import FitConfig, fit_scene  # noqa: E402
 
 log = logging.getLogger("fit_scene")
 
 
 def default_data_root() -> Path:
-    return Path(os.environ.get("ICOMMA_SHARED_DATA", REPO_ROOT.parent / "shared" / "data"))
+    from icomma_plugin.io.datasets import shared_data_root
+
+    return shared_data_root()
 
 
 def parse_args(argv=None) -> argparse.Namespace:

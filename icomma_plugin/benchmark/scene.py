@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence
@@ -90,8 +89,9 @@ class BenchScene:
 
 
 def shared_data_root() -> Path:
-    """``ICOMMA_SHARED_DATA`` or ``<repo>/../shared/data``."""
-    return Path(os.environ.get("ICOMMA_SHARED_DATA", REPO_ROOT.parent / "shared" / "data"))
+    from ..io.datasets import shared_data_root as root
+
+    return root()
 
 
 def default_lego_dataset() -> Path:

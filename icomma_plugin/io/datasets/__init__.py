@@ -37,6 +37,7 @@ from .base import (
     ViewImage,
     random_points,
     read_image_file,
+    shared_data_root,
     undistort_image,
 )
 from .blender import read_blender
@@ -60,6 +61,7 @@ __all__ = [
     "read_dataset",
     "read_image_file",
     "read_llff",
+    "shared_data_root",
     "read_transforms_json",
     "undistort_image",
 ]

@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from icomma_plugin.camera import Intrinsics
+from icomma_plugin.pose.convert import cameras_extent, invert_rigid, rigid_problem
 
 logger = logging.getLogger(__name__)
 
@@ -196,29 +197,22 @@ def _background_array(background: BackgroundLike) -> np.ndarray:
 
 
 def invert_rigid_np(T: np.ndarray) -> np.ndarray:
-    """Inverse of a rigid 4x4 transform (R^T, -R^T t)."""
-    R = T[:3, :3]
-    t = T[:3, 3]
-    out = np.eye(4, dtype=np.float64)
-    out[:3, :3] = R.T
-    out[:3, 3] = -R.T @ t
-    return out
+    """Inverse of a rigid 4x4 transform (``pose.convert.invert_rigid``)."""
+    return invert_rigid(np.asarray(T, dtype=np.float64))
 
 
 def check_pose(c2w: Any, what: str) -> np.ndarray:
+    """A 4x4 (or 3x4) camera-to-world as float64 4x4; DatasetError naming ``what`` otherwise."""
     c2w = np.asarray(c2w, dtype=np.float64)
     if c2w.shape == (3, 4):
         c2w = np.vstack([c2w, [0.0, 0.0, 0.0, 1.0]])
     if c2w.shape != (4, 4):
         raise DatasetError(f"{what}: expected a 4x4 (or 3x4) camera-to-world matrix, got shape {c2w.shape}")
-    if not np.all(np.isfinite(c2w)):
-        raise DatasetError(f"{what}: camera-to-world matrix has non-finite entries")
-    R = c2w[:3, :3]
-    if not np.allclose(R.T @ R, np.eye(3), atol=1e-3) or np.linalg.det(R) < 0:
-        raise DatasetError(f"{what}: the rotation part of the camera-to-world matrix is not a rotation "
-                           f"(R^T R = {np.round(R.T @ R, 4).tolist()}, det = {np.linalg.det(R):.4f})")
-    if not np.allclose(c2w[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
-        raise DatasetError(f"{what}: last row of the camera-to-world matrix must be [0, 0, 0, 1], got {c2w[3].tolist()}")
+    problem = rigid_problem(c2w, atol=1e-3)
+    if problem is not None:
+        part = "rotation part of the camera-to-world matrix is not a rotation" if "rotation" in problem \
+            else "camera-to-world matrix is not rigid"
+        raise DatasetError(f"{what}: the {part}: {problem}")
     return c2w
 
 
@@ -437,14 +431,23 @@ class SceneData:
         return self._centres().mean(axis=0)
 
     def scene_radius(self) -> float:
-        """3DGS getNerfppNorm radius: 1.1 x max distance of train camera centres from their mean."""
-        c = self._centres()
-        return float(1.1 * np.linalg.norm(c - c.mean(axis=0), axis=1).max())
+        """3DGS getNerfppNorm radius of the train cameras (``pose.convert.cameras_extent``)."""
+        views = self.train if self.train else self.test
+        if not views:
+            raise ValueError("scene has no views; cannot compute its radius")
+        return cameras_extent([v.c2w for v in views])
 
     def __repr__(self) -> str:
         n = None if self.points is None else len(self.points)
         return (f"SceneData(source={self.source!r}, root={str(self.root)!r}, train={len(self.train)}, "
                 f"test={len(self.test)}, points={n}, white_background={self.white_background})")
+
+
+def shared_data_root() -> Path:
+    """The shared test and benchmark data: ``ICOMMA_SHARED_DATA``, default ``<repo>/../shared/data``
+    (data/README.md of the project's environment); the one place that knows it."""
+    repo = Path(__file__).resolve().parents[3]
+    return Path(os.environ.get("ICOMMA_SHARED_DATA", repo.parent / "shared" / "data")).expanduser()
 
 
 def background_of(white_background: bool) -> Tuple[float, float, float]:
