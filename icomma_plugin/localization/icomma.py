@@ -205,6 +205,9 @@ def match_step(state: LocalizationState, cfg: LocalizerConfig, image, out, query
     """One stage-1 loss: (loss, L_match or None, raw matches, matches used, switch now)."""
     image_mode = cfg.gradient_mode == "image"
     W, H = intr.width, intr.height
+    # A 3DGS render can exceed 1 (SH colours); the matcher takes [0, 1] (the clamp passes the
+    # gradient wherever the render is in range).
+    image = image.clamp(0.0, 1.0)
     with state.timed("matcher"):
         m = state.matcher.match(image if image_mode else image.detach(), query, differentiable=image_mode)
     n_raw = len(m)

@@ -13,7 +13,7 @@ from typing import Optional
 import torch
 import torch.nn.functional as F
 
-from .base import Features, Matcher, Matches
+from .base import Features, Matcher, Matches, on_device
 from .weights import resolve
 from ..checks import check_int
 
@@ -114,7 +114,7 @@ class _LightGlueMatcher(Matcher):
     def _match_features(self, f0: Features, f1: Features) -> Matches:
         k0, d0, k1, d1 = f0.kpts, f0.desc, f1.kpts, f1.desc
         dev = k0.device
-        self.glue.to(dev)
+        on_device(self.glue, dev)
         if len(k0) == 0 or len(k1) == 0:
             return Matches.empty(dev)
         i0, i1, sc = run_lightglue(self.glue, k0.float(), d0.float(), f0.size, k1.float(), d1.float(),
@@ -152,7 +152,7 @@ class AlikedLightGlueMatcher(_LightGlueMatcher):
         self.detector.eval()
 
     def _detect(self, image):
-        self.detector.to(image.device)
+        on_device(self.detector, image.device)
         feats = self.detector(image[None].float())[0]
         return feats.keypoints, feats.descriptors
 
@@ -184,7 +184,7 @@ class DiskLightGlueMatcher(_LightGlueMatcher):
         self.window = int(window)
 
     def _detect(self, image):
-        self.detector.to(image.device)
+        on_device(self.detector, image.device)
         h, w = image.shape[-2:]
         padded = pad_to_multiple(image[None].float(), 16)
         feats = self.detector(padded, n=None, window_size=self.window)[0]

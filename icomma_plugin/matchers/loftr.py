@@ -18,7 +18,7 @@ from typing import Optional, Sequence
 import torch
 import torch.nn.functional as F
 
-from .base import Matcher, Matches
+from .base import Matcher, Matches, on_device
 from .weights import MissingWeightsError
 
 logger = logging.getLogger(__name__)
@@ -92,7 +92,7 @@ class LoFTRMatcher(Matcher):
 
     def _match(self, image0: torch.Tensor, image1: torch.Tensor) -> Matches:
         dev = image0.device
-        self.model.to(dev)
+        on_device(self.model, dev)
         render, query = _gray(image0.float()), _gray(image1.float())
         sr = sq = (1.0, 1.0)
         if self.resize is not None:

@@ -11,7 +11,7 @@ from typing import Optional
 
 import torch
 
-from .base import Features, Matcher, Matches
+from .base import Features, Matcher, Matches, on_device
 from .lightglue import _check_missing, build_lightglue, load_checkpoint, pad_to_multiple, run_lightglue
 from .weights import resolve
 from ..checks import check_int
@@ -70,7 +70,7 @@ class XFeatMatcher(Matcher):
         return k[keep].clone(), d[keep].clone()
 
     def _extract(self, image: torch.Tensor) -> Features:
-        self.model.to(image.device)
+        on_device(self.model, image.device)
         k, d = self._detect(image)
         return Features(k, d, (int(image.shape[2]), int(image.shape[1])))
 
@@ -80,7 +80,7 @@ class XFeatMatcher(Matcher):
         if len(k0) == 0 or len(k1) == 0:
             return Matches.empty(dev)
         if self.glue is not None:
-            self.glue.to(dev)
+            on_device(self.glue, dev)
             i0, i1, sc = run_lightglue(self.glue, k0, d0, f0.size, k1, d1, f1.size)
             return Matches(k0[i0].float(), k1[i1].float(), sc.float())
         sim = d0 @ d1.t()

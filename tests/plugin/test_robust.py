@@ -262,3 +262,20 @@ def test_stage_seconds_are_exclusive_and_add_up(demo, monkeypatch):
     clock[0] += 0.5
     s = st.stage_seconds()
     assert (s["verify"], s["render"], s["other"], s["total"]) == (3.0, 3.0, 0.5, 6.5)
+
+
+def test_renders_above_one_reach_the_matcher_clamped(demo, xfeat):
+    """A model whose render overshoots [0, 1] (bright SH colours) stopped the paper's method with
+    "image0 must hold values in [0, 1]"; both methods now clamp before matching."""
+    from icomma_plugin.localize import LocalizerConfig, localize
+
+    scene, model, q, cams = demo
+    bright = model.to(dtype=torch.float32)
+    bright.sh_dc = bright.sh_dc * 1.0 + 2.5  # colours well above 1 once the SH is evaluated
+    st = _state(demo)
+    st.model = bright
+    assert float(st.render(np.linalg.inv(scene.gt_c2w)).color.max()) > 1.3
+    init = np.linalg.inv(perturb_pose(scene.gt_c2w, 5.0, 0.05, 4, pivot=scene.scene_centre))
+    for cfg in (LocalizerConfig(max_iterations=2, converge_patience=0), None):
+        res = localize(bright, q, scene.intrinsics, init, xfeat, cfg, backend=BACKEND, cameras_c2w=cams)
+        assert res.verdict is not None  # ran to the end: no range error from the matcher
