@@ -19,6 +19,7 @@ ground truth; ``gt_w2c`` is used only to report errors.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 from typing import Any, Callable, Optional, Sequence, Union
 
@@ -83,6 +84,7 @@ def localize(
     candidate_set=None,
     verdict: Optional[VerdictConfig] = None,
     query_name: str = "query",
+    model_side: Optional[int] = None,
 ) -> LocalizationResult:
     """Estimate the camera pose of ``query_rgb`` in ``model``.
 
@@ -108,11 +110,17 @@ def localize(
         verdict: thresholds of the verdict for the paper's method (the default method has its own
             in ``RobustConfig.verdict``).
         query_name: name for reports.
+        model_side: the longer side [px] of the images the model was fitted on
+            (``ModelFolder.training_side``): the default method works at no more than this
+            resolution when its ``work_side`` is unset (a photo sharper than the model adds
+            matching cost, not accuracy).
 
     Returns:
         :class:`LocalizationResult` with the pose, the verdict and the trace.
     """
     cfg = config if config is not None else RobustConfig()
+    if isinstance(cfg, RobustConfig) and cfg.work_side is None and model_side is not None:
+        cfg = dataclasses.replace(cfg, work_side=int(model_side))
     if not isinstance(cfg, (LocalizerConfig, RobustConfig)):
         raise ValueError(f"config must be a RobustConfig or a LocalizerConfig, got {type(cfg).__name__}")
     if isinstance(cfg, LocalizerConfig):

@@ -143,6 +143,7 @@ def _run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
             backend=backend,
             bg=problem.bg,
             progress=hook,
+            model_side=problem.model_side,
             cameras_c2w=problem.candidate_c2ws(),
             query_name=problem.name,
         )

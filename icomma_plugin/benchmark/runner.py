@@ -217,5 +217,6 @@ def _run_one(scene, q, init, method, configs, matcher, backend, spec, scale, gt_
     res = localize(scene.model, q.rgb, q.intrinsics, None if init is None else np.linalg.inv(init.c2w),
                    matcher if method != "compare_only" else None, cfg, gt_w2c=gt_w2c, query_alpha=q.alpha,
                    query_valid=q.valid, backend=backend, bg=scene.bg, progress=hook,
-                   cameras_c2w=scene.cameras_c2w, candidate_set=candidates, query_name=q.name)
+                   cameras_c2w=scene.cameras_c2w, candidate_set=candidates, query_name=q.name,
+                   model_side=scene.model_side)
     return _localizer_record(res, scale, spec)

@@ -60,6 +60,7 @@ class BenchScene:
     cameras_c2w: List[np.ndarray] = field(default_factory=list)
     scene_centre: Optional[np.ndarray] = None
     no_start_queries: List[Query] = field(default_factory=list)  # distinct views for no-start runs
+    model_side: Optional[int] = None  # longer side of the images the model was fitted on
     _candidate_sets: Dict[Any, Any] = field(default_factory=dict)
 
     def candidate_set(self, query: Query, matcher, cfg, backend: str = "auto"):
@@ -127,19 +128,10 @@ def _scale_of(unit: str, radius: float) -> float:
 
 
 def training_scale(cfg: Dict[str, Any], cameras, width: int) -> float:
-    """The image scale the model was trained at, relative to the dataset images of ``width`` px:
-    cfg_args ``resolution`` 1/2/4/8 divides; a larger value is a target width; otherwise (-1 /
-    absent) upstream keeps images up to 1600 px wide, so the scale is ``min(1, 1600 / width)``."""
-    r = cfg.get("resolution") if cfg else None
-    try:
-        r = None if r is None else int(r)
-    except (TypeError, ValueError):
-        r = None
-    if r in (1, 2, 4, 8):
-        return 1.0 / r
-    if r is not None and r > 8:
-        return float(r) / float(width)
-    return min(1.0, 1600.0 / float(width))
+    """The image scale the model was trained at (``io.model_folder.training_scale``)."""
+    from ..io.model_folder import training_scale as scale_of
+
+    return scale_of(cfg, width)
 
 
 def load_model_folder_scene(
@@ -212,7 +204,7 @@ def load_model_folder_scene(
     return BenchScene(
         model=mf.model, queries=queries, bg=bg, translation_scale=_scale_of(translation_unit, radius),
         translation_unit=translation_unit, scene_radius=radius, cameras_c2w=cams, scene_centre=centre,
-        no_start_queries=extra,
+        no_start_queries=extra, model_side=mf.training_side(),
         info={"kind": "model_folder", "model_path": str(mp), "iteration": mf.iteration,
               "dataset": str(root), "split": split, "image_scale": float(image_scale),
               "white_background": white, "candidate_cameras": len(cams)},

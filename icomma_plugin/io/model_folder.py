@@ -35,6 +35,22 @@ __all__ = ["ModelFolder", "parse_cfg_args", "format_cfg_args", "list_iterations"
 _ITER_RE = re.compile(r"iteration_(\d+)")
 
 
+def training_scale(cfg: Optional[Dict[str, Any]], width: int) -> float:
+    """The scale a model was fitted at, relative to source images ``width`` px wide: cfg_args
+    ``resolution`` 1/2/4/8 divides; a larger value is a target width; otherwise (-1 / absent)
+    upstream keeps images up to 1600 px wide: ``min(1, 1600 / width)``."""
+    r = cfg.get("resolution") if cfg else None
+    try:
+        r = None if r is None else int(r)
+    except (TypeError, ValueError):
+        r = None
+    if r in (1, 2, 4, 8):
+        return 1.0 / r
+    if r is not None and r > 8:
+        return float(r) / float(width)
+    return min(1.0, 1600.0 / float(width))
+
+
 @dataclass
 class ModelFolder:
     """A loaded model folder.
@@ -52,6 +68,18 @@ class ModelFolder:
     iteration: int
     model: GaussianModel
     cameras: List[CameraEntry] = field(default_factory=list)
+
+    def training_scale(self, width: int) -> float:
+        """The scale the model was fitted at, relative to source images ``width`` px wide."""
+        return training_scale(self.cfg, width)
+
+    def training_side(self) -> Optional[int]:
+        """The longer side [px] of the images the model was fitted on (from its cameras and
+        cfg_args), or None without cameras."""
+        if not self.cameras:
+            return None
+        e = self.cameras[0]
+        return max(1, int(round(max(e.width, e.height) * self.training_scale(e.width))))
 
     @property
     def white_background(self) -> bool:

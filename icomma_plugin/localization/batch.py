@@ -594,6 +594,7 @@ class BatchWorker:
             camera_names=None,
             candidate_set=cs,
             query_name=q.name,
+            model_side=self.mf.training_side(),
         )
 
     def write_pictures(

@@ -49,6 +49,7 @@ class Problem:
     scene_scale: Optional[float]
     cameras: List[Any] = field(default_factory=list)
     info: Dict[str, Any] = field(default_factory=dict)
+    model_side: Optional[int] = None  # longer side of the images the model was fitted on
 
     @property
     def name(self) -> str:
@@ -248,7 +249,7 @@ def _model_folder(d: Dict[str, Any]) -> Problem:
     scale = cameras_extent([e.c2w for e in mf.cameras]) if mf.cameras else None
     return Problem(
         model=mf.model, query=query, init_c2w=init, gt_c2w=gt, bg=bg, scene_scale=scale,
-        cameras=list(mf.cameras or []),
+        cameras=list(mf.cameras or []), model_side=mf.training_side(),
         info={"model_path": str(mp), "iteration": mf.iteration, "num_gaussians": mf.model.num_gaussians},
     )
 

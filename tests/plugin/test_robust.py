@@ -279,3 +279,18 @@ def test_renders_above_one_reach_the_matcher_clamped(demo, xfeat):
     for cfg in (LocalizerConfig(max_iterations=2, converge_patience=0), None):
         res = localize(bright, q, scene.intrinsics, init, xfeat, cfg, backend=BACKEND, cameras_c2w=cams)
         assert res.verdict is not None  # ran to the end: no range error from the matcher
+
+
+def test_a_photo_sharper_than_the_model_is_worked_at_the_model_resolution(demo, xfeat):
+    from icomma_plugin.localize import localize
+    from icomma_plugin.localization.state import resize_image
+
+    scene, model, q, cams = demo
+    big = resize_image(q, 200, 200).clamp(0, 1)
+    intr = scene.intrinsics.scaled(2.0)
+    init = np.linalg.inv(perturb_pose(scene.gt_c2w, 10.0, 0.05, 8, pivot=scene.scene_centre))
+    res = localize(model, big, intr, init, xfeat, gt_w2c=np.linalg.inv(scene.gt_c2w), backend=BACKEND,
+                   cameras_c2w=cams, model_side=100)
+    scales = {r.scale for r in res.trace if r.stage == Stage.GEOMETRIC}
+    assert scales == {0.5} and res.config["work_side"] == 100
+    assert res.final_rotation_error_deg < 0.5 and res.verdict.status == "ok"
