@@ -141,7 +141,7 @@ class VerdictConfig:
     ok_inliers: int = 30
     ok_ratio: float = 0.5
     ok_median_px: float = 1.0
-    ok_mean_px: float = 0.6
+    ok_mean_px: float = 0.8
     ok_spread: float = 0.04
     ok_coverage: float = 0.1
     fail_inliers: int = 8
