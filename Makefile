@@ -8,7 +8,7 @@ export MAX_JOBS ?= 2
 SCENES ?= $(HOME)/.cache/icomma/scenes
 SHARED_DATA ?= $(or $(ICOMMA_SHARED_DATA),$(CURDIR)/../shared/data)
 
-.PHONY: setup demo test bench scenes clean-native
+.PHONY: setup demo test lint bench scenes clean-native
 
 setup: $(VENV)/.deps-installed $(VENV)/.native-built
 
@@ -33,6 +33,10 @@ demo: setup
 
 test: setup
 	$(BIN)/python -m pytest -q tests
+
+# Style and docstrings (pyproject.toml's [tool.ruff]); .ci/run runs it before the tests.
+lint: $(VENV)/.deps-installed
+	$(BIN)/ruff check .
 
 bench: setup
 	$(BIN)/python tools/bench_rasterizer.py

@@ -30,7 +30,10 @@ ROOT = Path(__file__).resolve().parent
 
 
 def _load_build_params():
-    spec = importlib.util.spec_from_file_location("_grp_build", ROOT / "gaussian_renderer_pose" / "_build.py")
+    """gaussian_renderer_pose/_build.py, loaded by path (importing the package needs torch)."""
+    spec = importlib.util.spec_from_file_location(
+        "_grp_build", ROOT / "gaussian_renderer_pose" / "_build.py"
+    )
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -46,8 +49,9 @@ def _name(requirement: str) -> str:
     return re.split(r"[\s\[<>=!~;]", requirement, maxsplit=1)[0].lower()
 
 
-# Lines of requirements.txt that only the test suite needs: extras 'test', not install_requires.
-_TEST_ONLY = {"pytest", "hypothesis"}
+# Lines of requirements.txt that only the test suite and CI's lint need: extras 'test', not
+# install_requires.
+_TEST_ONLY = {"pytest", "hypothesis", "ruff"}
 
 
 def _install_requires() -> list:
@@ -86,6 +90,7 @@ def _config_package_data() -> list:
 
 
 def get_extensions():
+    """The native extension to build: CUDA or CPU (see this file's docstring), or none."""
     if os.environ.get("GRP_NO_EXTENSION") == "1":
         return []
     import torch
@@ -123,6 +128,7 @@ def get_extensions():
 
 
 def get_cmdclass():
+    """torch's BuildExtension for build_ext (keeps the Python ABI suffix on _C*.so)."""
     if os.environ.get("GRP_NO_EXTENSION") == "1":
         return {}
     from torch.utils.cpp_extension import BuildExtension
