@@ -1,5 +1,6 @@
-"""gaussian_renderer_pose: a drop-in replacement for graphdeco-inria diff-gaussian-rasterization
-that also gives camera-pose gradients (through viewmatrix, projmatrix and campos).
+"""A drop-in replacement for graphdeco-inria diff-gaussian-rasterization, with pose gradients.
+
+The camera-pose gradients come through viewmatrix, projmatrix and campos.
 
 Importing never compiles anything; the native extension is loaded lazily on first use.
 See `gaussian_renderer_pose.rasterizer` and DESIGN.md for conventions and numerics.

@@ -22,7 +22,11 @@ _error: Optional[str] = None
 
 
 def load_native() -> ModuleType:
-    """Return the compiled `_C` module, importing it once; raise NativeUnavailable with the reason."""
+    """Return the compiled `_C` module, importing it once.
+
+    Raises:
+        NativeUnavailable: the module cannot be imported (the message says why).
+    """
     global _module, _error
     if _module is not None:
         return _module

@@ -81,7 +81,9 @@ def _warn_once(reason: str) -> None:
     )
 
 
-def select_backend(backend: str, device: torch.device, dtype: torch.dtype = torch.float32) -> Callable:
+def select_backend(
+    backend: str, device: torch.device, dtype: torch.dtype = torch.float32
+) -> Callable:
     """Return the backend function for `backend` and tensors on `device` with `dtype`."""
     name = requested_backend(backend)
     if name == "reference":
@@ -96,8 +98,8 @@ def select_backend(backend: str, device: torch.device, dtype: torch.dtype = torc
             raise RuntimeError(f"backend {name!r} requested but unavailable: {why}")
         if dtype != torch.float32:
             raise ValueError(
-                f"means3D (and every tensor input) must be float32 for the native {name!r} backend, "
-                f"got {dtype}; use backend='reference' for float64"
+                f"means3D (and every tensor input) must be float32 for the native {name!r} "
+                f"backend, got {dtype}; use backend='reference' for float64"
             )
         return _native_fn()
     # auto

@@ -43,7 +43,8 @@ def _check_finite(name: str, t: torch.Tensor) -> None:
     if not bool(torch.isfinite(t.detach()).all()):
         bad = int((~torch.isfinite(t.detach())).sum())
         raise RasterizerInputError(
-            f"{name} must contain only finite values, got {bad} NaN/Inf entr{'y' if bad == 1 else 'ies'}"
+            f"{name} must contain only finite values, got {bad} NaN/Inf "
+            f"entr{'y' if bad == 1 else 'ies'}"
         )
 
 
@@ -74,7 +75,9 @@ def _positive_int(name: str, v) -> int:
 def _positive_float(name: str, v) -> float:
     if isinstance(v, torch.Tensor):
         if v.numel() != 1:
-            raise RasterizerInputError(f"{name} must be a positive finite number, got a tensor of shape {_shape(v)}")
+            raise RasterizerInputError(
+                f"{name} must be a positive finite number, got a tensor of shape {_shape(v)}"
+            )
         v = v.item()
     try:
         fv = float(v)
@@ -100,11 +103,27 @@ def validate(
     """Check everything; return normalised arguments for the backend contract.
 
     Args:
+        means3D: [P, 3] Gaussian centres.
+        opacities: [P, 1] or [P].
+        settings: a `GaussianRasterizationSettings` (image size, fov, camera tensors, ...).
+        means2D: [P, 3] or absent (None or an empty tensor).
+        shs: [P, M, 3] spherical-harmonic coefficients, M >= (sh_degree + 1)**2; exactly one of
+            shs / colors_precomp.
+        colors_precomp: [P, 3].
+        scales: [P, 3], given together with rotations; exactly one of (scales, rotations) /
+            cov3D_precomp.
+        rotations: [P, 4] quaternions (w, x, y, z).
+        cov3D_precomp: [P, 6] upper triangles (xx, xy, xz, yy, yz, zz).
         check_finite: scan the per-Gaussian tensors for NaN/Inf too (module docstring); the
             camera tensors are always scanned.
 
-    Returns a dict with the tensors (None when absent, opacities as [P, 1]) and the scalar
-    settings (ints/floats/bools).
+    Returns:
+        A dict with the tensors (None when absent, opacities as [P, 1]) and the scalar settings
+        (ints/floats/bools).
+
+    Raises:
+        RasterizerInputError: an argument is missing, of the wrong type, shape or dtype, or not
+            finite; the message names it.
     """
     if not isinstance(check_finite, bool):
         raise RasterizerInputError(f"validate must be a bool, got {check_finite!r}")
@@ -148,7 +167,9 @@ def validate(
     has_sr = scales is not None or rotations is not None
     if has_sr and (scales is None or rotations is None):
         missing = "rotations" if rotations is None else "scales"
-        raise RasterizerInputError(f"scales and rotations must be given together, got {missing}=None")
+        raise RasterizerInputError(
+            f"scales and rotations must be given together, got {missing}=None"
+        )
     if has_sr == (cov3D_precomp is not None):
         raise RasterizerInputError(
             "exactly one of (scales, rotations) / cov3D_precomp must be given, got "
@@ -163,8 +184,8 @@ def validate(
         need = (sh_degree + 1) ** 2
         if shs.shape[1] < need:
             raise RasterizerInputError(
-                f"shs must have at least (sh_degree+1)**2 = {need} coefficients for sh_degree={sh_degree}, "
-                f"got shape {_shape(shs)}"
+                f"shs must have at least (sh_degree+1)**2 = {need} coefficients for "
+                f"sh_degree={sh_degree}, got shape {_shape(shs)}"
             )
     if colors_precomp is not None:
         tensors["colors_precomp"] = _check_tensor("colors_precomp", colors_precomp, (P, 3))

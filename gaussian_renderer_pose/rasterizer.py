@@ -1,5 +1,7 @@
-"""Drop-in replacement for graphdeco-inria ``diff_gaussian_rasterization`` (late-2024 main, with
-antialiasing and inverse depth) that also gives camera-pose gradients.
+"""Drop-in replacement for graphdeco-inria ``diff_gaussian_rasterization``, with pose gradients.
+
+It follows upstream's late-2024 main (with antialiasing and inverse depth) and also gives
+camera-pose gradients.
 
 Conventions (docs/CONTRACTS.md, gaussian_renderer_pose/DESIGN.md):
 - Matrices are TRANSPOSED (row-vector convention, as in the 3DGS codebase):
@@ -11,8 +13,8 @@ Conventions (docs/CONTRACTS.md, gaussian_renderer_pose/DESIGN.md):
   carried by ``projmatrix`` (``P[0,2] = (2 cx + 1 - W)/W``, ``P[1,2] = (2 cy + 1 - H)/H``).
 
 Numerics (identical in every backend):
-1. ``t = hom(m) @ viewmatrix``; ``p_hom = hom(m) @ projmatrix``; ``ndc = p_hom.xyz / (p_hom.w + 1e-7)``;
-   cull when ``t.z <= 0.2``.
+1. ``t = hom(m) @ viewmatrix``; ``p_hom = hom(m) @ projmatrix``;
+   ``ndc = p_hom.xyz / (p_hom.w + 1e-7)``; cull when ``t.z <= 0.2``.
 2. ``Sigma = R S^2 R^T`` with ``S = scales * scale_modifier`` and R from the UNNORMALISED quaternion
    (w, x, y, z), or ``cov3D_precomp`` (xx, xy, xz, yy, yz, zz) as given.
    ``focal = W / (2 tanfovx)``, ``H / (2 tanfovy)``; ``tx = clamp(t.x/t.z, +-1.3 tanfovx) t.z``
@@ -65,6 +67,8 @@ class GaussianRasterizationSettings(NamedTuple):
 
 
 class RasterOutput(NamedTuple):
+    """What `rasterize_gaussians` returns (upstream's three outputs plus depth and alpha)."""
+
     color: torch.Tensor  # [3, H, W]
     radii: torch.Tensor  # [P] int32
     invdepth: torch.Tensor  # [1, H, W] sum w / z
@@ -136,12 +140,19 @@ def rasterize_gaussians(
         antialiasing=args["antialiasing"],
     )
     covered = alpha > 1e-6
-    depth = torch.where(covered, depth_acc / torch.where(covered, alpha, torch.ones_like(alpha)), torch.zeros_like(alpha))
+    depth = torch.where(
+        covered,
+        depth_acc / torch.where(covered, alpha, torch.ones_like(alpha)),
+        torch.zeros_like(alpha),
+    )
     return RasterOutput(color, radii, invdepth, depth, alpha)
 
 
 class GaussianRasterizer(nn.Module):
-    """Upstream-compatible module: ``forward(...) -> (color [3,H,W], radii [P] int32, invdepth [1,H,W])``."""
+    """Upstream-compatible module.
+
+    ``forward(...) -> (color [3,H,W], radii [P] int32, invdepth [1,H,W])``.
+    """
 
     def __init__(self, raster_settings: GaussianRasterizationSettings):
         super().__init__()
@@ -150,8 +161,16 @@ class GaussianRasterizer(nn.Module):
     def markVisible(self, positions: torch.Tensor) -> torch.Tensor:
         """bool [P]: view-space depth > 0.2 (upstream ``in_frustum``; no x/y test). No gradient."""
         with torch.no_grad():
-            if not isinstance(positions, torch.Tensor) or positions.dim() != 2 or positions.shape[1] != 3:
-                got = list(positions.shape) if isinstance(positions, torch.Tensor) else type(positions).__name__
+            if (
+                not isinstance(positions, torch.Tensor)
+                or positions.dim() != 2
+                or positions.shape[1] != 3
+            ):
+                got = (
+                    list(positions.shape)
+                    if isinstance(positions, torch.Tensor)
+                    else type(positions).__name__
+                )
                 raise RasterizerInputError(f"positions must have shape [P, 3], got {got}")
             view = self.raster_settings.viewmatrix.to(positions)
             z = positions @ view[:3, 2] + view[3, 2]
@@ -168,8 +187,20 @@ class GaussianRasterizer(nn.Module):
         rotations: Optional[torch.Tensor] = None,
         cov3D_precomp: Optional[torch.Tensor] = None,
     ) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Render with upstream's argument order and checks (see `rasterize_gaussians`).
+
+        Returns:
+            (color [3, H, W], radii [P] int32, invdepth [1, H, W]).
+
+        Raises:
+            RasterizerInputError: not exactly one of shs / colors_precomp, or of
+                (scales, rotations) / cov3D_precomp, or any check of `rasterize_gaussians`.
+        """
         if is_absent(shs) == is_absent(colors_precomp):
-            raise RasterizerInputError("Please provide exactly one of either SHs (shs) or precomputed colors (colors_precomp)!")
+            raise RasterizerInputError(
+                "Please provide exactly one of either SHs (shs) or precomputed colors "
+                "(colors_precomp)!"
+            )
         if (is_absent(scales) or is_absent(rotations)) == is_absent(cov3D_precomp):
             raise RasterizerInputError(
                 "Please provide exactly one of either scale/rotation pair (scales, rotations) "

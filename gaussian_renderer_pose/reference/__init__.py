@@ -1,4 +1,6 @@
-"""Pure-PyTorch reference backend: the numerical oracle (any device, float32/float64, autograd backward).
+"""Pure-PyTorch reference backend: the numerical oracle.
+
+Any device, float32/float64, backward by autograd.
 
 `rasterize_gaussians_reference` follows the internal backend contract of docs/CONTRACTS.md.
 """

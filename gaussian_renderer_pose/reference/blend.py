@@ -32,9 +32,13 @@ def _tile_alpha(xy, conic, opacity, pix):
 
 
 def _blend_tile(xy, conic, opacity, feats, members, pix, inside, chunk: int = CHUNK):
-    """One tile: front-to-back over `members` (depth order) in chunks, carrying T; stops early
-    once every pixel of the tile (inside the image) has hit the T < 1e-4 stop.
-    Returns (acc [N,F], T_final [N])."""
+    """Blend one tile front to back over `members` (depth order) in chunks, carrying T.
+
+    Stops early once every pixel of the tile (inside the image) has hit the T < 1e-4 stop.
+
+    Returns:
+        (acc [N, F], T_final [N]).
+    """
     N = pix.shape[0]
     T_carry = torch.ones(N, dtype=xy.dtype, device=xy.device)
     done = ~inside  # pixels outside the image are done from the start (cropped anyway)
@@ -57,11 +61,24 @@ def _blend_tile(xy, conic, opacity, feats, members, pix, inside, chunk: int = CH
     return acc, T_carry
 
 
-def blend(xy, conic, opacity, feats, depth, rect_min, rect_max, *, image_height, image_width) -> Tuple[torch.Tensor, torch.Tensor]:
+def blend(
+    xy, conic, opacity, feats, depth, rect_min, rect_max, *, image_height, image_width
+) -> Tuple[torch.Tensor, torch.Tensor]:
     """Blend the kept Gaussians.
 
-    xy [K,2] pixels, conic [K,3], opacity [K], feats [K,F] (blended features), depth [K] (sort key),
-    rect_min/rect_max [K,2] long tile rects. Returns (accumulated features [F,H,W], T_final [1,H,W]).
+    Args:
+        xy: [K, 2] pixel positions.
+        conic: [K, 3].
+        opacity: [K].
+        feats: [K, F] the features to blend.
+        depth: [K] the sort key.
+        rect_min: [K, 2] long, first tile (x, y) of each Gaussian's rect.
+        rect_max: [K, 2] long, its exclusive end.
+        image_height: H.
+        image_width: W.
+
+    Returns:
+        (accumulated features [F, H, W], T_final [1, H, W]).
     """
     H, W = image_height, image_width
     gx, gy = (W + BLOCK - 1) // BLOCK, (H + BLOCK - 1) // BLOCK

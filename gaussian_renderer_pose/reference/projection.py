@@ -1,5 +1,7 @@
-"""Per-Gaussian preprocessing (upstream ``preprocessCUDA``): projection, culling, 3D and 2D
-covariances, conic, radius, tile rect. Pure PyTorch; autograd gives every gradient.
+"""Per-Gaussian preprocessing (upstream ``preprocessCUDA``).
+
+Projection, culling, 3D and 2D covariances, conic, radius, tile rect. Pure PyTorch; autograd
+gives every gradient.
 """
 from __future__ import annotations
 
@@ -18,7 +20,7 @@ W_EPS = 1e-7  # p_w = 1 / (p_hom.w + 1e-7)
 
 
 def quat_to_rotmat_unnormalised(q: torch.Tensor) -> torch.Tensor:
-    """Upstream ``computeCov3D`` rotation from (w, x, y, z) WITHOUT normalising, [K, 4] -> [K, 3, 3]."""
+    """Upstream ``computeCov3D`` rotation from (w, x, y, z), NOT normalised: [K, 4] -> [K, 3, 3]."""
     r, x, y, z = q.unbind(-1)
     rows = [
         torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - r * z), 2 * (x * z + r * y)], -1),
@@ -85,6 +87,14 @@ def preprocess(
     scale_modifier: float,
     antialiasing: bool,
 ) -> Projected:
+    """Project, cull and measure every Gaussian (steps 1-3 of the rasterizer's numerics).
+
+    The tensors and settings are those of the backend contract (docs/CONTRACTS.md); ``means2D``,
+    ``scales``/``rotations`` or ``cov3D_precomp`` may be None as there.
+
+    Returns:
+        The kept Gaussians' quantities (`Projected`).
+    """
     H, W = image_height, image_width
     dev = means3D.device
     P = means3D.shape[0]
@@ -103,7 +113,9 @@ def preprocess(
     if means2D is not None:
         ndc_xy = inject_means2D(ndc_xy, means2D.index_select(0, ids)[:, :2])
 
-    Sigma = cov3d_matrix(_take(scales, ids), _take(rotations, ids), _take(cov3D_precomp, ids), scale_modifier)
+    Sigma = cov3d_matrix(
+        _take(scales, ids), _take(rotations, ids), _take(cov3D_precomp, ids), scale_modifier
+    )
     focal_x = W / (2.0 * tanfovx)
     focal_y = H / (2.0 * tanfovy)
     limx, limy = FOV_CLAMP * tanfovx, FOV_CLAMP * tanfovy

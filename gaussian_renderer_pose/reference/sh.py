@@ -5,7 +5,13 @@ import torch
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
-SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+SH_C2 = (
+    1.0925484305920792,
+    -1.0925484305920792,
+    0.31539156525252005,
+    -1.0925484305920792,
+    0.5462742152960396,
+)
 SH_C3 = (
     -0.5900435899266435,
     2.890611442640554,
@@ -18,7 +24,10 @@ SH_C3 = (
 
 
 def eval_sh(deg: int, sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
-    """sh [P, M, 3] (M >= (deg+1)^2), dirs [P, 3] unit -> [P, 3] raw SH value (no +0.5, no clamp)."""
+    """Raw SH value [P, 3] (no +0.5, no clamp) of sh [P, M, 3] (M >= (deg+1)^2) along dirs [P, 3].
+
+    ``dirs`` are unit vectors.
+    """
     result = SH_C0 * sh[:, 0]
     if deg > 0:
         x, y, z = dirs[:, 0:1], dirs[:, 1:2], dirs[:, 2:3]
@@ -48,7 +57,9 @@ def eval_sh(deg: int, sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
     return result
 
 
-def sh_to_rgb(deg: int, sh: torch.Tensor, means3D: torch.Tensor, campos: torch.Tensor) -> torch.Tensor:
+def sh_to_rgb(
+    deg: int, sh: torch.Tensor, means3D: torch.Tensor, campos: torch.Tensor
+) -> torch.Tensor:
     """Colour of each Gaussian seen from `campos`: ``max(eval_sh(normalize(m - campos)) + 0.5, 0)``.
 
     The clamp kills the gradient of a clamped channel (as upstream's ``clamped`` flags).
