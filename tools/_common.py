@@ -1,5 +1,7 @@
-"""Glue shared by the command-line tools: process settings (threads, seeds), the one-line error
-exit, and building matchers and optimizer configs from their Hydra groups (``_target_``).
+"""Glue shared by the command-line tools.
+
+Process settings (threads, seeds), the one-line error exit, and building matchers and optimizer
+configs from their Hydra groups (``_target_``).
 
 Process-level settings belong to the tools, not the library: a library call never changes the
 process's thread count or seeds.
@@ -19,8 +21,16 @@ import torch
 
 T = TypeVar("T")
 
-__all__ = ["UserError", "build_matcher", "build_optimizer", "choose_threads", "container", "run_or_exit",
-           "seed_everything", "torch_threads"]
+__all__ = [
+    "UserError",
+    "build_matcher",
+    "build_optimizer",
+    "choose_threads",
+    "container",
+    "run_or_exit",
+    "seed_everything",
+    "torch_threads",
+]
 
 
 class UserError(ValueError):
@@ -37,7 +47,10 @@ def choose_threads(requested: Optional[int] = None) -> int:
     """
     if requested is not None and int(requested) > 0:
         return int(requested)
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    if hasattr(os, "sched_getaffinity"):
+        cores = len(os.sched_getaffinity(0))
+    else:
+        cores = os.cpu_count() or 1
     try:
         load = os.getloadavg()[0]
     except OSError:
@@ -90,8 +103,16 @@ def container(node) -> Any:
 
 
 def build_matcher(mcfg) -> Tuple[Any, Optional[str]]:
-    """(matcher, name) from the matcher group (``_target_: make_matcher``); (None, None) for
-    ``none`` or a removed group. LoFTR's checkpoint is checked here so the error names the key."""
+    """Build the matcher of the matcher group (``_target_: make_matcher``).
+
+    LoFTR's checkpoint is checked here so the error names the key.
+
+    Returns:
+        (matcher, name); (None, None) for ``none`` or a removed group.
+
+    Raises:
+        UserError: LoFTR without a checkpoint file.
+    """
     from hydra.utils import instantiate
 
     if mcfg is None:
@@ -103,9 +124,11 @@ def build_matcher(mcfg) -> Tuple[Any, Optional[str]]:
     if name == "loftr":
         ck = d.get("checkpoint")
         if not ck:
-            raise UserError("matcher=loftr needs a local checkpoint file: set matcher.checkpoint=/path/to/"
-                            "outdoor_ds.ckpt (LoFTR weights are not shipped or downloaded); or pick another "
-                            "matcher, e.g. matcher=xfeat")
+            raise UserError(
+                "matcher=loftr needs a local checkpoint file: set matcher.checkpoint=/path/to/"
+                "outdoor_ds.ckpt (LoFTR weights are not shipped or downloaded); or pick another "
+                "matcher, e.g. matcher=xfeat"
+            )
         if not Path(str(ck)).expanduser().is_file():
             raise UserError(f"matcher.checkpoint: file not found: {ck}")
     if "_target_" not in d:
@@ -117,8 +140,15 @@ def build_matcher(mcfg) -> Tuple[Any, Optional[str]]:
 
 
 def build_optimizer(ocfg, key: str = "optimizer"):
-    """The method config (``RobustConfig`` or the paper's ``LocalizerConfig``) of an optimizer
-    group mounted at ``key``; a group without ``_target_`` is read as the paper's config."""
+    """Build the method config of an optimizer group mounted at ``key``.
+
+    Returns:
+        A ``RobustConfig`` or the paper's ``LocalizerConfig``; a group without ``_target_`` is
+        read as the paper's config.
+
+    Raises:
+        UserError: the config's own ValueError/TypeError, prefixed with ``key``.
+    """
     from hydra.utils import instantiate
 
     from icomma_plugin.localize import LocalizerConfig

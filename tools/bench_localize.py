@@ -1,5 +1,7 @@
-"""Time whole localizations: wall time per pose and where it goes, for the default method
-(``RobustConfig``) and the paper's (``LocalizerConfig``), on lego and the built-in demo scene.
+"""Time whole localizations: wall time per pose and where it goes.
+
+For the default method (``RobustConfig``) and the paper's (``LocalizerConfig``), on lego and the
+built-in demo scene.
 
 For each scene x method it runs localizations from sampled starts and reports medians of the
 wall time, the process CPU time and the breakdown of ``LocalizationResult.stage_seconds``
@@ -66,6 +68,7 @@ DEFAULT_MODEL = "~/.cache/icomma/scenes/lego_200"
 
 
 def log(msg: str) -> None:
+    """Progress line to stderr (stdout carries the results)."""
     print(msg, file=sys.stderr, flush=True)
 
 
@@ -95,6 +98,7 @@ def _names(text: str, known: Sequence[str], name: str) -> List[str]:
 # Machine
 # ----------------------------------------------------------------------------------------------
 def load_average() -> Optional[List[float]]:
+    """The 1, 5 and 15 minute load averages (2 decimals); None where the OS has none."""
     try:
         return [round(v, 2) for v in os.getloadavg()]
     except OSError:
@@ -102,11 +106,13 @@ def load_average() -> Optional[List[float]]:
 
 
 def load1() -> str:
+    """The 1-minute load average as text ("?" where unknown)."""
     la = load_average()
     return "?" if la is None else f"{la[0]:.2f}"
 
 
 def machine_info() -> Dict[str, Any]:
+    """What the timings depend on: CPU model, cores, torch version and threads, git commit."""
     cpu = platform.processor() or None
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -187,6 +193,8 @@ def load_scene(name: str, args) -> "Any":
 
 @dataclass
 class Start:
+    """One sampled start: the query, its seed and the initial pose (and how far it is off)."""
+
     index: int
     query: Any
     pose_index: int
@@ -199,6 +207,7 @@ class Start:
 def sample_starts(
     scene, n: int, seed: int, rot: Tuple[float, float], trans: Tuple[float, float]
 ) -> List[Start]:
+    """``n`` starts, cycling over the scene's queries (module docstring: "Starts")."""
     from icomma_plugin.benchmark.sampling import pose_seed, sample_initial_pose
 
     out = []
@@ -233,9 +242,11 @@ def sample_starts(
 # Render paths
 # ----------------------------------------------------------------------------------------------
 def _plain_render(self, w2c, scale: float = 1.0):
-    """``LocalizationState.render`` as it was before issue 10 (the baseline of docs/SPEED.md):
-    the raw model on every call, so the activations, the SH concatenation and the rasterizer's
-    NaN/Inf scans of every Gaussian tensor run on every render."""
+    """``LocalizationState.render`` as it was before issue 10 (the baseline of docs/SPEED.md).
+
+    The raw model on every call, so the activations, the SH concatenation and the rasterizer's
+    NaN/Inf scans of every Gaussian tensor run on every render.
+    """
     from icomma_plugin.render import render
 
     if isinstance(w2c, np.ndarray):
@@ -271,9 +282,12 @@ def render_path(name: str) -> Iterator[None]:
 
 @contextlib.contextmanager
 def cpu_stage_seconds(into: Dict[str, float]) -> Iterator[None]:
-    """Inside the block, ``LocalizationState.timed(kind)`` also adds the process CPU seconds of
-    its block to ``into[kind]``, less those of timed blocks nested in it, as the library does with
-    wall time (a loaded machine inflates wall time; with one thread the CPU time is the work)."""
+    """Also count process CPU seconds per stage inside the block.
+
+    ``LocalizationState.timed(kind)`` adds the CPU seconds of its block to ``into[kind]``, less
+    those of timed blocks nested in it, as the library does with wall time (a loaded machine
+    inflates wall time; with one thread the CPU time is the work).
+    """
     from icomma_plugin.localization.state import LocalizationState
 
     original = LocalizationState.timed
@@ -310,6 +324,7 @@ def _with_other(seconds: Dict[str, float], total: float) -> Dict[str, float]:
 # One localization
 # ----------------------------------------------------------------------------------------------
 def method_config(method: str, args):
+    """The config of ``method``: the default ``RobustConfig`` or the paper's."""
     from icomma_plugin.localize import LocalizerConfig, RobustConfig
 
     if method == "robust":
@@ -318,6 +333,12 @@ def method_config(method: str, args):
 
 
 def run_start(scene, st: Start, method: str, path: str, matcher, args) -> Dict[str, Any]:
+    """Localize from one start with ``method`` and render ``path``.
+
+    Returns:
+        The record of the run: wall and CPU time, stage seconds, final errors, success and
+        verdict (or the error it raised).
+    """
     from icomma_plugin.localize import localize
 
     cfg = method_config(method, args)
@@ -395,10 +416,13 @@ def run_start(scene, st: Start, method: str, path: str, matcher, args) -> Dict[s
 # Per-render timings (the two render paths at one pose)
 # ----------------------------------------------------------------------------------------------
 def render_timings(scene, repeats: int, backend: str) -> Dict[str, Any]:
-    """Median CPU ms of a render at the first query's true pose: forward (no grad) and forward +
-    pose backward, for the plain and the prepared path as ``LocalizationState`` calls them, and
-    for the backend function alone on the prepared tensors (``kernel``: no camera matrices, no
-    checks; the rest of a render's time is the Python around it)."""
+    """Median CPU ms of a render at the first query's true pose.
+
+    Forward (no grad) and forward + pose backward, for the plain and the prepared path as
+    ``LocalizationState`` calls them, and for the backend function alone on the prepared tensors
+    (``kernel``: no camera matrices, no checks; the rest of a render's time is the Python around
+    it).
+    """
     import gaussian_renderer_pose as grp
     from gaussian_renderer_pose import _dispatch
 
@@ -493,6 +517,7 @@ def _median(vals) -> Optional[float]:
 
 
 def summarize(records: List[Dict[str, Any]]) -> List[Dict[str, Any]]:
+    """One row per scene x method x render path: medians of the finished runs, rates of all."""
     rows = []
     keys = sorted(
         {(r["scene"], r["method"], r["render_path"]) for r in records},
@@ -617,6 +642,7 @@ def _load(la) -> str:
 
 
 def markdown(result: Dict[str, Any]) -> str:
+    """The result as markdown: machine line, per-run table, ratios and per-render timings."""
     m, a = result["machine"], result["args"]
     header = [
         "scene",
@@ -758,6 +784,7 @@ def markdown(result: Dict[str, Any]) -> str:
 # Main
 # ----------------------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
+    """The command line (module docstring)."""
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -842,6 +869,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
+    """Run the benchmark; write JSON and markdown. Returns the exit status."""
     args = build_parser().parse_args(argv)
     if __package__:
         from ._common import torch_threads
@@ -904,8 +932,10 @@ def _main(args) -> int:
 
 
 def _run(args, result: Dict[str, Any], out_dir: Path, paths: List[str], matcher, save) -> None:
-    """Every scene x method x start of ``args`` into ``result["records"]`` (saved after each
-    start)."""
+    """Run every scene x method x start of ``args`` into ``result["records"]``.
+
+    ``save`` is called after each start.
+    """
     for scene_name in args.scenes:
         t = time.perf_counter()
         scene = load_scene(scene_name, args)

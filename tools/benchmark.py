@@ -1,13 +1,15 @@
 #!/usr/bin/env python
-"""Benchmark localisation on a fitted 3DGS model against the paper's protocols.
+r"""Benchmark localisation on a fitted 3DGS model against the paper's protocols.
 
-    python tools/benchmark.py scene.model_path=~/.cache/icomma/scenes/lego_200 benchmark_protocol=time_table
+    python tools/benchmark.py scene.model_path=~/.cache/icomma/scenes/lego_200 \
+        benchmark_protocol=time_table
     python tools/benchmark.py scene.model_path=... benchmark_protocol=relative_pose quick=true
-    python tools/benchmark.py -m scene.model_path=... \\
-        benchmark_protocol=curves_rotation,curves_translation,time_table,relative_pose,ablation quick=true
-    python tools/benchmark.py -m hydra/launcher=joblib_local threads=1 scene.model_path=... \\
+    python tools/benchmark.py -m scene.model_path=... quick=true \
+        benchmark_protocol=curves_rotation,curves_translation,time_table,relative_pose,ablation
+    python tools/benchmark.py -m hydra/launcher=joblib_local threads=1 scene.model_path=... \
         optimizer.lr=0.02,0.05                    # a parallel sweep of the paper's method
-    python tools/benchmark.py scene.kind=synthetic benchmark_protocol=time_table quick=true   # no data
+    python tools/benchmark.py scene.kind=synthetic benchmark_protocol=time_table \
+        quick=true                                # no data needed
 
 Methods (benchmark_protocol.methods): ``robust`` (the default localizer, config ``robust.*``),
 ``icomma`` (the paper's, config ``optimizer.*``), ``compare_only``, ``match_only``, ``essential``.
@@ -53,32 +55,54 @@ log = logging.getLogger("benchmark")
 
 
 def load_scene(cfg: DictConfig, spec: ProtocolSpec, backend: str):
+    """The benchmark's scene from the ``scene`` group: synthetic or a fitted model folder.
+
+    Raises:
+        UserError: no or a missing ``scene.model_path``, or an unknown ``scene.kind``.
+    """
     s = cfg.scene
     if s.kind == "synthetic":
         sy = s.synthetic
-        return synthetic_scene(num_gaussians=int(sy.num_gaussians), width=int(sy.width), height=int(sy.height),
-                               num_queries=spec.num_queries, seed=int(sy.seed),
-                               translation_unit=str(s.translation_unit), backend=backend)
+        return synthetic_scene(
+            num_gaussians=int(sy.num_gaussians),
+            width=int(sy.width),
+            height=int(sy.height),
+            num_queries=spec.num_queries,
+            seed=int(sy.seed),
+            translation_unit=str(s.translation_unit),
+            backend=backend,
+        )
     if s.kind == "model_folder":
         if OmegaConf.is_missing(s, "model_path") or not s.model_path:
-            raise common.UserError("scene.model_path is required with scene.kind=model_folder (fit one with "
-                                   "`make scenes` or tools/fit_scene.py, or use scene.kind=synthetic)")
+            raise common.UserError(
+                "scene.model_path is required with scene.kind=model_folder (fit one with "
+                "`make scenes` or tools/fit_scene.py, or use scene.kind=synthetic)"
+            )
         if not Path(str(s.model_path)).expanduser().is_dir():
-            raise common.UserError(f"scene.model_path: model folder not found: {s.model_path} (fit one with "
-                                   "`make scenes` or tools/fit_scene.py, or use scene.kind=synthetic)")
+            raise common.UserError(
+                f"scene.model_path: model folder not found: {s.model_path} (fit one with "
+                "`make scenes` or tools/fit_scene.py, or use scene.kind=synthetic)"
+            )
         q = s.query
         idx = None if q.indices is None else [int(i) for i in q.indices]
+        no_start = any(iv.no_start for iv in spec.intervals)
         return load_model_folder_scene(
-            s.model_path, dataset=q.dataset, num_queries=spec.num_queries, split=str(q.split), query_indices=idx,
+            s.model_path,
+            dataset=q.dataset,
+            num_queries=spec.num_queries,
+            split=str(q.split),
+            query_indices=idx,
             image_scale=None if q.image_scale is None else float(q.image_scale),
             white_background=None if s.white_background is None else bool(s.white_background),
-            iteration=s.iteration, translation_unit=str(s.translation_unit),
-            no_start_queries=spec.num_queries * spec.poses_per_query if any(iv.no_start for iv in spec.intervals)
-            else 0)
+            iteration=s.iteration,
+            translation_unit=str(s.translation_unit),
+            no_start_queries=spec.num_queries * spec.poses_per_query if no_start else 0,
+        )
     raise common.UserError(f"scene.kind must be model_folder or synthetic, got {s.kind!r}")
 
 
 def headline(spec: ProtocolSpec, summary: Dict[str, Any]) -> float:
+    """The protocol's headline number for sweepers (module docstring); NaN without results."""
     first = spec.methods[0]
     cells = [c for c in summary["cells"] if c["method"] == first and c["n"]]
     if not cells:
@@ -95,6 +119,11 @@ def headline(spec: ProtocolSpec, summary: Dict[str, Any]) -> float:
 
 
 def run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
+    """Run the configured protocol into ``output_dir``, with the tool's thread count.
+
+    Returns:
+        The results document (as written to results.json).
+    """
     with common.torch_threads(cfg.get("threads")):
         return _run(cfg, Path(output_dir))
 
@@ -106,25 +135,47 @@ def _run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
     spec = ProtocolSpec.from_dict(common.container(cfg.benchmark_protocol), quick=bool(cfg.quick))
     base = common.build_optimizer(cfg.optimizer)
     if not isinstance(base, LocalizerConfig):
-        raise common.UserError("optimizer must be the paper's group here (icomma or compare_only): it is the "
-                               "base of the icomma / compare_only / match_only methods; the default method's "
-                               "config is robust.*")
-    robust = common.build_optimizer(cfg.robust, "robust") if cfg.get("robust") is not None else RobustConfig()
+        raise common.UserError(
+            "optimizer must be the paper's group here (icomma or compare_only): it is the "
+            "base of the icomma / compare_only / match_only methods; the default method's "
+            "config is robust.*"
+        )
+    if cfg.get("robust") is not None:
+        robust = common.build_optimizer(cfg.robust, "robust")
+    else:
+        robust = RobustConfig()
     needs = [m for m in spec.methods if m != "compare_only"]
     matcher, matcher_name = common.build_matcher(cfg.get("matcher")) if needs else (None, None)
     if needs and matcher is None:
         raise common.UserError(f"methods {needs} need a matcher: choose one, e.g. matcher=xfeat")
     scene = load_scene(cfg, spec, backend)
     if len(scene.queries) < spec.num_queries:
-        log.warning("only %d queries available (protocol asks for %d)", len(scene.queries), spec.num_queries)
+        log.warning(
+            "only %d queries available (protocol asks for %d)", len(scene.queries), spec.num_queries
+        )
     done = load_done(cfg.resume) if cfg.get("resume") else {}
     info = scene.describe()
-    writer = ResultsWriter(output_dir, spec, config=common.container(cfg), scene=info, matcher=matcher_name,
-                           localizer_config={"icomma": base.to_dict(), "robust": robust.to_dict()}, seed=seed,
-                           plots=bool(cfg.output.plots), plot_every=int(cfg.output.plot_every))
-    log.info("%s (%s): %d runs on %s, translation scale %.4g (%s); output %s", spec.name,
-             "quick" if spec.quick else "full size", spec.num_runs, info.get("model_path", info.get("kind")),
-             scene.translation_scale, scene.translation_unit, output_dir)
+    writer = ResultsWriter(
+        output_dir,
+        spec,
+        config=common.container(cfg),
+        scene=info,
+        matcher=matcher_name,
+        localizer_config={"icomma": base.to_dict(), "robust": robust.to_dict()},
+        seed=seed,
+        plots=bool(cfg.output.plots),
+        plot_every=int(cfg.output.plot_every),
+    )
+    log.info(
+        "%s (%s): %d runs on %s, translation scale %.4g (%s); output %s",
+        spec.name,
+        "quick" if spec.quick else "full size",
+        spec.num_runs,
+        info.get("model_path", info.get("kind")),
+        scene.translation_scale,
+        scene.translation_unit,
+        output_dir,
+    )
 
     bar = None
     if cfg.output.progress:
@@ -137,7 +188,9 @@ def _run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
         if bar is None:
             return
         if ev["event"] == "run_start":
-            bar.set_description(f"{spec.name} {ev['interval']} {ev['method']} q{ev['query']} p{ev['pose']}")
+            bar.set_description(
+                f"{spec.name} {ev['interval']} {ev['method']} q{ev['query']} p{ev['pose']}"
+            )
         elif ev["event"] == "run_end":
             rec = ev.get("record") or {}
             if rec.get("error"):
@@ -148,9 +201,18 @@ def _run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
             bar.update(1)
 
     try:
-        records = run_protocol(scene, spec, base, matcher, robust_config=robust, backend=backend,
-                               on_record=writer.add, done=done, progress=progress,
-                               store_curves=bool(cfg.output.store_curves))
+        records = run_protocol(
+            scene,
+            spec,
+            base,
+            matcher,
+            robust_config=robust,
+            backend=backend,
+            on_record=writer.add,
+            done=done,
+            progress=progress,
+            store_curves=bool(cfg.output.store_curves),
+        )
     finally:
         if bar is not None:
             bar.close()
@@ -158,13 +220,17 @@ def _run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
     doc = writer.write(final=True, plots=bool(cfg.output.plots))
     errors = sum(1 for r in records if r.get("error"))
     if errors:
-        log.warning("%d of %d runs raised an error (recorded in results.json, counted as failures)",
-                    errors, len(records))
+        log.warning(
+            "%d of %d runs raised an error (recorded in results.json, counted as failures)",
+            errors,
+            len(records),
+        )
     return doc
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="benchmark")
 def main(cfg: DictConfig) -> float:
+    """Hydra entry point: run, print results.md, return the headline number (for sweepers)."""
     hc = HydraConfig.get()
     output_dir = Path(hc.runtime.output_dir)
     multirun = str(hc.mode) == "RunMode.MULTIRUN"

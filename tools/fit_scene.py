@@ -1,10 +1,11 @@
 #!/usr/bin/env python
-"""Fit a 3DGS model to a posed image set on CPU (gaussian_renderer_pose) and write a model folder.
+r"""Fit a 3DGS model to a posed image set on CPU (gaussian_renderer_pose) and write a model folder.
 
     python tools/fit_scene.py -s ../shared/data/nerf_synthetic/lego_400 -m OUT/lego_200 -r 2
     python tools/fit_scene.py -s ../shared/data/fox -m OUT/fox_270 -r 4 --iterations 4000
     python tools/fit_scene.py -s DATA -m OUT --iterations 3000 --eval-views 25 --eval-interval 1000
-    python tools/fit_scene.py -s DATA -m OUT --set densify_grad_threshold=1e-4 --set max_gaussians=80000
+    python tools/fit_scene.py -s DATA -m OUT --set densify_grad_threshold=1e-4 \
+        --set max_gaussians=80000
     python tools/fit_scene.py -m OUT/fox_270 --evaluate     # train / test PSNR of a model folder
 
 Input: any folder `icomma_plugin.io.datasets.read_dataset` reads (COLMAP, Blender, instant-ngp /
@@ -48,52 +49,107 @@ log = logging.getLogger("fit_scene")
 
 
 def default_data_root() -> Path:
+    """The shared data folder (``$ICOMMA_SHARED_DATA``, else ../shared/data)."""
     from icomma_plugin.io.datasets import shared_data_root
 
     return shared_data_root()
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("-s", "--source", default=None,
-                   help="dataset folder (COLMAP / Blender / transforms.json / LLFF); default: "
-                        "$ICOMMA_SHARED_DATA/nerf_synthetic/lego_400")
+    """The command line (module docstring)."""
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument(
+        "-s",
+        "--source",
+        default=None,
+        help="dataset folder (COLMAP / Blender / transforms.json / LLFF); default: "
+        "$ICOMMA_SHARED_DATA/nerf_synthetic/lego_400",
+    )
     p.add_argument("-m", "--model", required=True, help="model folder to write")
     p.add_argument("--iterations", type=int, default=5000)
     g = p.add_mutually_exclusive_group()
-    g.add_argument("-r", "--resolution", type=int, default=-1,
-                   help="upstream -r: 1/2/4/8 divide the size, other values are a target width, -1 native")
-    g.add_argument("--downscale", type=float, default=None, help="divide the image size by this factor")
+    g.add_argument(
+        "-r",
+        "--resolution",
+        type=int,
+        default=-1,
+        help="upstream -r: 1/2/4/8 divide the size, other values are a target width, -1 native",
+    )
+    g.add_argument(
+        "--downscale", type=float, default=None, help="divide the image size by this factor"
+    )
     b = p.add_mutually_exclusive_group()
-    b.add_argument("--white-background", dest="white_background", action="store_true", default=None)
+    b.add_argument(
+        "--white-background", dest="white_background", action="store_true", default=None
+    )
     b.add_argument("--black-background", dest="white_background", action="store_false")
-    p.add_argument("--eval-views", type=int, default=0, help="test views to evaluate (0: all, evenly spaced)")
-    p.add_argument("--eval-interval", type=int, default=0, help="evaluate test PSNR every N iterations (0: end only)")
-    p.add_argument("--save-iterations", type=int, nargs="*", default=[], help="also save these iterations")
-    p.add_argument("--num-random-points", type=int, default=None, help="random init points (no point cloud)")
+    p.add_argument(
+        "--eval-views", type=int, default=0, help="test views to evaluate (0: all, evenly spaced)"
+    )
+    p.add_argument(
+        "--eval-interval",
+        type=int,
+        default=0,
+        help="evaluate test PSNR every N iterations (0: end only)",
+    )
+    p.add_argument(
+        "--save-iterations", type=int, nargs="*", default=[], help="also save these iterations"
+    )
+    p.add_argument(
+        "--num-random-points", type=int, default=None, help="random init points (no point cloud)"
+    )
     p.add_argument("--max-gaussians", type=int, default=None, help="cap on the Gaussian count")
     p.add_argument("--backend", default="auto", choices=["auto", "cpu", "reference", "cuda"])
     p.add_argument("--device", default="cpu")
-    p.add_argument("--threads", type=int, default=0,
-                   help="torch threads; 0 (default): the cores other work leaves free "
-                        "(icomma_plugin.runtime.choose_threads; contended threads run ~10x slower)")
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=0,
+        help="torch threads; 0 (default): the cores other work leaves free "
+        "(tools/_common.choose_threads; contended threads run ~10x slower)",
+    )
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
-                   help="override any FitConfig field (python literal), repeatable")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="override any FitConfig field (python literal), repeatable",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing model folder")
     p.add_argument("--no-progress", action="store_true", help="no tqdm progress bar")
-    p.add_argument("--log-every", type=int, default=0, help="also log loss / PSNR / count every N iterations")
+    p.add_argument(
+        "--log-every",
+        type=int,
+        default=0,
+        help="also log loss / PSNR / count every N iterations",
+    )
     p.add_argument("--log-level", default="INFO")
-    p.add_argument("--evaluate", action="store_true",
-                   help="fit nothing: print train / test PSNR (valid pixels) of the model "
-                        "folder -m on its dataset (-s, default: its cfg_args source_path; -r "
-                        "likewise)")
+    p.add_argument(
+        "--evaluate",
+        action="store_true",
+        help="fit nothing: print train / test PSNR (valid pixels) of the model "
+        "folder -m on its dataset (-s, default: its cfg_args source_path; -r "
+        "likewise)",
+    )
     return p.parse_args(argv)
 
 
 def build_config(args: argparse.Namespace) -> FitConfig:
-    over = {"eval_views": args.eval_views, "eval_interval": args.eval_interval,
-            "save_iterations": tuple(args.save_iterations), "backend": args.backend, "seed": args.seed}
+    """The FitConfig of the command line: the scaled schedule plus the flags and ``--set``s.
+
+    Raises:
+        ValueError: a ``--set`` that is not FIELD=VALUE or names no FitConfig field.
+    """
+    over = {
+        "eval_views": args.eval_views,
+        "eval_interval": args.eval_interval,
+        "save_iterations": tuple(args.save_iterations),
+        "backend": args.backend,
+        "seed": args.seed,
+    }
     if args.num_random_points is not None:
         over["num_random_points"] = args.num_random_points
     if args.max_gaussians is not None:
@@ -118,9 +174,12 @@ def evaluate(args: argparse.Namespace) -> int:
     from icomma_plugin.fit import evaluate_model_folder
 
     try:
-        res = evaluate_model_folder(args.model, args.source,
-                                    None if args.resolution == -1 else args.resolution,
-                                    backend=args.backend)
+        res = evaluate_model_folder(
+            args.model,
+            args.source,
+            None if args.resolution == -1 else args.resolution,
+            backend=args.backend,
+        )
     except ValueError as e:
         log.error("%s", e)
         return 2
@@ -129,9 +188,13 @@ def evaluate(args: argparse.Namespace) -> int:
 
 
 def main(argv=None) -> int:
+    """Fit (or with --evaluate, measure) a model folder. Returns the exit status."""
     args = parse_args(argv)
-    logging.basicConfig(level=getattr(logging, args.log_level.upper(), logging.INFO),
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    logging.basicConfig(
+        level=getattr(logging, args.log_level.upper(), logging.INFO),
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
     torch.set_num_threads(choose_threads(args.threads or None))
     log.info("torch threads: %d", torch.get_num_threads())
     if args.evaluate:
@@ -153,21 +216,38 @@ def main(argv=None) -> int:
     def progress(it, total, info):
         if bar is not None:
             bar.n = it
-            post = {"loss": f"{info.get('loss', float('nan')):.4f}", "N": int(info.get("num_gaussians", 0))}
+            post = {
+                "loss": f"{info.get('loss', float('nan')):.4f}",
+                "N": int(info.get("num_gaussians", 0)),
+            }
             if "psnr" in info:
                 post["psnr"] = f"{info['psnr']:.2f}"
             bar.set_postfix(post, refresh=False)
             bar.refresh()
         if args.log_every and (it % args.log_every == 0 or it == total):
-            log.info("iteration %d/%d: loss %.4f, train-view PSNR %.2f dB, %d Gaussians, %.0f s", it, total,
-                     info.get("loss", float("nan")), info.get("psnr", float("nan")),
-                     int(info.get("num_gaussians", 0)), time.perf_counter() - t_start)
+            log.info(
+                "iteration %d/%d: loss %.4f, train-view PSNR %.2f dB, %d Gaussians, %.0f s",
+                it,
+                total,
+                info.get("loss", float("nan")),
+                info.get("psnr", float("nan")),
+                int(info.get("num_gaussians", 0)),
+                time.perf_counter() - t_start,
+            )
 
     t0 = time.perf_counter()
     try:
-        res = fit_scene(source, args.model, config, resolution=None if args.downscale else args.resolution,
-                        downscale=args.downscale, white_background=args.white_background,
-                        overwrite=args.overwrite, progress=progress, device=args.device)
+        res = fit_scene(
+            source,
+            args.model,
+            config,
+            resolution=None if args.downscale else args.resolution,
+            downscale=args.downscale,
+            white_background=args.white_background,
+            overwrite=args.overwrite,
+            progress=progress,
+            device=args.device,
+        )
     except ValueError as e:  # bad user input (dataset, resolution, existing folder...)
         if bar is not None:
             bar.close()

@@ -1,10 +1,10 @@
 #!/usr/bin/env python
-"""Estimate the camera pose of a query image in a trained 3DGS model.
+r"""Estimate the camera pose of a query image in a trained 3DGS model.
 
     python tools/localize.py                                   # the built-in demo scene
-    python tools/localize.py data=model_folder data.model_path=output/lego \\
+    python tools/localize.py data=model_folder data.model_path=output/lego \
         data.query.dataset=data/lego data.query.index=0 data.init.rot_deg=30
-    python tools/localize.py data=model_folder data.model_path=output/lego \\
+    python tools/localize.py data=model_folder data.model_path=output/lego \
         data.query.image=photo.png data.intrinsics.fx=1111 data.init=none   # no start pose at all
     python tools/localize.py optimizer=icomma                  # the paper's method, as published
     python tools/localize.py -m optimizer=icomma optimizer.lambda_match=0.2,0.5,0.8
@@ -63,9 +63,14 @@ def is_many(cfg: DictConfig) -> bool:
 
 
 def run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
-    """The body of the tool: load, localise, write the outputs into ``output_dir``; returns
-    result.json (a batch or a sequence: poses.json). ``cfg.threads`` applies for the duration
-    of the call (a batch's worker processes: ``threads`` each, null meaning 1)."""
+    """The body of the tool: load, localise, write the outputs into ``output_dir``.
+
+    ``cfg.threads`` applies for the duration of the call (a batch's worker processes:
+    ``threads`` each, null meaning 1).
+
+    Returns:
+        The content of result.json (a batch or a sequence: of poses.json).
+    """
     if is_many(cfg):
         out = Path(cfg.output.get("dir") or output_dir)
         with common.torch_threads(
@@ -403,6 +408,7 @@ def _run_sequence(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, An
 
 
 def many_summary(doc: Dict[str, Any]) -> str:
+    """The console summary of a batch or a sequence (poses.json's counts, rate and errors)."""
     s = doc.get("summary", {})
     c = doc.get("counts", {})
     rows = doc.get("photos", [])
@@ -437,6 +443,8 @@ def many_summary(doc: Dict[str, Any]) -> str:
 
 
 def summary(res: Dict[str, Any], output_dir: Path) -> str:
+    """The console summary of one localisation (result.json) and where its outputs are."""
+
     def f(v, fmt):
         return "n/a" if v is None else format(v, fmt)
 
@@ -472,6 +480,11 @@ def summary(res: Dict[str, Any], output_dir: Path) -> str:
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="localize")
 def main(cfg: DictConfig) -> float:
+    """Hydra entry point: run, print the summary, return the number sweepers minimise.
+
+    That is the final rotation error in degrees (the final loss without ground truth); for a
+    batch or a sequence, the failed share of the photos done.
+    """
     hc = HydraConfig.get()
     output_dir = Path(hc.runtime.output_dir)
     multirun = str(hc.mode) == "RunMode.MULTIRUN"

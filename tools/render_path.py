@@ -1,10 +1,11 @@
 #!/usr/bin/env python
-"""Render a smooth camera path through a 3DGS model to a video, with its true poses: test input
-for tracking (``tools/localize.py data.sequence=...``).
+r"""Render a smooth camera path through a 3DGS model to a video, with its true poses.
+
+The video is test input for tracking (``tools/localize.py data.sequence=...``):
 
     python tools/render_path.py -m ~/.cache/icomma/scenes/lego_200 -o /tmp/lego_path --frames 100
-    python tools/localize.py data=model_folder data.model_path=~/.cache/icomma/scenes/lego_200 \\
-        data.sequence=/tmp/lego_path/path.mp4 data.intrinsics.camera=r_0 data.init=none \\
+    python tools/localize.py data=model_folder data.model_path=~/.cache/icomma/scenes/lego_200 \
+        data.sequence=/tmp/lego_path/path.mp4 data.intrinsics.camera=r_0 data.init=none \
         data.gt.poses_file=/tmp/lego_path/poses.json output.dir=/tmp/lego_path/track
 
 The path orbits the scene centre (the point the model's cameras look at, ``scene_frame``) at the
@@ -57,6 +58,7 @@ def path_poses(
 
 
 def main(argv=None) -> int:
+    """Render the path (module docstring). Returns the exit status."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("-m", "--model", required=True, help="3DGS model folder")
     ap.add_argument("-o", "--out", required=True, help="output folder")
