@@ -70,9 +70,11 @@ def invert_rigid(T: ArrayLike) -> ArrayLike:
 
 
 def rigid_problem(T, atol: float = 1e-4) -> Optional[str]:
-    """Why ``T`` is not a rigid ``[4, 4]`` transform, or None when it is (within ``atol``; JSON
-    files store rotations orthonormal to about float32 precision). Callers raise their own error
-    type with this reason, naming their argument or file."""
+    """Why ``T`` is not a rigid ``[4, 4]`` transform, or None when it is.
+
+    Within ``atol``: JSON files store rotations orthonormal to about float32 precision. Callers
+    raise their own error type with this reason, naming their argument or file.
+    """
     A = _to_np64(T) if isinstance(T, (np.ndarray, torch.Tensor)) else None
     if A is None:
         return f"expected a 4x4 numpy array or torch tensor, got {type(T).__name__}"
@@ -148,8 +150,9 @@ def look_at_c2w(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
 
 
 def rotation_about_axis(axis, angle_deg: float) -> np.ndarray:
-    """Rotation matrix ``[3, 3]`` float64 (numpy) by ``angle_deg`` degrees about ``axis``
-    (right-hand rule; ``axis`` need not be normalised).
+    """Rotation matrix ``[3, 3]`` float64 (numpy) by ``angle_deg`` degrees about ``axis``.
+
+    Right-hand rule; ``axis`` need not be normalised.
 
     Raises:
         ValueError: if ``axis`` is zero or not a 3-vector.
@@ -234,8 +237,9 @@ def _wrap_metric(value: np.ndarray, like):
 
 
 def rotation_error_deg(est: ArrayLike, gt: ArrayLike):
-    """Rotation error in degrees: the angle of ``R_est R_gt^T`` (iComMa's metric,
-    ``utils/calculate_error_utils.py``, ``arccos((trace - 1) / 2)``).
+    """Rotation error in degrees: the angle of ``R_est R_gt^T``.
+
+    iComMa's metric (``utils/calculate_error_utils.py``, ``arccos((trace - 1) / 2)``).
 
     Computed as ``atan2(sin, cos)`` with ``cos = (trace - 1) / 2`` and ``sin`` from the skew part
     ``|vee(R - R^T)| / 2``: the same angle for exact rotations, but well conditioned near 0. The
@@ -264,11 +268,14 @@ def rotation_error_deg(est: ArrayLike, gt: ArrayLike):
 
 
 def translation_error(c2w_est: ArrayLike, c2w_gt: ArrayLike):
-    """iComMa translation error: distance between camera centres,
-    ``||c2w_est[:3, 3] - c2w_gt[:3, 3]||`` in scene units. Both arguments must be c2w (a w2c translation is not the camera centre).
+    """iComMa translation error: the distance between camera centres.
+
+    ``||c2w_est[:3, 3] - c2w_gt[:3, 3]||`` in scene units. Both arguments must be c2w (a w2c
+    translation is not the camera centre).
 
     Args:
-        c2w_est, c2w_gt: ``[..., 3, 4]`` or ``[..., 4, 4]``.
+        c2w_est: ``[..., 3, 4]`` or ``[..., 4, 4]``.
+        c2w_gt: same, broadcastable against ``c2w_est``.
 
     Returns:
         As :func:`rotation_error_deg`.
@@ -328,7 +335,9 @@ def perturb_pose(
     else:
         pivot_point = _to_np64(pivot).reshape(-1)
         if pivot_point.shape != (3,) or not np.all(np.isfinite(pivot_point)):
-            raise ValueError(f"pivot must be 'camera', 'origin' or a finite 3-vector, got {pivot!r}")
+            raise ValueError(
+                f"pivot must be 'camera', 'origin' or a finite 3-vector, got {pivot!r}"
+            )
     rng = _Rng(generator)
     T = _to_np64(c2w)
     flat = T.reshape(-1, 4, 4).copy()
@@ -350,9 +359,10 @@ def perturb_pose(
 
 
 def cameras_extent(c2ws) -> float:
-    """The scene scale of the project (3DGS ``getNerfppNorm`` radius): 1.1 x the largest distance
-    of the camera centres from their mean. Every success criterion that is relative to the scene
-    uses this, computed on the cameras the model was fitted from.
+    """The scene scale of the project (3DGS ``getNerfppNorm`` radius).
+
+    1.1 x the largest distance of the camera centres from their mean. Every success criterion
+    that is relative to the scene uses this, computed on the cameras the model was fitted from.
 
     Args:
         c2ws: sequence of ``[4, 4]`` (or ``[3, 4]``) camera-to-world matrices, at least one.

@@ -224,9 +224,9 @@ def se3_exp(xi: torch.Tensor) -> torch.Tensor:
     A, B, C = _coeffs((phi * phi).sum(-1))
     K = hat(phi)
     K2 = K @ K
-    I = _eye(phi)
-    R = I + A[..., None, None] * K + B[..., None, None] * K2
-    V = I + B[..., None, None] * K + C[..., None, None] * K2
+    eye = _eye(phi)
+    R = eye + A[..., None, None] * K + B[..., None, None] * K2
+    V = eye + B[..., None, None] * K + C[..., None, None] * K2
     t = (V @ rho[..., None])  # [..., 3, 1]
     top = torch.cat([R, t], dim=-1)  # [..., 3, 4]
     bottom = torch.zeros(*xi.shape[:-1], 1, 4, dtype=xi.dtype, device=xi.device)
@@ -249,8 +249,10 @@ def se3_log(T: torch.Tensor) -> torch.Tensor:
 
 
 def se3_inverse(T: torch.Tensor) -> torch.Tensor:
-    """Inverse of a rigid transform ``[..., 4, 4]`` via ``[R^T, -R^T t]`` (differentiable;
-    ``pose.convert.invert_rigid`` for tensors)."""
+    """Inverse of a rigid transform ``[..., 4, 4]`` via ``[R^T, -R^T t]``.
+
+    Differentiable; ``pose.convert.invert_rigid`` for tensors.
+    """
     from .convert import invert_rigid
 
     _check_last(T, "T", (4, 4))
