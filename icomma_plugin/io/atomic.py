@@ -12,8 +12,10 @@ PathLike = Union[str, os.PathLike]
 
 
 def _default_mode() -> int:
-    """0o666 less the process umask: the mode ``open()`` would give a new file (mkstemp's 0o600
-    would make results unreadable to the other users of a shared cluster)."""
+    """0o666 less the process umask: the mode ``open()`` would give a new file.
+
+    mkstemp's 0o600 would make results unreadable to the other users of a shared cluster.
+    """
     mask = os.umask(0)
     os.umask(mask)
     return 0o666 & ~mask
@@ -38,9 +40,11 @@ def atomic_path(path: PathLike) -> Iterator[Path]:
 
 
 def write_text_atomic(path: PathLike, text: str) -> None:
+    """Write ``text`` to ``path`` atomically (see `atomic_path`)."""
     with atomic_path(path) as tmp:
         tmp.write_text(text)
 
 
 def write_json_atomic(path: PathLike, data: Any, indent: int = 2) -> None:
+    """Write ``data`` as JSON (and a final newline) to ``path`` atomically."""
     write_text_atomic(path, json.dumps(data, indent=indent) + "\n")

@@ -1,4 +1,6 @@
-"""A trained 3DGS model folder (graphdeco-inria ``train.py -m <model_path>`` output)::
+"""A trained 3DGS model folder (graphdeco-inria ``train.py -m <model_path>`` output).
+
+Layout::
 
     <model_path>/cfg_args                                  # str(Namespace(**ModelParams))
     <model_path>/cameras.json                              # only when trained from scratch
@@ -36,9 +38,11 @@ _ITER_RE = re.compile(r"iteration_(\d+)")
 
 
 def training_scale(cfg: Optional[Dict[str, Any]], width: int) -> float:
-    """The scale a model was fitted at, relative to source images ``width`` px wide: cfg_args
-    ``resolution`` 1/2/4/8 divides; a larger value is a target width; otherwise (-1 / absent)
-    upstream keeps images up to 1600 px wide: ``min(1, 1600 / width)``."""
+    """The scale a model was fitted at, relative to source images ``width`` px wide.
+
+    cfg_args ``resolution`` 1/2/4/8 divides; a larger value is a target width; otherwise (-1 /
+    absent) upstream keeps images up to 1600 px wide: ``min(1, 1600 / width)``.
+    """
     r = cfg.get("resolution") if cfg else None
     try:
         r = None if r is None else int(r)
@@ -74,8 +78,10 @@ class ModelFolder:
         return training_scale(self.cfg, width)
 
     def training_side(self) -> Optional[int]:
-        """The longer side [px] of the images the model was fitted on (from its cameras and
-        cfg_args), or None without cameras."""
+        """The longer side [px] of the images the model was fitted on, or None without cameras.
+
+        From its cameras and cfg_args.
+        """
         if not self.cameras:
             return None
         e = self.cameras[0]

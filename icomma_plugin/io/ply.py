@@ -60,8 +60,10 @@ _MAX_HEADER = 1 << 20
 
 @dataclass
 class _Element:
-    """One ``element`` of a PLY header: its row count and ``(name, numpy code or None)``
-    properties, None marking a list property."""
+    """One ``element`` of a PLY header.
+
+    Its row count and ``(name, numpy code or None)`` properties, None marking a list property.
+    """
 
     name: str
     count: int
@@ -352,6 +354,7 @@ def write_points_ply(path: PathLike, xyz, rgb=None) -> None:
     little-endian, written atomically.
 
     Args:
+        path: the ``.ply`` file to write.
         xyz: ``[N, 3]`` points (numpy or torch).
         rgb: ``[N, 3]`` colours, uint8 0..255 or floats in [0, 1]; None -> black.
 

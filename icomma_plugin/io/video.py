@@ -41,6 +41,7 @@ class VideoError(ValueError):
 
 
 def is_video_file(path: PathLike) -> bool:
+    """Whether ``path`` is a file with a video suffix (`VIDEO_SUFFIXES`)."""
     p = Path(path)
     return p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES
 
@@ -75,8 +76,10 @@ def video_info(path: PathLike) -> Tuple[int, int, int, float]:
 def read_video_frames(
     path: PathLike, every: int = 1, start: int = 0, limit: Optional[int] = None
 ) -> Iterator[Tuple[int, np.ndarray]]:
-    """Yield ``(frame index, [H, W, 3] uint8 RGB)`` for every ``every``-th frame from ``start``,
-    at most ``limit`` frames. Frames skipped are grabbed, not decoded."""
+    """Yield ``(frame index, [H, W, 3] uint8 RGB)`` for every ``every``-th frame from ``start``.
+
+    At most ``limit`` frames. Frames skipped are grabbed, not decoded.
+    """
     if isinstance(every, bool) or not isinstance(every, int) or every < 1:
         raise ValueError(f"every must be a positive int, got {every!r}")
     cap = _open(Path(path))
@@ -145,8 +148,15 @@ def _write_cv2(tmp: Path, frames: list, fps: float) -> bool:
 
 
 def write_video(path: PathLike, frames: Iterable, fps: float = 10.0) -> Path:
-    """Write ``frames`` (``[H, W, 3]`` uint8 RGB arrays or ``[3, H, W]`` tensors, all one size)
-    as an MP4 at ``path``; returns the path written (a ``.gif`` when no MP4 encoder works).
+    """Write ``frames`` as an MP4 at ``path``.
+
+    Args:
+        path: the ``.mp4`` file.
+        frames: ``[H, W, 3]`` uint8 RGB arrays or ``[3, H, W]`` tensors, all one size.
+        fps: frames per second.
+
+    Returns:
+        The path written (a ``.gif`` when no MP4 encoder works).
 
     Raises:
         VideoError: no frames, or frames of different sizes.

@@ -82,13 +82,17 @@ _LOOKED_FOR = (
 
 
 def detect_dataset_kind(path) -> str:
-    """'colmap', 'blender', 'transforms_json', 'llff' or 'cameras_json' for a dataset folder
-    (3DGS dispatch order, with transforms.json after transforms_train.json)."""
+    """The kind of dataset folder: 'colmap', 'blender', 'transforms_json', 'llff', 'cameras_json'.
+
+    Checked in 3DGS's dispatch order, with transforms.json after transforms_train.json.
+    """
     root = Path(path)
     if not root.exists():
         raise DatasetError(f"dataset path does not exist: {root}")
     if not root.is_dir():
-        raise DatasetError(f"dataset path is not a folder: {root} (expected a folder with {_LOOKED_FOR})")
+        raise DatasetError(
+            f"dataset path is not a folder: {root} (expected a folder with {_LOOKED_FOR})"
+        )
     if (root / "sparse").is_dir():
         return "colmap"
     if (root / "transforms_train.json").is_file():
@@ -103,9 +107,19 @@ def detect_dataset_kind(path) -> str:
 
 
 def read_dataset(path, kind: Optional[str] = None, **kwargs: Any) -> SceneData:
-    """Read any supported dataset folder. `kind` forces a reader ('colmap', 'blender',
-    'transforms_json', 'llff', 'cameras_json'); other keyword arguments go to that reader (an
-    argument it does not take raises ValueError naming the reader and what it accepts)."""
+    """Read any supported dataset folder.
+
+    Args:
+        path: the dataset folder.
+        kind: force a reader ('colmap', 'blender', 'transforms_json', 'llff', 'cameras_json');
+            None detects it (`detect_dataset_kind`).
+        **kwargs: passed to that reader.
+
+    Raises:
+        ValueError: an unknown ``kind``, or an argument the reader does not take (the message
+            names the reader and what it accepts).
+        DatasetError: the folder is not a dataset, or the reader's own errors.
+    """
     if kind is None:
         kind = detect_dataset_kind(path)
     elif kind not in READERS:

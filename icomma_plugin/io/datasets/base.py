@@ -57,7 +57,10 @@ class DatasetError(ValueError):
 
 
 def is_image_file(path: Path) -> bool:
-    return path.is_file() and path.suffix.lower() in IMAGE_SUFFIXES and not path.name.startswith(".")
+    """Whether ``path`` is a file with an image suffix, not hidden."""
+    return (
+        path.is_file() and path.suffix.lower() in IMAGE_SUFFIXES and not path.name.startswith(".")
+    )
 
 
 def find_image(folder: Path, stem: str, what: str = "image") -> Path:
@@ -176,8 +179,11 @@ def resize_image(img: np.ndarray, width: int, height: int) -> np.ndarray:
 
 
 def resize_valid(valid: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Resize a bool [H, W] validity mask conservatively: a pixel stays valid only if all of its
-    source pixels were (the resampled mask is thresholded at `VALID_THRESHOLD`)."""
+    """Resize a bool [H, W] validity mask conservatively.
+
+    A pixel stays valid only if all of its source pixels were (the resampled mask is thresholded
+    at `VALID_THRESHOLD`).
+    """
     out = resize_image(valid.astype(np.float32), width, height)[:, :, 0]
     return out >= VALID_THRESHOLD
 
@@ -192,7 +198,9 @@ def _background_array(background: BackgroundLike) -> np.ndarray:
     if bg.size == 1:
         bg = np.repeat(bg, 3)
     if bg.shape != (3,) or not np.all(np.isfinite(bg)):
-        raise ValueError(f"background must be a number or 3 finite values (RGB), got {background!r}")
+        raise ValueError(
+            f"background must be a number or 3 finite values (RGB), got {background!r}"
+        )
     return bg
 
 
@@ -207,11 +215,16 @@ def check_pose(c2w: Any, what: str) -> np.ndarray:
     if c2w.shape == (3, 4):
         c2w = np.vstack([c2w, [0.0, 0.0, 0.0, 1.0]])
     if c2w.shape != (4, 4):
-        raise DatasetError(f"{what}: expected a 4x4 (or 3x4) camera-to-world matrix, got shape {c2w.shape}")
+        raise DatasetError(
+            f"{what}: expected a 4x4 (or 3x4) camera-to-world matrix, got shape {c2w.shape}"
+        )
     problem = rigid_problem(c2w, atol=1e-3)
     if problem is not None:
-        part = "rotation part of the camera-to-world matrix is not a rotation" if "rotation" in problem \
+        part = (
+            "rotation part of the camera-to-world matrix is not a rotation"
+            if "rotation" in problem
             else "camera-to-world matrix is not rigid"
+        )
         raise DatasetError(f"{what}: the {part}: {problem}")
     return c2w
 
@@ -276,8 +289,11 @@ class View:
 
     @property
     def w2c(self) -> np.ndarray:
-        """[4, 4] float64 world-to-camera, `inv(c2w)` (as 3DGS; exact also for the float32-rounded
-        rotations of JSON files, which are rigid only to ~1e-7)."""
+        """[4, 4] float64 world-to-camera, `inv(c2w)`.
+
+        As 3DGS; exact also for the float32-rounded rotations of JSON files, which are rigid only
+        to ~1e-7.
+        """
         w2c = np.linalg.inv(self.c2w)
         w2c[3] = (0.0, 0.0, 0.0, 1.0)
         return w2c
@@ -289,10 +305,12 @@ class View:
 
     @property
     def width(self) -> int:
+        """Image width [px] (the intrinsics')."""
         return self.intrinsics.width
 
     @property
     def height(self) -> int:
+        """Image height [px] (the intrinsics')."""
         return self.intrinsics.height
 
     @property
@@ -326,7 +344,7 @@ class View:
         return img, valid
 
     def load_array(self, composite: bool = True, background: BackgroundLike = None) -> np.ndarray:
-        """Full-resolution float32 [H, W, C] image after undistortion and compositing (C = 3 or 4)."""
+        """Full-resolution float32 [H, W, C] image, undistorted and composited (C = 3 or 4)."""
         return self._load_full(composite, background)[0]
 
     def load_image(self, scale: float = 1.0, background: BackgroundLike = None,
@@ -439,18 +457,24 @@ class SceneData:
 
     def __repr__(self) -> str:
         n = None if self.points is None else len(self.points)
-        return (f"SceneData(source={self.source!r}, root={str(self.root)!r}, train={len(self.train)}, "
-                f"test={len(self.test)}, points={n}, white_background={self.white_background})")
+        return (
+            f"SceneData(source={self.source!r}, root={str(self.root)!r}, train={len(self.train)}, "
+            f"test={len(self.test)}, points={n}, white_background={self.white_background})"
+        )
 
 
 def shared_data_root() -> Path:
-    """The shared test and benchmark data: ``ICOMMA_SHARED_DATA``, default ``<repo>/../shared/data``
-    (data/README.md of the project's environment); the one place that knows it."""
+    """The shared test and benchmark data folder; the one place that knows it.
+
+    ``ICOMMA_SHARED_DATA``, default ``<repo>/../shared/data`` (data/README.md of the project's
+    environment).
+    """
     repo = Path(__file__).resolve().parents[3]
     return Path(os.environ.get("ICOMMA_SHARED_DATA", repo.parent / "shared" / "data")).expanduser()
 
 
 def background_of(white_background: bool) -> Tuple[float, float, float]:
+    """The RGB background: white or black."""
     return (1.0, 1.0, 1.0) if white_background else (0.0, 0.0, 0.0)
 
 
@@ -481,9 +505,11 @@ def name_matches(name: str, wanted: set) -> bool:
 
 def random_points(num: int = 100_000, seed: int = 0, extent: float = 1.3,
                   center: Optional[Sequence[float]] = None) -> Tuple[np.ndarray, np.ndarray]:
-    """Upstream Blender init cloud: `num` points uniform in the cube `center` +
-    [-extent, extent]^3 (center defaults to the origin), colours SH2RGB(U[0, 1)/255) (i.e. about
-    0.5 grey), from a seeded generator."""
+    """Upstream Blender init cloud, from a seeded generator.
+
+    `num` points uniform in the cube `center` + [-extent, extent]^3 (center defaults to the
+    origin), colours SH2RGB(U[0, 1)/255) (i.e. about 0.5 grey).
+    """
     rng = np.random.default_rng(seed)
     xyz = rng.random((num, 3)) * (2.0 * extent) - extent
     if center is not None:

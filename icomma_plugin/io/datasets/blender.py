@@ -1,4 +1,6 @@
-"""NeRF-synthetic / Blender datasets: `transforms_{train,val,test}.json` (3DGS `readNerfSyntheticInfo`).
+"""NeRF-synthetic / Blender datasets: `transforms_{train,val,test}.json`.
+
+As 3DGS's `readNerfSyntheticInfo`.
 
 File layout: `{"camera_angle_x": ..., "frames": [{"file_path": "./train/r_0", "transform_matrix":
 [[4x4]]}, ...]}`. `transform_matrix` is camera-to-world in Blender/OpenGL camera axes (x right,
@@ -45,10 +47,14 @@ def _load_json(path: Path) -> Dict[str, Any]:
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise DatasetError(f"malformed JSON in {path}: {e}") from e
     if not isinstance(data, dict):
-        raise DatasetError(f"{path}: expected a JSON object with 'frames', got {type(data).__name__}")
+        raise DatasetError(
+            f"{path}: expected a JSON object with 'frames', got {type(data).__name__}"
+        )
     frames = data.get("frames")
     if not isinstance(frames, list):
-        raise DatasetError(f"{path}: expected key 'frames' with a list of frames, got {type(frames).__name__}")
+        raise DatasetError(
+            f"{path}: expected key 'frames' with a list of frames, got {type(frames).__name__}"
+        )
     return data
 
 
@@ -65,8 +71,13 @@ def _resolve_image(root: Path, file_path: str, extension: str, where: str) -> Pa
     return find_image(root / p.parent, p.name, what=where)
 
 
-def read_blender_split(root: PathLike, transforms_file: str, split: str, white_background: bool = False,
-                       extension: str = ".png") -> List[View]:
+def read_blender_split(
+    root: PathLike,
+    transforms_file: str,
+    split: str,
+    white_background: bool = False,
+    extension: str = ".png",
+) -> List[View]:
     """Views of one transforms file (frames in file order)."""
     root = Path(root)
     path = root / transforms_file
@@ -122,7 +133,9 @@ def read_blender(path: PathLike, white_background: bool = False, eval: bool = Tr
     if random_init_points:
         n = 100_000 if random_init_points is True else int(random_init_points)
         if n <= 0:
-            raise ValueError(f"random_init_points must be True or a positive count, got {random_init_points!r}")
+            raise ValueError(
+                f"random_init_points must be True or a positive count, got {random_init_points!r}"
+            )
         points, colors = random_points(n, seed=seed)
     logger.info("Blender dataset %s: %d train, %d test views", root, len(train), len(test))
     return SceneData(train=train, test=test, points=points, colors=colors,

@@ -37,9 +37,13 @@ from .base import (
 logger = logging.getLogger(__name__)
 
 
-def read_cameras_json_scene(path: PathLike, images: Optional[PathLike] = None,
-                            test_names: Union[None, PathLike, Sequence[str]] = None,
-                            llffhold: Optional[int] = None, white_background: bool = False) -> SceneData:
+def read_cameras_json_scene(
+    path: PathLike,
+    images: Optional[PathLike] = None,
+    test_names: Union[None, PathLike, Sequence[str]] = None,
+    llffhold: Optional[int] = None,
+    white_background: bool = False,
+) -> SceneData:
     """Read `<path>/cameras.json` (or `path` itself when it is the file) with images from `images`.
 
     images: the image folder (absolute, or relative to the model folder). Default: `<path>/images`.
@@ -71,7 +75,9 @@ def read_cameras_json_scene(path: PathLike, images: Optional[PathLike] = None,
         wanted = set(read_name_list(test_names))
         is_test = [name_matches(e.img_name, wanted) for e in entries]
         if wanted and not any(is_test):
-            logger.warning("none of the %d test names matches an img_name of %s", len(wanted), cam_file)
+            logger.warning(
+                "none of the %d test names matches an img_name of %s", len(wanted), cam_file
+            )
     elif llffhold is not None:
         order = sorted(range(len(entries)), key=lambda i: entries[i].img_name)
         flags = holdout_split([entries[i].img_name for i in order], llffhold)
@@ -97,5 +103,12 @@ def read_cameras_json_scene(path: PathLike, images: Optional[PathLike] = None,
                  split="test" if t else "train", background=bg, meta={"id": e.id})
         (test if t else train).append(v)
     logger.info("cameras.json scene %s: %d train, %d test views", cam_file, len(train), len(test))
-    return SceneData(train=train, test=test, points=None, colors=None, white_background=white_background,
-                     source="cameras_json", root=folder)
+    return SceneData(
+        train=train,
+        test=test,
+        points=None,
+        colors=None,
+        white_background=white_background,
+        source="cameras_json",
+        root=folder,
+    )

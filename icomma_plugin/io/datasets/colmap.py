@@ -79,6 +79,8 @@ SUPPORTED_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPE
 
 @dataclass
 class ColmapCamera:
+    """One camera of cameras.bin/.txt: COLMAP's model name and parameters, as stored."""
+
     id: int
     model: str
     width: int
@@ -88,6 +90,8 @@ class ColmapCamera:
 
 @dataclass
 class ColmapImage:
+    """One registered image of images.bin/.txt: its world-to-camera pose and camera id."""
+
     id: int
     qvec: np.ndarray  # (w, x, y, z)
     tvec: np.ndarray
@@ -135,7 +139,9 @@ def colmap_w2c(qvec: Sequence[float], tvec: Sequence[float]) -> np.ndarray:
     return w2c
 
 
-def camera_intrinsics(cam: ColmapCamera, where: str = "") -> Tuple[Intrinsics, Optional[Tuple[float, ...]]]:
+def camera_intrinsics(
+    cam: ColmapCamera, where: str = ""
+) -> Tuple[Intrinsics, Optional[Tuple[float, ...]]]:
     """(pinhole Intrinsics in our pixel convention, OpenCV distortion coefficients or None)."""
     p = [float(v) for v in cam.params]
     m = cam.model
@@ -211,7 +217,10 @@ class _BinReader:
     def read_cstring(self, what: str) -> str:
         end = self.data.find(b"\x00", self.pos)
         if end < 0:
-            raise DatasetError(f"truncated COLMAP binary file {self.path}: unterminated {what} at offset {self.pos}")
+            raise DatasetError(
+                f"truncated COLMAP binary file {self.path}: unterminated {what} "
+                f"at offset {self.pos}"
+            )
         raw = self.data[self.pos:end]
         self.pos = end + 1
         try:
@@ -233,6 +242,11 @@ class _BinReader:
 
 
 def read_cameras_binary(path: PathLike) -> Dict[int, ColmapCamera]:
+    """cameras.bin: camera id -> camera.
+
+    Raises:
+        DatasetError: a truncated or malformed file, or an unknown camera model id.
+    """
     r = _BinReader(Path(path))
     (n,) = r.read("Q", "the camera count")
     r.check_count(n, 24, "cameras")
@@ -252,6 +266,11 @@ def read_cameras_binary(path: PathLike) -> Dict[int, ColmapCamera]:
 
 
 def read_images_binary(path: PathLike) -> Dict[int, ColmapImage]:
+    """images.bin: image id -> image (the 2D points are skipped, only counted).
+
+    Raises:
+        DatasetError: a truncated or malformed file.
+    """
     r = _BinReader(Path(path))
     (n,) = r.read("Q", "the image count")
     r.check_count(n, 73, "images")
@@ -261,7 +280,9 @@ def read_images_binary(path: PathLike) -> Dict[int, ColmapImage]:
         name = r.read_cstring(f"image {vals[0]} name")
         (npts,) = r.read("Q", f"image {vals[0]} point count")
         r.skip(24 * npts, f"image {vals[0]} 2D points")
-        images[vals[0]] = ColmapImage(vals[0], np.array(vals[1:5]), np.array(vals[5:8]), vals[8], name, npts)
+        images[vals[0]] = ColmapImage(
+            vals[0], np.array(vals[1:5]), np.array(vals[5:8]), vals[8], name, npts
+        )
     r.finish()
     return images
 
@@ -287,7 +308,10 @@ def read_points3D_binary(path: PathLike) -> Tuple[np.ndarray, np.ndarray]:
 # ----------------------------------------------------------------------------- text
 
 def _text_lines(path: Path):
-    """(line number, stripped line) of non-comment lines; empty lines kept (images.txt needs them)."""
+    """Yield (line number, stripped line) of the non-comment lines.
+
+    Empty lines are kept (images.txt needs them).
+    """
     if not path.is_file():
         raise DatasetError(f"COLMAP text file not found: {path}")
     try:
@@ -309,6 +333,11 @@ def _parse(fn, tok: str, path: Path, no: int, what: str):
 
 
 def read_cameras_text(path: PathLike) -> Dict[int, ColmapCamera]:
+    """cameras.txt: camera id -> camera.
+
+    Raises:
+        DatasetError: a malformed line (the message names the file and line).
+    """
     path = Path(path)
     cams: Dict[int, ColmapCamera] = {}
     for no, s in _text_lines(path):
@@ -316,7 +345,9 @@ def read_cameras_text(path: PathLike) -> Dict[int, ColmapCamera]:
             continue
         el = s.split()
         if len(el) < 4:
-            raise DatasetError(f"{path}:{no}: expected 'CAMERA_ID MODEL WIDTH HEIGHT PARAMS...', got {s!r}")
+            raise DatasetError(
+                f"{path}:{no}: expected 'CAMERA_ID MODEL WIDTH HEIGHT PARAMS...', got {s!r}"
+            )
         cid = _parse(int, el[0], path, no, "CAMERA_ID")
         model = el[1]
         if model not in CAMERA_MODEL_IDS:
@@ -324,7 +355,9 @@ def read_cameras_text(path: PathLike) -> Dict[int, ColmapCamera]:
                                f"(known: {', '.join(CAMERA_MODEL_IDS)})")
         nparams = CAMERA_MODELS[CAMERA_MODEL_IDS[model]][1]
         if len(el) - 4 != nparams:
-            raise DatasetError(f"{path}:{no}: model {model} needs {nparams} parameters, got {len(el) - 4}")
+            raise DatasetError(
+                f"{path}:{no}: model {model} needs {nparams} parameters, got {len(el) - 4}"
+            )
         w = _parse(int, el[2], path, no, "WIDTH")
         h = _parse(int, el[3], path, no, "HEIGHT")
         params = np.array([_parse(float, t, path, no, "a camera parameter") for t in el[4:]])
@@ -333,6 +366,11 @@ def read_cameras_text(path: PathLike) -> Dict[int, ColmapCamera]:
 
 
 def read_images_text(path: PathLike) -> Dict[int, ColmapImage]:
+    """images.txt: image id -> image (two lines per image; the 2D points are only counted).
+
+    Raises:
+        DatasetError: a malformed line (the message names the file and line).
+    """
     path = Path(path)
     images: Dict[int, ColmapImage] = {}
     it = _text_lines(path)
@@ -354,6 +392,11 @@ def read_images_text(path: PathLike) -> Dict[int, ColmapImage]:
 
 
 def read_points3D_text(path: PathLike) -> Tuple[np.ndarray, np.ndarray]:
+    """points3D.txt: (xyz [N, 3] float64, rgb [N, 3] float64 in [0, 1]).
+
+    Raises:
+        DatasetError: a malformed line or non-finite coordinates.
+    """
     path = Path(path)
     xyz, rgb = [], []
     for no, s in _text_lines(path):
@@ -361,7 +404,9 @@ def read_points3D_text(path: PathLike) -> Tuple[np.ndarray, np.ndarray]:
             continue
         el = s.split()
         if len(el) < 8:
-            raise DatasetError(f"{path}:{no}: expected 'POINT3D_ID X Y Z R G B ERROR TRACK...', got {s!r}")
+            raise DatasetError(
+                f"{path}:{no}: expected 'POINT3D_ID X Y Z R G B ERROR TRACK...', got {s!r}"
+            )
         xyz.append([_parse(float, t, path, no, "X/Y/Z") for t in el[1:4]])
         rgb.append([_parse(int, t, path, no, "R/G/B") for t in el[4:7]])
         if not all(0 <= c <= 255 for c in rgb[-1]):
@@ -383,6 +428,11 @@ def _check_points(xyz: np.ndarray, path) -> None:
 # ----------------------------------------------------------------------------- scene
 
 def find_sparse_dir(root: PathLike) -> Path:
+    """The folder with the COLMAP model: ``<root>/sparse/0``, else ``<root>/sparse``.
+
+    Raises:
+        DatasetError: neither has a cameras.bin or cameras.txt.
+    """
     root = Path(root)
     for cand in (root / "sparse" / "0", root / "sparse"):
         if any((cand / f"cameras.{e}").is_file() for e in ("bin", "txt")):
@@ -440,12 +490,16 @@ def read_colmap(path: PathLike, images: str = "images", eval: bool = True, llffh
     entries = []
     for im in imgs.values():
         q = np.asarray(im.qvec, dtype=np.float64)
-        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(im.tvec)) and np.linalg.norm(q) > 1e-8):
+        if not (
+            np.all(np.isfinite(q)) and np.all(np.isfinite(im.tvec)) and np.linalg.norm(q) > 1e-8
+        ):
             logger.warning("COLMAP image %r (id %d) has no valid pose; skipped", im.name, im.id)
             continue
         if im.camera_id not in cams:
-            raise DatasetError(f"{sparse}: image {im.name!r} (id {im.id}) refers to camera {im.camera_id}, "
-                               f"which is not in the cameras file (ids: {sorted(cams)})")
+            raise DatasetError(
+                f"{sparse}: image {im.name!r} (id {im.id}) refers to camera {im.camera_id}, "
+                f"which is not in the cameras file (ids: {sorted(cams)})"
+            )
         if im.camera_id not in intr_cache:
             intr_cache[im.camera_id] = camera_intrinsics(cams[im.camera_id], where=str(sparse))
         image_path = img_dir / im.name
@@ -457,16 +511,26 @@ def read_colmap(path: PathLike, images: str = "images", eval: bool = True, llffh
         if not found:
             alt = img_dir / os.path.basename(im.name)
             if not alt.is_file():
-                raise DatasetError(f"image file of registered COLMAP image {im.name!r} not found: {image_path}")
+                raise DatasetError(
+                    f"image file of registered COLMAP image {im.name!r} not found: {image_path}"
+                )
             image_path = alt
         entries.append((im, image_path))
     entries.sort(key=lambda e: e[0].name)
 
     registered = {p.resolve() for _, p in entries}
-    unregistered = sorted(p.name for p in img_dir.rglob("*") if is_image_file(p) and p.resolve() not in registered)
+    unregistered = sorted(
+        p.name for p in img_dir.rglob("*") if is_image_file(p) and p.resolve() not in registered
+    )
     if unregistered:
-        logger.info("%d image(s) in %s have no registered pose in %s and are skipped: %s%s",
-                    len(unregistered), img_dir, sparse, unregistered[:5], "..." if len(unregistered) > 5 else "")
+        logger.info(
+            "%d image(s) in %s have no registered pose in %s and are skipped: %s%s",
+            len(unregistered),
+            img_dir,
+            sparse,
+            unregistered[:5],
+            "..." if len(unregistered) > 5 else "",
+        )
 
     names = [im.name for im, _ in entries]
     if not eval:
@@ -478,7 +542,9 @@ def read_colmap(path: PathLike, images: str = "images", eval: bool = True, llffh
             wanted = set(read_name_list(test_list))
             is_test = [name_matches(n, wanted) for n in names]
             if sum(is_test) == 0 and wanted:
-                logger.warning("none of the %d test-list names matches an image of %s", len(wanted), sparse)
+                logger.warning(
+                    "none of the %d test-list names matches an image of %s", len(wanted), sparse
+                )
         else:
             is_test = holdout_split(names, llffhold)
 
@@ -488,11 +554,30 @@ def read_colmap(path: PathLike, images: str = "images", eval: bool = True, llffh
     for (im, image_path), t in zip(entries, is_test):
         intr, dist = intr_cache[im.camera_id]
         c2w = invert_rigid_np(colmap_w2c(im.qvec, im.tvec))
-        v = View(name=im.name, intrinsics=intr, c2w=c2w, image_path=image_path,
-                 split="test" if t else "train", background=bg, distortion=dist,
-                 meta={"image_id": im.id, "camera_id": im.camera_id, "model": cams[im.camera_id].model})
+        v = View(
+            name=im.name,
+            intrinsics=intr,
+            c2w=c2w,
+            image_path=image_path,
+            split="test" if t else "train",
+            background=bg,
+            distortion=dist,
+            meta={"image_id": im.id, "camera_id": im.camera_id, "model": cams[im.camera_id].model},
+        )
         (test if t else train).append(v)
-    logger.info("COLMAP dataset %s: %d train, %d test views, %s points", root, len(train), len(test),
-                "no" if xyz is None else len(xyz))
-    return SceneData(train=train, test=test, points=xyz, colors=rgb, white_background=white_background,
-                     source="colmap", root=root)
+    logger.info(
+        "COLMAP dataset %s: %d train, %d test views, %s points",
+        root,
+        len(train),
+        len(test),
+        "no" if xyz is None else len(xyz),
+    )
+    return SceneData(
+        train=train,
+        test=test,
+        points=xyz,
+        colors=rgb,
+        white_background=white_background,
+        source="colmap",
+        root=root,
+    )

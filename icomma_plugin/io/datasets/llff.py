@@ -21,7 +21,16 @@ import numpy as np
 
 from icomma_plugin.camera import Intrinsics
 
-from .base import DatasetError, PathLike, SceneData, View, background_of, holdout_split, image_size, is_image_file
+from .base import (
+    DatasetError,
+    PathLike,
+    SceneData,
+    View,
+    background_of,
+    holdout_split,
+    image_size,
+    is_image_file,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -37,6 +46,11 @@ def llff_to_opencv_c2w(m: np.ndarray) -> np.ndarray:
 
 
 def read_poses_bounds(path: PathLike) -> np.ndarray:
+    """poses_bounds.npy as a float64 [N, 17] array (3x5 pose + 2 bounds per image).
+
+    Raises:
+        DatasetError: a missing, unreadable or malformed file, or non-finite values.
+    """
     path = Path(path)
     if not path.is_file():
         raise DatasetError(f"LLFF poses file not found: {path}")
@@ -45,8 +59,10 @@ def read_poses_bounds(path: PathLike) -> np.ndarray:
     except Exception as e:  # noqa: BLE001 - numpy raises several types for corrupt files
         raise DatasetError(f"cannot read LLFF poses file {path}: {e}") from e
     if arr.ndim != 2 or arr.shape[1] != 17 or arr.shape[0] == 0:
-        raise DatasetError(f"{path}: expected an array of shape [N, 17] (3x5 pose + 2 bounds per image), "
-                           f"got shape {tuple(arr.shape)}")
+        raise DatasetError(
+            f"{path}: expected an array of shape [N, 17] (3x5 pose + 2 bounds per image), "
+            f"got shape {tuple(arr.shape)}"
+        )
     arr = arr.astype(np.float64)
     if not np.all(np.isfinite(arr)):
         raise DatasetError(f"{path}: contains non-finite values")
@@ -55,13 +71,22 @@ def read_poses_bounds(path: PathLike) -> np.ndarray:
 
 def read_llff(path: PathLike, factor: Optional[int] = None, eval: bool = True, llffhold: int = 8,
               white_background: bool = False) -> SceneData:
-    """Read an LLFF folder. `factor`: use `images_{factor}/` (downsampled copies) instead of `images/`."""
+    """Read an LLFF folder.
+
+    `factor`: use `images_{factor}/` (downsampled copies) instead of `images/`.
+    """
     root = Path(path)
     arr = read_poses_bounds(root / "poses_bounds.npy")
     folder = root / ("images" if factor in (None, 1) else f"images_{factor}")
     if not folder.is_dir():
-        raise DatasetError(f"LLFF image folder not found: {folder}" +
-                           (f" (factor={factor}; create the downsampled copies first)" if factor not in (None, 1) else ""))
+        raise DatasetError(
+            f"LLFF image folder not found: {folder}"
+            + (
+                f" (factor={factor}; create the downsampled copies first)"
+                if factor not in (None, 1)
+                else ""
+            )
+        )
     files = sorted((p for p in folder.iterdir() if is_image_file(p)), key=lambda p: p.name)
     if len(files) != len(arr):
         raise DatasetError(f"{root / 'poses_bounds.npy'} has {len(arr)} poses but {folder} has "
@@ -75,14 +100,32 @@ def read_llff(path: PathLike, factor: Optional[int] = None, eval: bool = True, l
     for i, (f, pose, bd, t) in enumerate(zip(files, poses, bounds, is_test)):
         h0, w0, focal = pose[:, 4]
         if h0 <= 0 or w0 <= 0 or focal <= 0:
-            raise DatasetError(f"{root / 'poses_bounds.npy'} row {i}: hwf must be positive, got {pose[:, 4].tolist()}")
+            raise DatasetError(
+                f"{root / 'poses_bounds.npy'} row {i}: hwf must be positive, "
+                f"got {pose[:, 4].tolist()}"
+            )
         w, h = image_size(f)
         s = w / w0
         intr = Intrinsics(int(w), int(h), float(focal * s), float(focal * h / h0))
         c2w = llff_to_opencv_c2w(pose[:, :4])
-        v = View(name=f.stem, intrinsics=intr, c2w=c2w, image_path=f, split="test" if t else "train",
-                 background=bg, bounds=(float(bd[0]), float(bd[1])), meta={"index": i})
+        v = View(
+            name=f.stem,
+            intrinsics=intr,
+            c2w=c2w,
+            image_path=f,
+            split="test" if t else "train",
+            background=bg,
+            bounds=(float(bd[0]), float(bd[1])),
+            meta={"index": i},
+        )
         (test if t else train).append(v)
     logger.info("LLFF dataset %s: %d train, %d test views", root, len(train), len(test))
-    return SceneData(train=train, test=test, points=None, colors=None, white_background=white_background,
-                     source="llff", root=root)
+    return SceneData(
+        train=train,
+        test=test,
+        points=None,
+        colors=None,
+        white_background=white_background,
+        source="llff",
+        root=root,
+    )
