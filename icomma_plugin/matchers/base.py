@@ -30,7 +30,9 @@ MIN_IMAGE_SIDE = 16
 
 def _check_keypoints(value: Any, name: str) -> torch.Tensor:
     if not isinstance(value, torch.Tensor):
-        raise ValueError(f"{name} must be a torch.Tensor of shape [N, 2], got {type(value).__name__}")
+        raise ValueError(
+            f"{name} must be a torch.Tensor of shape [N, 2], got {type(value).__name__}"
+        )
     if value.ndim != 2 or value.shape[1] != 2:
         raise ValueError(f"{name} must have shape [N, 2], got {tuple(value.shape)}")
     if not value.is_floating_point():
@@ -70,7 +72,10 @@ class Matches:
         return int(self.kpts0.shape[0])
 
     @classmethod
-    def empty(cls, device: Optional[torch.device] = None, dtype: torch.dtype = torch.float32) -> "Matches":
+    def empty(
+        cls, device: Optional[torch.device] = None, dtype: torch.dtype = torch.float32
+    ) -> "Matches":
+        """No matches, with tensors on ``device`` of ``dtype``."""
         z = torch.zeros((0, 2), device=device, dtype=dtype)
         return cls(z, z.clone(), torch.zeros((0,), device=device, dtype=dtype))
 
@@ -84,8 +89,12 @@ class Matches:
         return self.select(self.confidence >= min_confidence)
 
     def to(self, device=None, dtype: Optional[torch.dtype] = None) -> "Matches":
-        return Matches(self.kpts0.to(device=device, dtype=dtype), self.kpts1.to(device=device, dtype=dtype),
-                       self.confidence.to(device=device, dtype=dtype))
+        """The matches with every tensor moved to ``device`` / cast to ``dtype``."""
+        return Matches(
+            self.kpts0.to(device=device, dtype=dtype),
+            self.kpts1.to(device=device, dtype=dtype),
+            self.confidence.to(device=device, dtype=dtype),
+        )
 
 
 @dataclass(frozen=True)
@@ -106,8 +115,10 @@ class Features:
 
 
 def mutual_nn_count(f0: Features, f1: Features, min_cosine: float = 0.8) -> int:
-    """Number of mutual nearest neighbours between two descriptor sets (cosine above
-    `min_cosine`): a cheap similarity of two images, used to rank candidate views."""
+    """Number of mutual nearest neighbours between two descriptor sets, cosine above `min_cosine`.
+
+    A cheap similarity of two images, used to rank candidate views.
+    """
     if len(f0) == 0 or len(f1) == 0:
         return 0
     d0 = torch.nn.functional.normalize(f0.desc.float(), dim=-1)
@@ -121,8 +132,10 @@ def mutual_nn_count(f0: Features, f1: Features, min_cosine: float = 0.8) -> int:
 
 
 def on_device(module: torch.nn.Module, device: torch.device) -> torch.nn.Module:
-    """``module`` on ``device``, moved only when it is elsewhere (``Module.to`` walks every
-    parameter even when nothing moves: ~40 ms of a lego localization)."""
+    """``module`` on ``device``, moved only when it is elsewhere.
+
+    ``Module.to`` walks every parameter even when nothing moves: ~40 ms of a lego localization.
+    """
     first = next(module.parameters(), None)
     if first is not None and first.device != torch.device(device):
         module.to(device)
@@ -130,16 +143,28 @@ def on_device(module: torch.nn.Module, device: torch.device) -> torch.nn.Module:
 
 
 def check_image(image: Any, name: str) -> torch.Tensor:
-    """Validate a `[3, H, W]` float image in [0, 1] (see `RANGE_TOLERANCE`); raise ValueError naming `name`."""
+    """Validate a `[3, H, W]` float image in [0, 1] (see `RANGE_TOLERANCE`).
+
+    Raises:
+        ValueError: naming `name`, when the image is not such a tensor.
+    """
     if not isinstance(image, torch.Tensor):
-        raise ValueError(f"{name} must be a torch.Tensor [3, H, W] in [0, 1], got {type(image).__name__}")
+        raise ValueError(
+            f"{name} must be a torch.Tensor [3, H, W] in [0, 1], got {type(image).__name__}"
+        )
     if image.ndim != 3 or image.shape[0] != 3:
-        raise ValueError(f"{name} must have shape [3, H, W] (RGB, no batch dimension), got {tuple(image.shape)}")
+        raise ValueError(
+            f"{name} must have shape [3, H, W] (RGB, no batch dimension), got {tuple(image.shape)}"
+        )
     if not image.is_floating_point():
-        raise ValueError(f"{name} must be a floating-point tensor in [0, 1], got dtype {image.dtype}")
+        raise ValueError(
+            f"{name} must be a floating-point tensor in [0, 1], got dtype {image.dtype}"
+        )
     h, w = image.shape[1:]
     if h < MIN_IMAGE_SIDE or w < MIN_IMAGE_SIDE:
-        raise ValueError(f"{name} must be at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE} pixels, got {h}x{w} (HxW)")
+        raise ValueError(
+            f"{name} must be at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE} pixels, got {h}x{w} (HxW)"
+        )
     with torch.no_grad():
         if not bool(torch.isfinite(image).all()):
             raise ValueError(f"{name} contains NaN or infinite values")
@@ -175,7 +200,9 @@ class Matcher:
         check_real(min_confidence, "min_confidence")
         check_int(max_matches, "max_matches", 1, optional=True)
         if refine is not None and not isinstance(refine, dict):
-            raise ValueError(f"refine must be a dict of refine_render_keypoints arguments, got {refine!r}")
+            raise ValueError(
+                f"refine must be a dict of refine_render_keypoints arguments, got {refine!r}"
+            )
         self.min_confidence = float(min_confidence)
         self.max_matches = max_matches
         self.refine = dict(refine or {})
@@ -193,12 +220,19 @@ class Matcher:
 
     def _match(self, image0: torch.Tensor, image1: torch.Tensor) -> Matches:
         """Match two detached images `[3, H, W]` in [0, 1]; keypoints in the module's convention.
-        Detector-based matchers implement `_extract` and `_match_features` instead."""
+
+        Detector-based matchers implement `_extract` and `_match_features` instead.
+        """
         return self._match_features(self._extract(image0), self._extract(image1))
 
     def extract(self, image: torch.Tensor) -> Features:
-        """Keypoints and descriptors of `image` ([3, H, W] in [0, 1]), for `match(...,
-        features1=...)` and `match_features`. Only where `supports_features`."""
+        """Keypoints and descriptors of `image` ([3, H, W] in [0, 1]).
+
+        For `match(..., features1=...)` and `match_features`. Only where `supports_features`.
+
+        Raises:
+            ValueError: the matcher does not support features, or a bad image.
+        """
         if not self.supports_features:
             raise ValueError(f"the {self.name!r} matcher cannot extract features on their own "
                              "(supports_features is False); call match() on the images")
@@ -207,7 +241,9 @@ class Matcher:
             return self._extract(image.detach().clamp(0.0, 1.0))
 
     def _finish(self, m: Matches, device, dtype) -> Matches:
-        m = Matches(m.kpts0.to(device, dtype), m.kpts1.to(device, dtype), m.confidence.to(device, dtype))
+        m = Matches(
+            m.kpts0.to(device, dtype), m.kpts1.to(device, dtype), m.confidence.to(device, dtype)
+        )
         if self.min_confidence > 0:
             m = m.filter(self.min_confidence)
         if self.max_matches is not None and len(m) > self.max_matches:
@@ -217,10 +253,14 @@ class Matcher:
     def match_features(self, features0: Features, features1: Features) -> Matches:
         """Match two feature sets from `extract` (no gradients)."""
         if not self.supports_features:
-            raise ValueError(f"the {self.name!r} matcher has no match_features (supports_features is False)")
+            raise ValueError(
+                f"the {self.name!r} matcher has no match_features (supports_features is False)"
+            )
         for name, f in (("features0", features0), ("features1", features1)):
             if not isinstance(f, Features):
-                raise ValueError(f"{name} must be a Features (from extract()), got {type(f).__name__}")
+                raise ValueError(
+                    f"{name} must be a Features (from extract()), got {type(f).__name__}"
+                )
         with torch.no_grad():
             m = self._match_features(features0, features1)
             return self._finish(m, features0.kpts.device, torch.float32)
@@ -240,11 +280,15 @@ class Matcher:
             raise ValueError(f"differentiable=True is not supported by the {self.name!r} matcher")
         if features1 is not None:
             if not self.supports_features or not isinstance(features1, Features):
-                raise ValueError("features1 must be the Features of image1 from this matcher's extract(), "
-                                 f"got {type(features1).__name__} for matcher {self.name!r}")
+                raise ValueError(
+                    "features1 must be the Features of image1 from this matcher's extract(), "
+                    f"got {type(features1).__name__} for matcher {self.name!r}"
+                )
             if tuple(features1.size) != (int(image1.shape[2]), int(image1.shape[1])):
-                raise ValueError(f"features1 were extracted from a {features1.size[0]}x{features1.size[1]} "
-                                 f"image, but image1 is {image1.shape[2]}x{image1.shape[1]}")
+                raise ValueError(
+                    f"features1 were extracted from a {features1.size[0]}x{features1.size[1]} "
+                    f"image, but image1 is {image1.shape[2]}x{image1.shape[1]}"
+                )
         with torch.no_grad():
             if features1 is not None:
                 m = self._match_features(self._extract(image0.detach().clamp(0.0, 1.0)), features1)
@@ -252,6 +296,8 @@ class Matcher:
                 m = self._match(image0.detach().clamp(0.0, 1.0), image1.detach().clamp(0.0, 1.0))
             m = self._finish(m, image0.device, image0.dtype)
         if differentiable and len(m) > 0:
-            kpts0 = refine_render_keypoints(image0, image1.detach(), m.kpts0, m.kpts1, **self.refine)
+            kpts0 = refine_render_keypoints(
+                image0, image1.detach(), m.kpts0, m.kpts1, **self.refine
+            )
             m = Matches(kpts0, m.kpts1, m.confidence)
         return m

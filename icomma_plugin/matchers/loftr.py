@@ -26,8 +26,9 @@ logger = logging.getLogger(__name__)
 CHECKPOINT_HELP = (
     "LoFTR needs a checkpoint file, which no package ships and which is never downloaded: get "
     "outdoor_ds.ckpt (the checkpoint iComMa uses) from the LoFTR authors' release "
-    "(github.com/zju3dv/LoFTR, README 'Download the pretrained weights', Google Drive folder 'weights'), "
-    "or kornia's loftr_outdoor.ckpt, and pass its path: matcher.checkpoint=/path/to/outdoor_ds.ckpt "
+    "(github.com/zju3dv/LoFTR, README 'Download the pretrained weights', Google Drive folder "
+    "'weights'), or kornia's loftr_outdoor.ckpt, and pass its path: "
+    "matcher.checkpoint=/path/to/outdoor_ds.ckpt "
     "(Python: make_matcher('loftr', checkpoint='/path/to/outdoor_ds.ckpt'))"
 )
 
@@ -57,7 +58,9 @@ class LoFTRMatcher(Matcher):
         if checkpoint is None or (isinstance(checkpoint, str) and not checkpoint.strip()):
             raise ValueError(f"checkpoint is required. {CHECKPOINT_HELP}")
         if not isinstance(checkpoint, (str, Path)):
-            raise ValueError(f"checkpoint must be a path, got {type(checkpoint).__name__}. {CHECKPOINT_HELP}")
+            raise ValueError(
+                f"checkpoint must be a path, got {type(checkpoint).__name__}. {CHECKPOINT_HELP}"
+            )
         path = Path(checkpoint).expanduser()
         if not path.is_file():
             raise MissingWeightsError(f"checkpoint {str(path)!r} not found. {CHECKPOINT_HELP}")
@@ -79,14 +82,18 @@ class LoFTRMatcher(Matcher):
         try:
             ckpt = torch.load(str(path), map_location="cpu", weights_only=True)
         except Exception as exc:  # noqa: BLE001 - re-raised with the path
-            raise ValueError(f"checkpoint {str(path)!r} could not be read as a torch checkpoint: {exc}") from exc
+            raise ValueError(
+                f"checkpoint {str(path)!r} could not be read as a torch checkpoint: {exc}"
+            ) from exc
         sd = ckpt.get("state_dict", ckpt) if isinstance(ckpt, dict) else None
         if not isinstance(sd, dict):
             raise ValueError(f"checkpoint {str(path)!r} holds no state dict")
         try:
             self.model.load_state_dict(dict(sd))
         except RuntimeError as exc:
-            raise ValueError(f"checkpoint {str(path)!r} does not fit kornia's LoFTR: {exc}") from exc
+            raise ValueError(
+                f"checkpoint {str(path)!r} does not fit kornia's LoFTR: {exc}"
+            ) from exc
         self.model.eval()
         self.checkpoint = str(path)
 
@@ -99,8 +106,12 @@ class LoFTRMatcher(Matcher):
             h, w = self.resize
             sr = (image0.shape[2] / w, image0.shape[1] / h)
             sq = (image1.shape[2] / w, image1.shape[1] / h)
-            render = F.interpolate(render, (h, w), mode="bilinear", align_corners=False, antialias=True)
-            query = F.interpolate(query, (h, w), mode="bilinear", align_corners=False, antialias=True)
+            render = F.interpolate(
+                render, (h, w), mode="bilinear", align_corners=False, antialias=True
+            )
+            query = F.interpolate(
+                query, (h, w), mode="bilinear", align_corners=False, antialias=True
+            )
         out = self.model({"image0": query, "image1": render})
         kq, kr, conf = out["keypoints0"], out["keypoints1"], out["confidence"]
         # +0.5 centres of the (resized) image -> integer centres of the input image

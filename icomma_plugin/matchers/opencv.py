@@ -1,4 +1,6 @@
-"""Classical matchers from OpenCV: SIFT with Lowe's ratio test, ORB with cross-checked Hamming matching.
+"""Classical matchers from OpenCV.
+
+SIFT with Lowe's ratio test, ORB with cross-checked Hamming matching.
 
 OpenCV keypoints already put pixel centres at integer coordinates (the 3DGS convention).
 """
@@ -55,7 +57,9 @@ class SiftMatcher(Matcher):
 
     def _match(self, image0, image1) -> Matches:
         cv2 = _cv2()
-        sift = cv2.SIFT_create(nfeatures=self.max_keypoints, contrastThreshold=self.contrast_threshold)
+        sift = cv2.SIFT_create(
+            nfeatures=self.max_keypoints, contrastThreshold=self.contrast_threshold
+        )
         kp0, d0 = sift.detectAndCompute(_to_gray_u8(image0), None)
         kp1, d1 = sift.detectAndCompute(_to_gray_u8(image1), None)
         if d0 is None or d1 is None or len(kp0) < 1 or len(kp1) < 2:
@@ -82,13 +86,16 @@ class OrbMatcher(Matcher):
     """OpenCV ORB + cross-checked Hamming brute force. Confidence = 1 - distance / 256.
 
     Args:
-        max_keypoints: ORB `nfeatures`. max_distance: reject matches with a Hamming distance above it.
+        max_keypoints: ORB `nfeatures`.
+        max_distance: reject matches with a Hamming distance above it.
         fast_threshold: ORB FAST threshold (lower finds more corners on smooth renders).
     """
 
     name = "orb"
 
-    def __init__(self, max_keypoints: int = 5000, max_distance: int = 64, fast_threshold: int = 10, **kwargs):
+    def __init__(
+        self, max_keypoints: int = 5000, max_distance: int = 64, fast_threshold: int = 10, **kwargs
+    ):
         super().__init__(**kwargs)
         check_int(max_keypoints, "max_keypoints", 1)
         self.max_keypoints = max_keypoints

@@ -95,8 +95,11 @@ def _ncc_scores(render_g, query_g, centre, kpts_query, disp, offs, weights, eps)
 
 
 def _integer_search(render_g, query_g, centre, kpts_query, window, patch, offs, weights, eps):
-    """Best integer displacement by NCC of render patches at round(centre) + d + o against the
-    query patch at kpts_query + o, for d in [-window, window]^2 -> new centres [N, 2]."""
+    """Best integer displacement by NCC: the new centres [N, 2].
+
+    Render patches at round(centre) + d + o are compared with the query patch at
+    kpts_query + o, for d in [-window, window]^2.
+    """
     n = centre.shape[0]
     h, w = render_g.shape[-2:]
     base = torch.round(centre)
@@ -150,7 +153,9 @@ def _step(render_g, query_g, centre, kpts_query, disp, offs, weights, eps, tempe
         if not implicit:
             delta = step
         else:
-            rows = [torch.autograd.grad(step[:, i].sum(), c, retain_graph=True)[0] for i in range(2)]
+            rows = [
+                torch.autograd.grad(step[:, i].sum(), c, retain_graph=True)[0] for i in range(2)
+            ]
             m = -torch.stack(rows, dim=1).detach()  # [N, 2, 2] = -dF/dc
             sv_min = torch.linalg.svdvals(m)[:, -1]
             good = sv_min > 0.05
@@ -223,7 +228,9 @@ def refine_render_keypoints(
     _check_tensor(query, "query", "[C, H, W]")
     for name, img in (("render", render), ("query", query)):
         if img.ndim != 3 or img.shape[0] not in (1, 3):
-            raise ValueError(f"{name} must have shape [3, H, W] or [1, H, W], got {tuple(img.shape)}")
+            raise ValueError(
+                f"{name} must have shape [3, H, W] or [1, H, W], got {tuple(img.shape)}"
+            )
     _check_tensor(kpts_render, "kpts_render", "[N, 2]")
     _check_tensor(kpts_query, "kpts_query", "[N, 2]")
     for name, k in (("kpts_render", kpts_render), ("kpts_query", kpts_query)):

