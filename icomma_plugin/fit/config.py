@@ -14,10 +14,13 @@ from typing import Optional, Tuple
 
 @dataclass
 class FitConfig:
+    """Every constant of the fit (module docstring); the fields are checked on construction."""
+
     # schedule
     iterations: int = 5000
     sh_degree: int = 3
-    sh_increase_interval: int = 500  # active SH degree +1 every this many iterations (upstream 1000)
+    # active SH degree +1 every this many iterations (upstream 1000)
+    sh_increase_interval: int = 500
     # Adam learning rates (upstream); position lr is multiplied by the scene extent and decays
     # log-linearly from init to final over `position_lr_max_steps` (None: `iterations`).
     position_lr_init: float = 1.6e-4
@@ -96,11 +99,15 @@ class FitConfig:
             raise ValueError(f"FitConfig.box_init must be 'views' or 'random', got "
                              f"{self.box_init!r}")
         if self.backend not in ("auto", "reference", "cpu", "cuda"):
-            raise ValueError(f"FitConfig.backend must be auto|reference|cpu|cuda, got {self.backend!r}")
+            raise ValueError(
+                f"FitConfig.backend must be auto|reference|cpu|cuda, got {self.backend!r}"
+            )
         self.save_iterations = tuple(int(i) for i in self.save_iterations)
         for i in self.save_iterations:
             if i < 1:
-                raise ValueError(f"FitConfig.save_iterations must be positive, got {self.save_iterations!r}")
+                raise ValueError(
+                    f"FitConfig.save_iterations must be positive, got {self.save_iterations!r}"
+                )
 
     @classmethod
     def scaled_schedule(cls, iterations: int, **overrides) -> "FitConfig":
@@ -123,10 +130,12 @@ class FitConfig:
         return cls(**sched)
 
     def to_dict(self) -> dict:
+        """The fields as a JSON-friendly dict (``save_iterations`` as a list)."""
         d = asdict(self)
         d["save_iterations"] = list(self.save_iterations)
         return d
 
     @classmethod
     def field_names(cls) -> Tuple[str, ...]:
+        """The names of the fields, in declaration order."""
         return tuple(f.name for f in fields(cls))

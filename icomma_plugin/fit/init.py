@@ -35,7 +35,7 @@ def mean_knn_sq_dist(points: np.ndarray, k: int = 3) -> np.ndarray:
 def random_cube_points(
     n: int, half_extent: float = 1.3, seed: int = 0
 ) -> Tuple[np.ndarray, np.ndarray]:
-    """Upstream Blender init: n uniform points in [-h, h]^3 with random colours (float in [0, 1])."""
+    """Upstream Blender init: n uniform points in [-h, h]^3, random colours (floats in [0, 1])."""
     if n < 1:
         raise ValueError(f"n (number of random points) must be >= 1, got {n!r}")
     rng = np.random.default_rng(seed)
@@ -132,19 +132,21 @@ def plane_sweep_points(
     colours agree best (mean L1 to the reference colour, on images blurred with a 3x3 box) is
     kept when its cost is below `distinct` x the median cost along the ray and that median
     exceeds `min_contrast` (uniform regions, whose depth is ambiguous, are dropped), refined to
-    the vertex of the parabola through its neighbours' costs. Points take the reference pixel colour. When fewer
-    than `n` points pass, the rest are uniform in the cube (grey), so that empty regions still
-    get Gaussians.
+    the vertex of the parabola through its neighbours' costs. Points take the reference pixel
+    colour. When fewer than `n` points pass, the rest are uniform in the cube (grey), so that
+    empty regions still get Gaussians.
 
     Args:
         views: FitView-like objects (`image [3, H, W]`, `intrinsics`, `w2c [4, 4]`, `valid`).
-        center, half_extent: the cube holding the scene and the cameras.
+        center: the centre of the cube holding the scene and the cameras.
+        half_extent: the cube's half side.
         n: number of points to return.
         seed: seed of the pixel choice and of the filler points.
         depths: depth hypotheses per pixel.
         neighbours: views compared with each reference view.
         distinct: how much better than the ray's median cost the chosen depth must be.
-        near_frac, far_frac: the depth range, in units of the camera's distance to `center`.
+        near_frac: the nearest depth, in units of the camera's distance to `center`.
+        far_frac: the farthest depth, in the same units.
         min_contrast: the ray's median cost must exceed this (a uniform region has no depth).
 
     Returns:

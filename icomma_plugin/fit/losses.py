@@ -61,7 +61,9 @@ def ssim(img1: torch.Tensor, img2: torch.Tensor, window_size: int = 11, sigma: f
     valid pixels only.
     """
     if img1.shape != img2.shape:
-        raise ValueError(f"ssim: images must have the same shape, got {list(img1.shape)} and {list(img2.shape)}")
+        raise ValueError(
+            f"ssim: images must have the same shape, got {list(img1.shape)} and {list(img2.shape)}"
+        )
     _check_mask(mask, img1, "ssim")
     if mask is not None:
         img1, img2 = img1 * mask, img2 * mask
@@ -175,8 +177,10 @@ def photometric_loss(render: torch.Tensor, gt: torch.Tensor, lambda_dssim: float
 
 
 def psnr(render: torch.Tensor, gt: torch.Tensor, mask: Optional[torch.Tensor] = None) -> float:
-    """PSNR in dB of images in [0, 1] (the render is clamped to [0, 1] first, as upstream
-    metrics), over the valid pixels of `mask` ([1, H, W], 1 = valid) when given."""
+    """PSNR in dB of images in [0, 1], over the valid pixels of `mask` when given.
+
+    The render is clamped to [0, 1] first, as upstream metrics; `mask` is [1, H, W], 1 = valid.
+    """
     err = (render.detach().clamp(0.0, 1.0) - gt).pow(2)
     if mask is None:
         mse = err.mean().item()

@@ -44,16 +44,23 @@ class ModelFolderExistsError(ValueError, FileExistsError):
 
 @dataclass
 class SceneFitResult:
+    """What `fit_scene` returns: the model folder written, the fit and its metrics.json."""
+
     model_path: Path
     fit: FitResult
     metrics: Dict
 
 
 def resolution_scale(resolution: Optional[int], downscale: Optional[float], width: int) -> float:
-    """Image scale factor of an original `width`-wide image (upstream `-r` semantics, see module doc)."""
+    """Image scale factor of an original `width`-wide image.
+
+    Upstream `-r` semantics (module docstring).
+    """
     if downscale is not None and resolution not in (None, -1):
-        raise ValueError(f"give either resolution or downscale, not both (got resolution={resolution!r}, "
-                         f"downscale={downscale!r})")
+        raise ValueError(
+            f"give either resolution or downscale, not both (got resolution={resolution!r}, "
+            f"downscale={downscale!r})"
+        )
     if downscale is not None:
         if isinstance(downscale, bool) or not isinstance(downscale, (int, float)) or not (
                 math.isfinite(downscale) and downscale > 0):
@@ -61,8 +68,10 @@ def resolution_scale(resolution: Optional[int], downscale: Optional[float], widt
         return 1.0 / float(downscale)
     r = -1 if resolution is None else resolution
     if isinstance(r, bool) or not isinstance(r, int) or r == 0 or r < -1:
-        raise ValueError(f"resolution must be -1 (auto), 1, 2, 4, 8 (divide) or a target width in pixels, "
-                         f"got {resolution!r}")
+        raise ValueError(
+            f"resolution must be -1 (auto), 1, 2, 4, 8 (divide) or a target width in pixels, "
+            f"got {resolution!r}"
+        )
     if r == -1:
         return 1600.0 / width if width > 1600 else 1.0
     if r in (1, 2, 4, 8):
@@ -88,8 +97,10 @@ def _subset(n: int, k: int) -> List[int]:
 
 def views_to_fit(views, resolution, downscale, background, dtype=torch.float32, device=None,
                  keep_alpha: bool = False) -> List[FitView]:
-    """Load dataset `View`s at the requested resolution, composited over `background`, with
-    their validity masks (pixels filled by undistortion are left out of losses and PSNR)."""
+    """Load dataset `View`s at the requested resolution, composited over `background`.
+
+    With their validity masks (pixels filled by undistortion are left out of losses and PSNR).
+    """
     out = []
 
     def to(t):
@@ -100,8 +111,16 @@ def views_to_fit(views, resolution, downscale, background, dtype=torch.float32, 
         im = v.load_image(scale=s, background=background)
         intr = v.intrinsics.scaled(s)
         w2c = torch.as_tensor(v.w2c, dtype=dtype, device=device)
-        out.append(FitView(v.name, to(im.rgb), intr, w2c, alpha=to(im.alpha) if keep_alpha else None,
-                           valid=to(im.valid)))
+        out.append(
+            FitView(
+                v.name,
+                to(im.rgb),
+                intr,
+                w2c,
+                alpha=to(im.alpha) if keep_alpha else None,
+                valid=to(im.valid),
+            )
+        )
     return out
 
 
@@ -112,8 +131,17 @@ def camera_entries(train, test) -> list:
     entries = []
     for v in list(test) + list(train):
         i = v.intrinsics
-        entries.append(CameraEntry(id=len(entries), img_name=v.name, width=i.width, height=i.height,
-                                   c2w=np.asarray(v.c2w, dtype=np.float64), fx=float(i.fx), fy=float(i.fy)))
+        entries.append(
+            CameraEntry(
+                id=len(entries),
+                img_name=v.name,
+                width=i.width,
+                height=i.height,
+                c2w=np.asarray(v.c2w, dtype=np.float64),
+                fx=float(i.fx),
+                fy=float(i.fy),
+            )
+        )
     return entries
 
 
@@ -149,14 +177,18 @@ def fit_scene(
         raise ValueError("source_path must be a dataset folder, got an empty value")
     src = Path(source_path).expanduser().resolve()
     if not src.is_dir():
-        raise ValueError(f"source_path must be an existing dataset folder, got {str(source_path)!r} "
-                         f"({'not a folder' if src.exists() else 'does not exist'})")
+        raise ValueError(
+            f"source_path must be an existing dataset folder, got {str(source_path)!r} "
+            f"({'not a folder' if src.exists() else 'does not exist'})"
+        )
     if model_path is None or str(model_path) == "":
         raise ValueError("model_path must be a folder path, got an empty value")
     final = Path(model_path).expanduser().resolve()
     if final.exists() and not overwrite:
-        raise ModelFolderExistsError(f"model_path {str(final)!r} already exists; pass overwrite=True "
-                                     "(--overwrite) to replace it")
+        raise ModelFolderExistsError(
+            f"model_path {str(final)!r} already exists; pass overwrite=True "
+            "(--overwrite) to replace it"
+        )
     kind = detect_dataset_kind(src)
     if white_background is None:
         white_background = kind == "blender"
@@ -172,7 +204,9 @@ def fit_scene(
     dev = torch.device(device) if device is not None else torch.device("cpu")
 
     log.info("loading %d train views of %s", len(scene.train), src)
-    train = views_to_fit(scene.train, resolution, downscale, bg, device=dev, keep_alpha=config.random_background)
+    train = views_to_fit(
+        scene.train, resolution, downscale, bg, device=dev, keep_alpha=config.random_background
+    )
     test_idx = _subset(len(scene.test), config.eval_views)
     test = views_to_fit([scene.test[i] for i in test_idx], resolution, downscale, bg, device=dev)
     W, H = train[0].intrinsics.width, train[0].intrinsics.height
@@ -195,7 +229,9 @@ def fit_scene(
         xyz, rgb = subsample_points(xyz, rgb, config.max_init_points, config.seed)
         init_source = "dataset"
     else:
-        xyz, rgb = random_cube_points(config.num_random_points, config.random_points_half_extent, config.seed)
+        xyz, rgb = random_cube_points(
+            config.num_random_points, config.random_points_half_extent, config.seed
+        )
         init_source = "random"
     init = model_from_points(xyz, rgb, config.sh_degree, config.init_opacity, device=dev)
     extent = scene.scene_radius()
@@ -268,8 +304,10 @@ def _publish(staging: Path, final: Path, overwrite: bool) -> None:
     """Move the finished staging folder to `final` (replacing an old one only if allowed)."""
     if final.exists():
         if not overwrite:
-            raise ModelFolderExistsError(f"model_path {str(final)!r} appeared during the fit; the result "
-                                         f"is kept in {str(staging)!r}")
+            raise ModelFolderExistsError(
+                f"model_path {str(final)!r} appeared during the fit; the result "
+                f"is kept in {str(staging)!r}"
+            )
         old = final.parent / f".{final.name}.old"
         if old.exists():
             shutil.rmtree(old)
@@ -322,6 +360,13 @@ def evaluate_model_folder(model_path: PathLike, source_path: Optional[PathLike] 
             per_view[fv.name] = vals[-1]
             size = [fv.intrinsics.width, fv.intrinsics.height]
         means[split] = float(np.mean(vals)) if vals else None
-    return {"train_psnr": means["train"], "test_psnr": means["test"],
-            "train_views": len(scene.train), "test_views": len(scene.test), "iteration": folder.iteration,
-            "num_gaussians": folder.model.num_gaussians, "resolution": size, "per_view": per_view}
+    return {
+        "train_psnr": means["train"],
+        "test_psnr": means["test"],
+        "train_views": len(scene.train),
+        "test_views": len(scene.test),
+        "iteration": folder.iteration,
+        "num_gaussians": folder.model.num_gaussians,
+        "resolution": size,
+        "per_view": per_view,
+    }

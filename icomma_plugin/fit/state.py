@@ -30,6 +30,7 @@ PARAM_NAMES = ("means", "sh_dc", "sh_rest", "opacity_logit", "scale_log", "quat"
 
 
 def inverse_sigmoid(x: torch.Tensor) -> torch.Tensor:
+    """log(x / (1 - x)), the logit (upstream's name)."""
     return torch.log(x / (1 - x))
 
 
@@ -53,7 +54,9 @@ def expon_lr(step: int, lr_init: float, lr_final: float, max_steps: int,
     if step < 0 or (lr_init == 0.0 and lr_final == 0.0):
         return 0.0
     if delay_steps > 0:
-        delay = delay_mult + (1 - delay_mult) * math.sin(0.5 * math.pi * min(max(step / delay_steps, 0.0), 1.0))
+        delay = delay_mult + (1 - delay_mult) * math.sin(
+            0.5 * math.pi * min(max(step / delay_steps, 0.0), 1.0)
+        )
     else:
         delay = 1.0
     t = min(max(step / max(max_steps, 1), 0.0), 1.0)
@@ -90,14 +93,17 @@ class GaussianTrainState:
         seed: int = 0,
     ):
         if not (spatial_lr_scale > 0 and math.isfinite(spatial_lr_scale)):
-            raise ValueError(f"spatial_lr_scale must be a positive finite number, got {spatial_lr_scale!r}")
+            raise ValueError(
+                f"spatial_lr_scale must be a positive finite number, got {spatial_lr_scale!r}"
+            )
         self.max_sh_degree = model.sh_degree
         self.active_sh_degree = 0
         self.spatial_lr_scale = float(spatial_lr_scale)
         self.percent_dense = percent_dense
         self.device = model.device
         self.params: Dict[str, torch.nn.Parameter] = {
-            n: torch.nn.Parameter(getattr(model, n).detach().clone().contiguous()) for n in PARAM_NAMES
+            n: torch.nn.Parameter(getattr(model, n).detach().clone().contiguous())
+            for n in PARAM_NAMES
         }
         lrs = {
             "means": position_lr * self.spatial_lr_scale,
@@ -117,43 +123,55 @@ class GaussianTrainState:
     # ------------------------------------------------------------------ accessors
     @property
     def num_gaussians(self) -> int:
+        """The number of Gaussians P."""
         return int(self.params["means"].shape[0])
 
     def get(self, name: str) -> torch.nn.Parameter:
+        """The raw parameter ``name`` (one of `PARAM_NAMES`)."""
         return self.params[name]
 
     def opacities(self) -> torch.Tensor:
+        """Opacities [P, 1] in (0, 1) (sigmoid of the logits)."""
         return torch.sigmoid(self.params["opacity_logit"])
 
     def scales(self) -> torch.Tensor:
+        """Scales [P, 3] (exp of the log scales)."""
         return torch.exp(self.params["scale_log"])
 
     def rotations(self) -> torch.Tensor:
+        """Unit quaternions [P, 4] (w, x, y, z)."""
         return torch.nn.functional.normalize(self.params["quat"], dim=-1)
 
     def shs(self) -> torch.Tensor:
+        """SH coefficients [P, M, 3]: the DC term then the rest."""
         return torch.cat([self.params["sh_dc"], self.params["sh_rest"]], dim=1)
 
     def to_model(self) -> GaussianModel:
         """A detached copy as a GaussianModel (full SH degree)."""
         return GaussianModel(
-            **{n: self.params[n].detach().clone() for n in PARAM_NAMES}, sh_degree=self.max_sh_degree
+            **{n: self.params[n].detach().clone() for n in PARAM_NAMES},
+            sh_degree=self.max_sh_degree,
         )
 
     def set_lr(self, name: str, lr: float) -> None:
+        """Set the learning rate of parameter ``name``."""
         self._groups[name]["lr"] = lr
 
     def lr(self, name: str) -> float:
+        """The learning rate of parameter ``name``."""
         return float(self._groups[name]["lr"])
 
     def oneup_sh_degree(self) -> None:
+        """Raise the active SH degree by one, up to the model's (upstream's name)."""
         if self.active_sh_degree < self.max_sh_degree:
             self.active_sh_degree += 1
 
     def zero_grad(self) -> None:
+        """Clear the gradients (set to None)."""
         self.optimizer.zero_grad(set_to_none=True)
 
     def step(self) -> None:
+        """One Adam step."""
         self.optimizer.step()
 
     # ------------------------------------------------------------------ statistics
@@ -172,15 +190,20 @@ class GaussianTrainState:
             g = means2D_grad[vis, :2].to(self.grad_accum.dtype)
             self.grad_accum[vis] += torch.linalg.vector_norm(g, dim=-1)
             self.denom[vis] += 1
-        self.max_radii2D[vis] = torch.maximum(self.max_radii2D[vis], radii[vis].to(self.max_radii2D.dtype))
+        self.max_radii2D[vis] = torch.maximum(
+            self.max_radii2D[vis], radii[vis].to(self.max_radii2D.dtype)
+        )
 
     def mean_grads(self) -> torch.Tensor:
+        """Mean screen-space gradient norm [P] per view seen (0 where never seen)."""
         g = self.grad_accum / self.denom
         g[~torch.isfinite(g)] = 0.0
         return g
 
     # ------------------------------------------------------------------ optimizer surgery
-    def _replace(self, name: str, new: torch.Tensor, moments: Callable[[torch.Tensor], torch.Tensor]) -> None:
+    def _replace(
+        self, name: str, new: torch.Tensor, moments: Callable[[torch.Tensor], torch.Tensor]
+    ) -> None:
         group = self._groups[name]
         old = group["params"][0]
         state = self.optimizer.state.pop(old, None)
@@ -195,7 +218,7 @@ class GaussianTrainState:
 
     @torch.no_grad()
     def prune(self, remove: torch.Tensor) -> None:
-        """Remove the Gaussians where `remove` (bool [P]) is True, with their Adam state and stats."""
+        """Remove the Gaussians where `remove` (bool [P]) is True, with Adam state and stats."""
         keep = ~remove
         for n in PARAM_NAMES:
             self._replace(n, self.params[n].detach()[keep], lambda s: s[keep])
@@ -218,12 +241,17 @@ class GaussianTrainState:
 
     @torch.no_grad()
     def reset_opacity(self, value: float = 0.01) -> None:
-        """Upstream `reset_opacity`: opacity := min(opacity, value); Adam moments of opacity zeroed."""
+        """Upstream `reset_opacity`: opacity := min(opacity, value).
+
+        The Adam moments of the opacities are zeroed.
+        """
         new = inverse_sigmoid(torch.clamp(self.opacities().detach(), max=value))
         self._replace("opacity_logit", new, torch.zeros_like)
 
     # ------------------------------------------------------------------ densification
-    def _budget_mask(self, selected: torch.Tensor, grads: torch.Tensor, budget: int) -> torch.Tensor:
+    def _budget_mask(
+        self, selected: torch.Tensor, grads: torch.Tensor, budget: int
+    ) -> torch.Tensor:
         """Keep at most `budget` of the selected Gaussians, those with the largest gradients."""
         n = int(selected.sum())
         if n <= budget:
@@ -239,6 +267,19 @@ class GaussianTrainState:
     @torch.no_grad()
     def densify_and_clone(self, grads: torch.Tensor, grad_threshold: float, scene_extent: float,
                           budget: Optional[int] = None) -> int:
+        """Upstream `densify_and_clone`: copy the small Gaussians with large gradients.
+
+        Small: largest scale <= ``percent_dense * scene_extent``.
+
+        Args:
+            grads: mean screen-space gradient norms [P] (`mean_grads`).
+            grad_threshold: clone where ``grads >= grad_threshold``.
+            scene_extent: the scene's scale.
+            budget: clone at most this many (those with the largest gradients); None: all.
+
+        Returns:
+            The number of Gaussians added.
+        """
         selected = grads >= grad_threshold
         selected &= self.scales().max(dim=1).values <= self.percent_dense * scene_extent
         if budget is not None:
@@ -251,6 +292,20 @@ class GaussianTrainState:
     @torch.no_grad()
     def densify_and_split(self, grads: torch.Tensor, grad_threshold: float, scene_extent: float,
                           N: int = 2, budget: Optional[int] = None) -> int:
+        """Upstream `densify_and_split`: replace each large Gaussian with large gradients by N.
+
+        The new ones are sampled from the old one's distribution, with scales / (0.8 N).
+
+        Args:
+            grads: mean screen-space gradient norms (shorter than P after a clone: padded with 0).
+            grad_threshold: split where ``grads >= grad_threshold``.
+            scene_extent: the scene's scale; large: largest scale > ``percent_dense * extent``.
+            N: Gaussians made from each.
+            budget: add at most this many Gaussians; None: no limit.
+
+        Returns:
+            The number of Gaussians split.
+        """
         P = self.num_gaussians
         padded = torch.zeros(P, dtype=grads.dtype, device=grads.device)
         padded[: grads.shape[0]] = grads
@@ -262,7 +317,10 @@ class GaussianTrainState:
         if not n:
             return 0
         stds = self.scales()[selected].repeat(N, 1)
-        samples = torch.randn(stds.shape, generator=self.generator, dtype=stds.dtype, device=stds.device) * stds
+        samples = (
+            torch.randn(stds.shape, generator=self.generator, dtype=stds.dtype, device=stds.device)
+            * stds
+        )
         rots = quat_to_rotmat(self.params["quat"].detach()[selected]).repeat(N, 1, 1)
         new = {
             "means": torch.bmm(rots, samples.unsqueeze(-1)).squeeze(-1)
@@ -278,8 +336,14 @@ class GaussianTrainState:
         return n
 
     @torch.no_grad()
-    def densify_and_prune(self, grad_threshold: float, min_opacity: float, scene_extent: float,
-                          max_screen_size: Optional[float], max_gaussians: Optional[int] = None) -> Dict[str, int]:
+    def densify_and_prune(
+        self,
+        grad_threshold: float,
+        min_opacity: float,
+        scene_extent: float,
+        max_screen_size: Optional[float],
+        max_gaussians: Optional[int] = None,
+    ) -> Dict[str, int]:
         """Upstream `densify_and_prune` with an optional cap on the Gaussian count."""
         grads = self.mean_grads()
         budget = None if max_gaussians is None else max(0, max_gaussians - self.num_gaussians)

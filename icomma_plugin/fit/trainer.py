@@ -16,7 +16,11 @@ from typing import Callable, Dict, List, Optional, Sequence
 
 import torch
 
-from gaussian_renderer_pose import GaussianRasterizationSettings, camera_matrices, rasterize_gaussians
+from gaussian_renderer_pose import (
+    GaussianRasterizationSettings,
+    camera_matrices,
+    rasterize_gaussians,
+)
 
 from ..camera import Intrinsics
 from ..gaussians import GaussianModel
@@ -55,18 +59,26 @@ class FitView:
                 f"intrinsics, got {list(self.image.shape)}"
             )
         if tuple(self.w2c.shape) != (4, 4):
-            raise ValueError(f"FitView {self.name!r}: w2c must be [4, 4], got {list(self.w2c.shape)}")
+            raise ValueError(
+                f"FitView {self.name!r}: w2c must be [4, 4], got {list(self.w2c.shape)}"
+            )
         for what in ("alpha", "valid"):
             t = getattr(self, what)
             if t is not None and tuple(t.shape) != (1,) + hw:
-                raise ValueError(f"FitView {self.name!r}: {what} must be [1, {i.height}, {i.width}] "
-                                 f"or None, got {list(t.shape)}")
+                raise ValueError(
+                    f"FitView {self.name!r}: {what} must be [1, {i.height}, {i.width}] "
+                    f"or None, got {list(t.shape)}"
+                )
         if self.valid is not None and not bool(self.valid.any()):
             raise ValueError(f"FitView {self.name!r}: valid mask has no valid pixel")
 
     def matrices(self, dtype: torch.dtype, device: torch.device):
         """Rasterizer matrices (cached; the pose is fixed during fitting)."""
-        if self._mats is None or self._mats.viewmatrix.dtype != dtype or self._mats.viewmatrix.device != device:
+        if (
+            self._mats is None
+            or self._mats.viewmatrix.dtype != dtype
+            or self._mats.viewmatrix.device != device
+        ):
             i = self.intrinsics
             self._mats = camera_matrices(
                 self.w2c.to(dtype=dtype, device=device), i.fx, i.fy, i.width, i.height, i.cx, i.cy
@@ -76,6 +88,8 @@ class FitView:
 
 @dataclass
 class FitResult:
+    """The fitted model, its size, timings, test PSNR and per-step history."""
+
     model: GaussianModel
     iterations: int
     num_gaussians: int
@@ -89,7 +103,10 @@ class FitResult:
 
 def render_state(state: GaussianTrainState, view: FitView, bg: torch.Tensor, backend: str = "auto",
                  means2D: Optional[torch.Tensor] = None, sh_degree: Optional[int] = None):
-    """Render the trainable Gaussians into `view` (differentiable; means2D gets the screen grads)."""
+    """Render the trainable Gaussians into `view`.
+
+    Differentiable; ``means2D`` gets the screen-space gradients.
+    """
     means = state.get("means")
     m = view.matrices(means.dtype, means.device)
     i = view.intrinsics
@@ -122,7 +139,11 @@ class Trainer:
     ):
         if not train:
             raise ValueError("train must contain at least one view, got none")
-        if not (isinstance(scene_extent, (int, float)) and math.isfinite(scene_extent) and scene_extent > 0):
+        if not (
+            isinstance(scene_extent, (int, float))
+            and math.isfinite(scene_extent)
+            and scene_extent > 0
+        ):
             raise ValueError(f"scene_extent must be a positive finite number, got {scene_extent!r}")
         if init.num_gaussians < 1:
             raise ValueError("init must contain at least one Gaussian")
@@ -135,19 +156,35 @@ class Trainer:
         self.progress_every = max(1, int(progress_every))
         init = init.with_sh_degree(config.sh_degree) if init.sh_degree != config.sh_degree else init
         self.state = GaussianTrainState(
-            init, self.extent, position_lr=config.position_lr_init, feature_lr=config.feature_lr,
-            opacity_lr=config.opacity_lr, scaling_lr=config.scaling_lr, rotation_lr=config.rotation_lr,
-            eps=config.adam_eps, percent_dense=config.percent_dense, seed=config.seed,
+            init,
+            self.extent,
+            position_lr=config.position_lr_init,
+            feature_lr=config.feature_lr,
+            opacity_lr=config.opacity_lr,
+            scaling_lr=config.scaling_lr,
+            rotation_lr=config.rotation_lr,
+            eps=config.adam_eps,
+            percent_dense=config.percent_dense,
+            seed=config.seed,
         )
         self.device = init.device
         self.dtype = init.dtype
-        self.background = torch.as_tensor(background, dtype=self.dtype, device=self.device).reshape(3)
+        self.background = torch.as_tensor(background, dtype=self.dtype, device=self.device).reshape(
+            3
+        )
         self.white_background = bool(self.background.min() >= 1.0)
         self.rng = torch.Generator().manual_seed(config.seed)
         self._stack: List[int] = []
         self.iteration = 0
         self.history: List[Dict[str, float]] = []
-        self.timings = {"render": 0.0, "loss": 0.0, "backward": 0.0, "stats": 0.0, "densify": 0.0, "adam": 0.0}
+        self.timings = {
+            "render": 0.0,
+            "loss": 0.0,
+            "backward": 0.0,
+            "stats": 0.0,
+            "densify": 0.0,
+            "adam": 0.0,
+        }
         self.max_steps = config.position_lr_max_steps or config.iterations
         pixels = sum(v.intrinsics.width * v.intrinsics.height for v in self.train_views)
         self.max_gaussians = min(config.max_gaussians, max(1, int(
@@ -169,6 +206,12 @@ class Trainer:
 
     # ------------------------------------------------------------------ one step
     def train_step(self) -> Dict[str, float]:
+        """One iteration: learning rates, render, loss, backward, densification, Adam.
+
+        Returns:
+            ``loss`` and ``num_gaussians``, and ``psnr`` (train view) every ``progress_every``
+            iterations and at the last.
+        """
         c = self.config
         st = self.state
         self.iteration += 1
@@ -178,9 +221,15 @@ class Trainer:
         if it % c.sh_increase_interval == 0:
             st.oneup_sh_degree()
         view = self._next_view()
-        bg = torch.rand(3, dtype=self.dtype, device=self.device) if c.random_background else self.background
+        bg = (
+            torch.rand(3, dtype=self.dtype, device=self.device)
+            if c.random_background
+            else self.background
+        )
         t0 = time.perf_counter()
-        means2D = torch.zeros((st.num_gaussians, 3), dtype=self.dtype, device=self.device, requires_grad=True)
+        means2D = torch.zeros(
+            (st.num_gaussians, 3), dtype=self.dtype, device=self.device, requires_grad=True
+        )
         out = render_state(st, view, bg, c.backend, means2D=means2D)
         t1 = time.perf_counter()
         gt = view.image
@@ -199,10 +248,17 @@ class Trainer:
                 tm["stats"] += t4 - t3
                 if it > c.densify_from_iter and it % c.densification_interval == 0:
                     size = c.max_screen_size if it > c.opacity_reset_interval else None
-                    d = st.densify_and_prune(c.densify_grad_threshold, c.min_opacity, self.extent, size,
-                                             self.max_gaussians)
+                    d = st.densify_and_prune(
+                        c.densify_grad_threshold,
+                        c.min_opacity,
+                        self.extent,
+                        size,
+                        self.max_gaussians,
+                    )
                     log.debug("iteration %d densify: %s", it, d)
-                if it % c.opacity_reset_interval == 0 or (self.white_background and it == c.densify_from_iter):
+                if it % c.opacity_reset_interval == 0 or (
+                    self.white_background and it == c.densify_from_iter
+                ):
                     st.reset_opacity()
                     log.debug("iteration %d: opacity reset", it)
                 tm["densify"] += time.perf_counter() - t4
@@ -220,20 +276,27 @@ class Trainer:
 
     # ------------------------------------------------------------------ evaluation
     @torch.no_grad()
-    def evaluate(self, views: Optional[Sequence[FitView]] = None, sh_degree: Optional[int] = None) -> float:
-        """Mean PSNR (dB) over `views` (default: the test views), rendered over the background,
-        each on its valid pixels."""
+    def evaluate(
+        self, views: Optional[Sequence[FitView]] = None, sh_degree: Optional[int] = None
+    ) -> float:
+        """Mean PSNR (dB) over `views` (default: the test views).
+
+        Each view is rendered over the background and measured on its valid pixels.
+        """
         views = self.test_views if views is None else list(views)
         if not views:
             raise ValueError("evaluate: no views to evaluate on")
         vals = []
         for v in views:
-            out = render_state(self.state, v, self.background, self.config.backend, sh_degree=sh_degree)
+            out = render_state(
+                self.state, v, self.background, self.config.backend, sh_degree=sh_degree
+            )
             vals.append(psnr(out.color, v.image, v.valid))
         return float(sum(vals) / len(vals))
 
     # ------------------------------------------------------------------ the schedule
     def run(self) -> FitResult:
+        """The whole schedule, from the current iteration to ``config.iterations``."""
         c = self.config
         t_start = time.perf_counter()
         cpu_start = time.process_time()  # this process's CPU time: wall time on a busy machine
@@ -245,14 +308,31 @@ class Trainer:
             if "psnr" in info:
                 last = info
             if self.progress is not None and (it % self.progress_every == 0 or it == c.iterations):
-                self.progress(it, c.iterations, dict(last, num_gaussians=info["num_gaussians"], loss=info["loss"]))
-            if c.eval_interval and it % c.eval_interval == 0 and self.test_views and it != c.iterations:
+                self.progress(
+                    it,
+                    c.iterations,
+                    dict(last, num_gaussians=info["num_gaussians"], loss=info["loss"]),
+                )
+            if (
+                c.eval_interval
+                and it % c.eval_interval == 0
+                and self.test_views
+                and it != c.iterations
+            ):
                 te = time.perf_counter()
                 p = self.evaluate()
                 t_eval += time.perf_counter() - te
-                self.history.append({"iteration": it, "test_psnr": p, "num_gaussians": self.state.num_gaussians,
-                                     "seconds": time.perf_counter() - t_start - t_eval})
-                log.info("iteration %d: test PSNR %.2f dB, %d Gaussians", it, p, self.state.num_gaussians)
+                self.history.append(
+                    {
+                        "iteration": it,
+                        "test_psnr": p,
+                        "num_gaussians": self.state.num_gaussians,
+                        "seconds": time.perf_counter() - t_start - t_eval,
+                    }
+                )
+                log.info(
+                    "iteration %d: test PSNR %.2f dB, %d Gaussians", it, p, self.state.num_gaussians
+                )
             if self.on_save is not None and it in c.save_iterations and it != c.iterations:
                 self.on_save(it, self.state.to_model())
         seconds = time.perf_counter() - t_start - t_eval

@@ -51,9 +51,8 @@ def build_lightglue(features: str, path, **conf) -> torch.nn.Module:
 
     fconf = dict(LightGlue.features[features])
     fconf.update(conf)
-    fconf["weights"] = (
-        None  # with features=None, a weights name would make kornia open its own files
-    )
+    # with features=None, a weights name would make kornia open its own files
+    fconf["weights"] = None
     model = LightGlue(features=None, **fconf)
     sd = load_checkpoint(path)
     if "state_dict" in sd and isinstance(sd["state_dict"], dict):
