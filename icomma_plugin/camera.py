@@ -30,29 +30,41 @@ class Intrinsics:
 
     @property
     def cx_px(self) -> float:
+        """Principal point x [px]: ``cx``, or the image centre ``(W - 1) / 2`` when None."""
         return (self.width - 1) / 2.0 if self.cx is None else float(self.cx)
 
     @property
     def cy_px(self) -> float:
+        """Principal point y [px]: ``cy``, or the image centre ``(H - 1) / 2`` when None."""
         return (self.height - 1) / 2.0 if self.cy is None else float(self.cy)
 
     @property
     def fov_x(self) -> float:
+        """Horizontal field of view [rad]."""
         return 2.0 * math.atan(self.width / (2.0 * self.fx))
 
     @property
     def fov_y(self) -> float:
+        """Vertical field of view [rad]."""
         return 2.0 * math.atan(self.height / (2.0 * self.fy))
 
     @classmethod
-    def from_fov(cls, width: int, height: int, fov_x: float, fov_y: Optional[float] = None) -> "Intrinsics":
-        """From horizontal (and optionally vertical) field of view in radians; square pixels by default."""
+    def from_fov(
+        cls, width: int, height: int, fov_x: float, fov_y: Optional[float] = None
+    ) -> "Intrinsics":
+        """From the horizontal (and optionally vertical) field of view in radians.
+
+        Square pixels when ``fov_y`` is not given.
+        """
         fx = width / (2.0 * math.tan(fov_x / 2.0))
         fy = fx if fov_y is None else height / (2.0 * math.tan(fov_y / 2.0))
         return cls(width, height, fx, fy)
 
     def scaled(self, scale: float) -> "Intrinsics":
-        """Intrinsics of the image resized by `scale` (sizes rounded; focal scaled by the real ratio)."""
+        """Intrinsics of the image resized by `scale`.
+
+        Sizes are rounded; the focal lengths are scaled by the real ratio.
+        """
         w = max(1, int(round(self.width * scale)))
         h = max(1, int(round(self.height * scale)))
         sx, sy = w / self.width, h / self.height

@@ -1,6 +1,8 @@
-"""Argument checks shared by the plugin (as kornia's ``core/check.py``): each returns the value
-(converted: a float, an int, a bool) or raises ValueError whose message names the argument, says
-what was expected and shows what was given, e.g. ``lr must be a finite number > 0, got -1``.
+"""Argument checks shared by the plugin (as kornia's ``core/check.py``).
+
+Each returns the value (converted: a float, an int, a bool) or raises ValueError whose message
+names the argument, says what was expected and shows what was given, e.g. ``lr must be a finite
+number > 0, got -1``.
 
 A bool is never accepted as a number (``True`` is an int in Python), and NaN or infinity never
 passes a number check.
@@ -38,13 +40,23 @@ def _in_bounds(v: float, lo, hi, lo_open: bool, hi_open: bool) -> bool:
     return True
 
 
-def check_real(value: Any, name: str, lo: Optional[float] = None, hi: Optional[float] = None, *,
-               lo_open: bool = False, hi_open: bool = False, optional: bool = False) -> Optional[float]:
+def check_real(
+    value: Any,
+    name: str,
+    lo: Optional[float] = None,
+    hi: Optional[float] = None,
+    *,
+    lo_open: bool = False,
+    hi_open: bool = False,
+    optional: bool = False,
+) -> Optional[float]:
     """``value`` as a float, finite and within the bounds (None passes when ``optional``)."""
     if value is None and optional:
         return None
     if not is_real(value) or not _in_bounds(float(value), lo, hi, lo_open, hi_open):
-        what = "a finite number" + _bounds(lo, hi, lo_open, hi_open) + (" or None" if optional else "")
+        what = (
+            "a finite number" + _bounds(lo, hi, lo_open, hi_open) + (" or None" if optional else "")
+        )
         raise ValueError(f"{name} must be {what}, got {value!r}")
     return float(value)
 
@@ -62,12 +74,14 @@ def check_int(value: Any, name: str, lo: Optional[int] = None, hi: Optional[int]
 
 
 def check_bool(value: Any, name: str) -> bool:
+    """``value`` when it is a bool, else ValueError naming ``name``."""
     if not isinstance(value, bool):
         raise ValueError(f"{name} must be a bool (true / false), got {value!r}")
     return value
 
 
 def check_choice(value: Any, name: str, choices: Iterable[Any]) -> Any:
+    """``value`` when it is one of ``choices``, else ValueError naming ``name``."""
     choices = tuple(choices)
     if value not in choices:
         raise ValueError(f"{name} must be one of {choices}, got {value!r}")
@@ -82,7 +96,10 @@ def check_pair(value: Any, name: str, lo: Optional[float] = None, hi: Optional[f
     if ok and ordered:
         ok = float(value[0]) <= float(value[1])
     if not ok:
-        what = "a pair of finite numbers" + _bounds(lo, hi, False, False) + (" [lo, hi] with lo <= hi"
-                                                                             if ordered else "")
+        what = (
+            "a pair of finite numbers"
+            + _bounds(lo, hi, False, False)
+            + (" [lo, hi] with lo <= hi" if ordered else "")
+        )
         raise ValueError(f"{name} must be {what}, got {value!r}")
     return float(value[0]), float(value[1])

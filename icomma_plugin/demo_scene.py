@@ -4,12 +4,12 @@
 
 ```
 <path>/
-  cfg_args, cameras.json, input.ply,             # the upstream 3DGS model-folder layout
-  point_cloud/iteration_<N>/point_cloud.ply      # (icomma_plugin.io.model_folder.write_model_folder)
-  query.png                                      # the query photo, rendered at a hidden pose
-  query_gt.json                                  # that pose + intrinsics (read only to report errors)
-  init_c2w.txt                                   # the initial guess: 4x4 camera-to-world, OpenCV axes
-  demo.json                                      # manifest: build parameters, scene centre/scale
+  cfg_args, cameras.json, input.ply,         # the upstream 3DGS model-folder layout
+  point_cloud/iteration_<N>/point_cloud.ply  # (icomma_plugin.io.model_folder.write_model_folder)
+  query.png                                  # the query photo, rendered at a hidden pose
+  query_gt.json                              # that pose + intrinsics (read only to report errors)
+  init_c2w.txt                               # the initial guess: 4x4 camera-to-world, OpenCV axes
+  demo.json                                  # manifest: build parameters, scene centre/scale
 ```
 
 Scene (world frame z up, metres-ish): a 5 x 5 ground plane with a checker/blob/glyph texture, a
@@ -142,7 +142,9 @@ def _glyphs(rng, img, n, smin, smax):
             m = (v > -s) & (v < s) & (np.abs(u) < (v + s) * 0.5)
         elif kind == 4:  # L
             t = s * 0.35
-            m = ((np.abs(u + s * 0.5) < t) & (np.abs(v) < s)) | ((np.abs(v - s * 0.7) < t) & (np.abs(u) < s))
+            m = ((np.abs(u + s * 0.5) < t) & (np.abs(v) < s)) | (
+                (np.abs(v - s * 0.7) < t) & (np.abs(u) < s)
+            )
         else:  # T
             t = s * 0.3
             m = ((np.abs(u) < t) & (np.abs(v) < s)) | ((np.abs(v + s * 0.75) < t) & (np.abs(u) < s))
@@ -168,8 +170,10 @@ def _checker(rng, h, w, cell):
 
 
 def paint_texture(rng: np.random.Generator, h: int, w: int, style: str) -> np.ndarray:
-    """Procedural texture `[h, w, 3]` in [0, 1] (one texel per Gaussian). Styles: checker,
-    stripes, blobs, glyphs, ground."""
+    """Procedural texture `[h, w, 3]` in [0, 1] (one texel per Gaussian).
+
+    Styles: checker, stripes, blobs, glyphs, ground.
+    """
     area = h * w
     if style == "checker":
         img = _checker(rng, h, w, cell=max(3, int(rng.uniform(0.12, 0.2) * min(h, w))))
@@ -280,9 +284,14 @@ def _build_gaussians(seed: int, spacing: float, ground_half: float) -> Tuple[Gau
     return model, info
 
 
-def textured_plane_model(n: int = 40, size: float = 2.0, seed: int = 0, style: str = "ground") -> GaussianModel:
-    """A small test model: an ``n x n`` grid of disc Gaussians tiling the square
-    ``[-size/2, size/2]^2`` of the plane z = 0 (normal +z), coloured by :func:`paint_texture`."""
+def textured_plane_model(
+    n: int = 40, size: float = 2.0, seed: int = 0, style: str = "ground"
+) -> GaussianModel:
+    """A small test model: an ``n x n`` grid of disc Gaussians.
+
+    They tile the square ``[-size/2, size/2]^2`` of the plane z = 0 (normal +z), coloured by
+    :func:`paint_texture`.
+    """
     rng = np.random.default_rng(seed)
     pts, rgb, quat, scales = _face_gaussians(
         np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), size / 2, size / 2, size / n,
@@ -311,10 +320,12 @@ def blob_model(num_gaussians: int = 300, seed: int = 0, extent: float = 1.0) -> 
 
 
 def raster_bench_scene(num_gaussians: int, resolution: int, seed: int = 0) -> dict:
-    """Raw rasterizer inputs for timing (``tools/bench_rasterizer.py``): ``num_gaussians`` SH-3
-    Gaussians 2-8 units in front of a ``resolution``-square camera (a few just off screen), with
-    footprints of 0.5-4 px, as the keyword arguments of the backend contract (docs/CONTRACTS.md)
-    plus ``settings``."""
+    """Raw rasterizer inputs for timing (``tools/bench_rasterizer.py``).
+
+    ``num_gaussians`` SH-3 Gaussians 2-8 units in front of a ``resolution``-square camera (a few
+    just off screen), with footprints of 0.5-4 px, as the keyword arguments of the backend
+    contract (docs/CONTRACTS.md) plus ``settings``.
+    """
     g = torch.Generator().manual_seed(seed)
     P, H, W = num_gaussians, resolution, resolution
     tanfov = 0.5
@@ -330,7 +341,9 @@ def raster_bench_scene(num_gaussians: int, resolution: int, seed: int = 0) -> di
     # camera: a mild rotation + translation (w2c), means moved to the world
     angle = 0.2
     c, s = math.cos(angle), math.sin(angle)
-    w2c = torch.tensor([[c, 0, s, 0.1], [0, 1, 0, -0.2], [-s, 0, c, 0.3], [0, 0, 0, 1]], dtype=torch.float32)
+    w2c = torch.tensor(
+        [[c, 0, s, 0.1], [0, 1, 0, -0.2], [-s, 0, c, 0.3], [0, 0, 0, 1]], dtype=torch.float32
+    )
     c2w = torch.linalg.inv(w2c)
     means3D = means_cam @ c2w[:3, :3].T + c2w[:3, 3]
     # footprint: sigma of 0.5..4 pixels, anisotropic
@@ -361,8 +374,16 @@ def raster_bench_scene(num_gaussians: int, resolution: int, seed: int = 0) -> di
         viewmatrix=w2c.T.contiguous(),
         projmatrix=(proj @ w2c).T.contiguous(),
         campos=c2w[:3, 3].contiguous(),
-        settings=dict(image_height=H, image_width=W, tanfovx=tanfov, tanfovy=tanfov, scale_modifier=1.0,
-                      sh_degree=3, prefiltered=False, antialiasing=False),
+        settings=dict(
+            image_height=H,
+            image_width=W,
+            tanfovx=tanfov,
+            tanfovy=tanfov,
+            scale_modifier=1.0,
+            sh_degree=3,
+            prefiltered=False,
+            antialiasing=False,
+        ),
     )
 
 
@@ -389,21 +410,26 @@ class DemoScene:
 
     @property
     def model_path(self) -> Path:
+        """The model folder (the scene folder itself)."""
         return self.path
 
     @property
     def query_image_path(self) -> Path:
+        """The query photo, query.png."""
         return self.path / "query.png"
 
     @property
     def query_gt_path(self) -> Path:
+        """query_gt.json: the query's true pose and intrinsics."""
         return self.path / "query_gt.json"
 
     @property
     def init_c2w_path(self) -> Path:
+        """init_c2w.txt: the initial guess, 4x4 camera-to-world."""
         return self.path / "init_c2w.txt"
 
     def load_model(self) -> GaussianModel:
+        """The scene's Gaussians, read from the model folder."""
         from .io.model_folder import load_model_folder
 
         return load_model_folder(self.path).model
@@ -452,7 +478,9 @@ def build_demo_scene(
     Args:
         path: target folder; None uses `default_demo_path(seed)`.
         seed: drives textures, box placement, the query pose and the initial perturbation.
-        width, height, fov_deg: query / ring camera image size and horizontal field of view.
+        width: query / ring camera image width [px].
+        height: their image height [px].
+        fov_deg: their horizontal field of view [deg].
         spacing: Gaussian spacing on the object faces (world units; the ground uses 1.25x).
         rot_range_deg: the initial rotation error is drawn uniformly in this range.
         trans: extra random translation (world units) of the initial camera centre.
@@ -467,7 +495,9 @@ def build_demo_scene(
         raise ValueError(f"seed must be a non-negative int, got {seed!r}")
     lo, hi = (float(x) for x in rot_range_deg)
     if not (0 <= lo <= hi < 180):
-        raise ValueError(f"rot_range_deg must be (lo, hi) with 0 <= lo <= hi < 180, got {rot_range_deg!r}")
+        raise ValueError(
+            f"rot_range_deg must be (lo, hi) with 0 <= lo <= hi < 180, got {rot_range_deg!r}"
+        )
     path = Path(path) if path is not None else default_demo_path(seed)
     params = _params(seed, width, height, fov_deg, spacing, (lo, hi), trans)
     if not rebuild:
@@ -534,7 +564,9 @@ def _try_load(path: Path, params: dict) -> Optional[DemoScene]:
     )
 
 
-def _build_into(folder: Path, final_path: Path, params: dict, num_ring_cameras: int, backend: str) -> None:
+def _build_into(
+    folder: Path, final_path: Path, params: dict, num_ring_cameras: int, backend: str
+) -> None:
     from PIL import Image
 
     from .io.atomic import write_json_atomic, write_text_atomic
@@ -554,7 +586,9 @@ def _build_into(folder: Path, final_path: Path, params: dict, num_ring_cameras: 
     c2ws = []
     for i in range(num_ring_cameras):
         az = 2 * math.pi * i / num_ring_cameras
-        eye = centre + np.array([ring_radius * math.cos(az), ring_radius * math.sin(az), ring_height - centre[2]])
+        eye = centre + np.array(
+            [ring_radius * math.cos(az), ring_radius * math.sin(az), ring_height - centre[2]]
+        )
         c2w = look_at_c2w(eye, centre)
         c2ws.append(c2w)
         cams.append(CameraEntry(id=i, img_name=f"ring_{i:03d}", width=W, height=H, c2w=c2w,
@@ -593,11 +627,19 @@ def _build_into(folder: Path, final_path: Path, params: dict, num_ring_cameras: 
     with torch.no_grad():
         out = render(model, intr, w2c, torch.zeros(3), backend=backend)
     Image.fromarray(_to_uint8(out.color)).save(folder / "query.png")
-    write_json_atomic(folder / "query_gt.json", {
-        "name": "query", "width": W, "height": H, "fx": intr.fx, "fy": intr.fy,
-        "c2w": gt_c2w.tolist(),
-        "note": "ground-truth pose of query.png (OpenCV camera-to-world); used only to report errors",
-    })
+    write_json_atomic(
+        folder / "query_gt.json",
+        {
+            "name": "query",
+            "width": W,
+            "height": H,
+            "fx": intr.fx,
+            "fy": intr.fy,
+            "c2w": gt_c2w.tolist(),
+            "note": "ground-truth pose of query.png (OpenCV camera-to-world); used only to "
+            "report errors",
+        },
+    )
     write_text_atomic(folder / "init_c2w.txt",
                       "\n".join(" ".join(f"{v:.12g}" for v in row) for row in init_c2w) + "\n")
     write_json_atomic(folder / "demo.json", {

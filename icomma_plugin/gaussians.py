@@ -15,14 +15,17 @@ SH_C0 = 0.28209479177387814
 
 
 def num_sh_coeffs(degree: int) -> int:
+    """SH coefficients per colour channel at ``degree``: (degree + 1)^2."""
     return (degree + 1) ** 2
 
 
 def rgb_to_sh(rgb: torch.Tensor) -> torch.Tensor:
+    """The DC coefficient that renders as ``rgb`` (upstream RGB2SH)."""
     return (rgb - 0.5) / SH_C0
 
 
 def sh_to_rgb(sh: torch.Tensor) -> torch.Tensor:
+    """The colour of a DC coefficient (upstream SH2RGB)."""
     return sh * SH_C0 + 0.5
 
 
@@ -54,29 +57,39 @@ class GaussianModel:
         for name, shape in expected.items():
             t = getattr(self, name)
             if not isinstance(t, torch.Tensor):
-                raise ValueError(f"GaussianModel.{name} must be a torch.Tensor, got {type(t).__name__}")
+                raise ValueError(
+                    f"GaussianModel.{name} must be a torch.Tensor, got {type(t).__name__}"
+                )
             if tuple(t.shape) != shape:
-                raise ValueError(f"GaussianModel.{name} must have shape {list(shape)}, got {list(t.shape)}")
+                raise ValueError(
+                    f"GaussianModel.{name} must have shape {list(shape)}, got {list(t.shape)}"
+                )
 
     @property
     def num_gaussians(self) -> int:
+        """The number of Gaussians P."""
         return int(self.means.shape[0])
 
     @property
     def device(self) -> torch.device:
+        """The device of the tensors."""
         return self.means.device
 
     @property
     def dtype(self) -> torch.dtype:
+        """The dtype of the tensors."""
         return self.means.dtype
 
     def opacities(self) -> torch.Tensor:
+        """Opacities [P, 1] in (0, 1) (sigmoid of the logits)."""
         return torch.sigmoid(self.opacity_logit)
 
     def scales(self) -> torch.Tensor:
+        """Scales [P, 3] (exp of the log scales)."""
         return torch.exp(self.scale_log)
 
     def rotations(self) -> torch.Tensor:
+        """Unit quaternions [P, 4] (w, x, y, z)."""
         return torch.nn.functional.normalize(self.quat, dim=-1)
 
     def shs(self) -> torch.Tensor:
@@ -84,23 +97,35 @@ class GaussianModel:
         return torch.cat([self.sh_dc, self.sh_rest], dim=1)
 
     def tensors(self) -> dict:
+        """The tensor fields by name (every field but ``sh_degree``)."""
         return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "sh_degree"}
 
     def to(self, device=None, dtype: Optional[torch.dtype] = None) -> "GaussianModel":
+        """A copy with every tensor moved to ``device`` / cast to ``dtype``."""
         return GaussianModel(
             **{k: v.to(device=device, dtype=dtype) for k, v in self.tensors().items()},
             sh_degree=self.sh_degree,
         )
 
     def detach(self) -> "GaussianModel":
-        return GaussianModel(**{k: v.detach() for k, v in self.tensors().items()}, sh_degree=self.sh_degree)
+        """The same tensors, detached from autograd."""
+        return GaussianModel(
+            **{k: v.detach() for k, v in self.tensors().items()}, sh_degree=self.sh_degree
+        )
 
     def index(self, mask: torch.Tensor) -> "GaussianModel":
         """Subset by boolean mask or index tensor over the P Gaussians."""
-        return GaussianModel(**{k: v[mask] for k, v in self.tensors().items()}, sh_degree=self.sh_degree)
+        return GaussianModel(
+            **{k: v[mask] for k, v in self.tensors().items()}, sh_degree=self.sh_degree
+        )
 
     @staticmethod
     def concatenate(models: "list[GaussianModel]") -> "GaussianModel":
+        """One model with the Gaussians of all ``models``, at the highest SH degree among them.
+
+        Raises:
+            ValueError: an empty list.
+        """
         if not models:
             raise ValueError("models must be a non-empty list")
         degree = max(m.sh_degree for m in models)
@@ -123,6 +148,7 @@ class GaussianModel:
 
     @classmethod
     def empty(cls, sh_degree: int = 3, dtype=torch.float32, device=None) -> "GaussianModel":
+        """A model with no Gaussians."""
         K = num_sh_coeffs(sh_degree) - 1
         z = lambda *s: torch.zeros(*s, dtype=dtype, device=device)  # noqa: E731
         return cls(z(0, 3), z(0, 1, 3), z(0, K, 3), z(0, 1), z(0, 3), z(0, 4), sh_degree)

@@ -48,15 +48,22 @@ def as_pose(T, name: str) -> np.ndarray:
     """A rigid ``[4, 4]`` pose from numpy or torch as float64 numpy; ValueError naming ``name``."""
     problem = rigid_problem(T, atol=1e-3)
     if problem is not None:
-        raise ValueError(f"{name} must be a rigid 4x4 transform (orthonormal rotation, det +1, last "
-                         f"row 0 0 0 1): {problem}")
+        raise ValueError(
+            f"{name} must be a rigid 4x4 transform (orthonormal rotation, det +1, last "
+            f"row 0 0 0 1): {problem}"
+        )
     if isinstance(T, torch.Tensor):
         T = T.detach().cpu()
     return np.asarray(T, np.float64)
 
 
-def _verify_final(state: LocalizationState, w2c: np.ndarray, scale: float, converged: Optional[bool],
-                  cfg: VerdictConfig) -> Verdict:
+def _verify_final(
+    state: LocalizationState,
+    w2c: np.ndarray,
+    scale: float,
+    converged: Optional[bool],
+    cfg: VerdictConfig,
+) -> Verdict:
     """Verdict of a pose found by the paper's method (a render-and-match at it)."""
     if state.matcher is None or getattr(state.matcher, "name", None) == "none":
         return decide(None, cfg, converged)
@@ -104,8 +111,9 @@ def localize(
         progress: called with each trace record as it is made.
         query_valid: optional ``[1, H, W]`` mask of the query's real image content (0 where
             undistortion filled pixels from outside the photo).
-        cameras_c2w, camera_names: the model's cameras (candidate views of the default method); a
-            benchmark must leave out the camera of the query itself.
+        cameras_c2w: the model's cameras, ``[4, 4]`` c2w (the candidate views of the default
+            method); a benchmark must leave out the camera of the query itself.
+        camera_names: their names (for reports); None numbers them.
         candidate_set: a prebuilt ``localization.candidates.CandidateSet`` (batches reuse one).
         verdict: thresholds of the verdict for the paper's method (the default method has its own
             in ``RobustConfig.verdict``).
@@ -122,7 +130,9 @@ def localize(
     if isinstance(cfg, RobustConfig) and cfg.work_side is None and model_side is not None:
         cfg = dataclasses.replace(cfg, work_side=int(model_side))
     if not isinstance(cfg, (LocalizerConfig, RobustConfig)):
-        raise ValueError(f"config must be a RobustConfig or a LocalizerConfig, got {type(cfg).__name__}")
+        raise ValueError(
+            f"config must be a RobustConfig or a LocalizerConfig, got {type(cfg).__name__}"
+        )
     if isinstance(cfg, LocalizerConfig):
         cfg.validate()
     if not isinstance(model, GaussianModel):
@@ -136,25 +146,47 @@ def localize(
     if paper and w2c0 is None:
         raise ValueError("init_w2c is required by the paper's method (LocalizerConfig); without a "
                          "start pose use the default method (RobustConfig)")
-    state = LocalizationState(model, query, bg, backend=backend, matcher=matcher, sh_degree=cfg.sh_degree,
-                              antialiasing=cfg.antialiasing, gt_c2w=gt_c2w, progress=progress,
-                              record_trace=cfg.record_trace)
+    state = LocalizationState(
+        model,
+        query,
+        bg,
+        backend=backend,
+        matcher=matcher,
+        sh_degree=cfg.sh_degree,
+        antialiasing=cfg.antialiasing,
+        gt_c2w=gt_c2w,
+        progress=progress,
+        record_trace=cfg.record_trace,
+    )
     init_rot, init_trans = (None, None) if w2c0 is None else state.errors(w2c0)
     if paper:
         out = run_icomma(state, w2c0, cfg)
         final_w2c = out.w2c
         ver = _verify_final(state, final_w2c, cfg.image_scale, out.stop_reason == "converged",
                             verdict or VerdictConfig())
-        fields = dict(iterations=out.iterations, stop_reason=out.stop_reason,
-                      switch_iteration=out.switch_iteration, match_counts=out.match_counts,
-                      gradient_mode=cfg.gradient_mode, final_loss=out.final_loss, scene_depth=out.scene_depth,
-                      method="icomma" if cfg.use_matching else "compare_only", hypotheses=[])
-        used_matcher = cfg.use_matching and matcher is not None and getattr(matcher, "name", None) != "none"
+        fields = dict(
+            iterations=out.iterations,
+            stop_reason=out.stop_reason,
+            switch_iteration=out.switch_iteration,
+            match_counts=out.match_counts,
+            gradient_mode=cfg.gradient_mode,
+            final_loss=out.final_loss,
+            scene_depth=out.scene_depth,
+            method="icomma" if cfg.use_matching else "compare_only",
+            hypotheses=[],
+        )
+        used_matcher = (
+            cfg.use_matching and matcher is not None and getattr(matcher, "name", None) != "none"
+        )
     else:
         out = localize_robust(state, w2c0, cfg, cameras_c2w, camera_names, candidate_set)
         final_w2c = out.w2c
         ver = out.verdict
-        stop = "rolled_back" if out.rolled_back else ("converged" if out.converged else "max_iterations")
+        stop = (
+            "rolled_back"
+            if out.rolled_back
+            else ("converged" if out.converged else "max_iterations")
+        )
         fields = dict(iterations=state.steps, stop_reason=stop, switch_iteration=None,
                       match_counts={"inliers": None if out.score is None else out.score.inliers,
                                     "matches": None if out.score is None else out.score.matches},

@@ -1,6 +1,8 @@
-"""Pictures of a localisation run: overlays, match lines, convergence plots, an optimisation GIF
-or MP4; of a batch: thumbnails and a contact sheet coloured by verdict; of a sequence: the
-trajectory over the scene's cameras; of a benchmark: the success curves beside the paper's numbers.
+"""Pictures of localisation runs, batches, sequences and benchmarks.
+
+A run: overlays, match lines, convergence plots, an optimisation GIF or MP4; a batch: thumbnails
+and a contact sheet coloured by verdict; a sequence: the trajectory over the scene's cameras; a
+benchmark: the success curves beside the paper's numbers.
 
 Images are ``[3, H, W]`` float tensors in [0, 1] (or ``[H, W, 3]`` uint8/float numpy arrays).
 Every file is written atomically (``io.atomic.atomic_path``). matplotlib runs on the Agg backend
@@ -47,8 +49,10 @@ VERDICT_COLOURS = {"ok": (40, 170, 60), "uncertain": (235, 150, 20), "failed": (
 
 
 def to_uint8(img: ImageLike) -> np.ndarray:
-    """``[3, H, W]`` tensor / ``[H, W, 3]`` array (float in [0, 1] or uint8) -> ``[H, W, 3]``
-    uint8."""
+    """An image as ``[H, W, 3]`` uint8.
+
+    From a ``[3, H, W]`` tensor or an ``[H, W, 3]`` array, float in [0, 1] or uint8.
+    """
     if isinstance(img, torch.Tensor):
         t = img.detach().cpu()
         if t.ndim != 3 or t.shape[0] not in (1, 3):
@@ -99,8 +103,10 @@ def match_lines_image(
     max_lines: int = 150,
     scale: float = 2.0,
 ) -> np.ndarray:
-    """render | query side by side with a line per match (colour = confidence, viridis);
-    ``[H', W', 3]`` uint8. Keypoints are (x, y) pixels (centres at integers)."""
+    """render | query side by side with a line per match (colour = confidence, viridis).
+
+    Returns ``[H', W', 3]`` uint8. Keypoints are (x, y) pixels (centres at integers).
+    """
     import cv2
 
     r, q = to_uint8(render), to_uint8(query)
@@ -228,8 +234,10 @@ def plot_convergence(
     rot_target_deg: Optional[float] = None,
     trans_target: Optional[float] = None,
 ) -> Path:
-    """Rotation / translation error, losses and lr against the iteration (log scales); the
-    stage switch is marked by a dashed vertical line. Written to ``path`` (PNG)."""
+    """Rotation / translation error, losses and lr against the iteration (log scales).
+
+    The stage switch is marked by a dashed vertical line. Written to ``path`` (PNG).
+    """
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -321,7 +329,10 @@ def save_gif(path: PathLike, frames: List[ImageLike], fps: float = 8.0) -> Path:
 
 def save_video(path: PathLike, frames: List[ImageLike], fps: float = 8.0) -> Path:
     """MP4 of ``frames`` (``io.video.write_video``); a GIF beside it when no MP4 encoder works.
-    Returns the path written."""
+
+    Returns:
+        The path written.
+    """
     from .io.video import write_video
 
     return write_video(path, frames, fps=fps)
@@ -335,8 +346,10 @@ def save_video(path: PathLike, frames: List[ImageLike], fps: float = 8.0) -> Pat
 def save_thumbnail(
     path: PathLike, model, query, c2w, bg, side: int = 192, backend: str = "auto"
 ) -> Path:
-    """Half-and-half blend of the render at ``c2w`` over the photo of ``query`` (a localization
-    ``Query``), the longer side ``side`` px; written to ``path``."""
+    """Half-and-half blend of the render at ``c2w`` over the photo of ``query``.
+
+    ``query`` is a localization ``Query``; the longer side is ``side`` px; written to ``path``.
+    """
     from .localization.state import resize_image
     from .render import render
 
@@ -380,10 +393,12 @@ def contact_sheet(
     border: int = 5,
     max_photos: int = 400,
 ) -> Path:
-    """One picture of a batch: each photo's thumbnail (``row["thumb"]``, relative to
-    ``base_dir``) framed in its verdict's colour (:data:`VERDICT_COLOURS`), with its name and,
-    when the truth is known, its errors. Photos without a thumbnail get a grey cell. Rows after
-    ``max_photos`` are left out (the sheet says so)."""
+    """One picture of a batch: each photo's thumbnail framed in its verdict's colour.
+
+    Thumbnails are ``row["thumb"]``, relative to ``base_dir``; colours :data:`VERDICT_COLOURS`;
+    each cell has the photo's name and, when the truth is known, its errors. Photos without a
+    thumbnail get a grey cell. Rows after ``max_photos`` are left out (the sheet says so).
+    """
     from PIL import Image
 
     if not rows:
@@ -446,9 +461,11 @@ def plot_trajectory(
     statuses: Optional[Sequence[str]] = None,
     title: Optional[str] = None,
 ) -> Path:
-    """The estimated camera path (coloured by verdict) over the scene's cameras (grey, with their
-    viewing directions), in 3D and seen from above (the plane of the two widest axes); the true
-    path dashed when known. Written to ``path`` (PNG)."""
+    """The estimated camera path (coloured by verdict) over the scene's cameras.
+
+    The cameras are grey, with their viewing directions; shown in 3D and seen from above (the
+    plane of the two widest axes); the true path dashed when known. Written to ``path`` (PNG).
+    """
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -523,8 +540,10 @@ def plot_trajectory(
 
 
 def _paper_number(paper, interval: str, method: str, metric: str):
-    """The paper's value from a mapping keyed (interval, method, metric) (or with the protocol
-    in front), a value that is a number, None or has ``.value``."""
+    """The paper's value from a mapping keyed (interval, method, metric).
+
+    The key may also have the protocol in front; the value is a number, None or has ``.value``.
+    """
     if paper is None:
         return None
     if callable(paper):
