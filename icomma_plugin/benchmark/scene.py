@@ -168,15 +168,22 @@ def load_model_folder_scene(
     root = Path(str(dataset)).expanduser()
     if not root.is_dir():
         raise FileNotFoundError(f"dataset folder not found: {root} (set scene.query.dataset or ICOMMA_SHARED_DATA)")
+    if split not in ("train", "test", "val"):
+        raise ValueError(f"split must be train, test or val (Blender datasets), got {split!r}")
+    kw = {"white_background": white}
+    if split == "val":  # NeRF-synthetic's third split: read it as the test split
+        kw["test_split"] = "val"
     try:
-        sd = read_dataset(root, white_background=white)
+        sd = read_dataset(root, **kw)
     except ValueError as e:
         if "does not take" not in str(e):
             raise
+        if split == "val":
+            raise ValueError(f"split 'val' exists only for Blender / NeRF-synthetic datasets; {root} is "
+                             "another kind") from None
         sd = read_dataset(root)
-    if split not in ("train", "test"):
-        raise ValueError(f"split must be train or test, got {split!r}")
-    views = getattr(sd, split)
+    split_of_views = "test" if split == "val" else split
+    views = getattr(sd, split_of_views)
     if not views:
         raise ValueError(f"the {split!r} split of {root} is empty")
     idx = select_indices(len(views), num_queries, query_indices)
@@ -198,8 +205,14 @@ def load_model_folder_scene(
     split_c2ws = [np.asarray(v.c2w, np.float64) for v in views]
     cams = [np.asarray(e.c2w, np.float64) for e in (mf.cameras or [])]
     if not cams:
-        cams = [np.asarray(v.c2w, np.float64) for v in (sd.train if split == "test" else sd.test)]
+        cams = [np.asarray(v.c2w, np.float64) for v in (sd.train if split_of_views == "test" else sd.test)]
     cams = [c for c in cams if not any(np.allclose(c, t, atol=1e-5) for t in split_c2ws)]
+    if split_of_views != "train" and sd.train:
+        # Keep the cameras the model was fitted from (upstream's cameras.json lists the other
+        # held-out views too, e.g. lego's 200 test cameras when the queries are its val views).
+        train_c2ws = [np.asarray(v.c2w, np.float64) for v in sd.train]
+        fitted = [c for c in cams if any(np.allclose(c, t, atol=1e-5) for t in train_c2ws)]
+        cams = fitted or cams
     centre, _, _ = scene_frame(mf.model, cams)
     return BenchScene(
         model=mf.model, queries=queries, bg=bg, translation_scale=_scale_of(translation_unit, radius),
