@@ -13,8 +13,20 @@ queries + translation scale), ``protocols`` (protocol specs and methods), ``runn
 ``paper`` (the paper's numbers with their sources). Tool: ``tools/benchmark.py``; docs:
 docs/BENCHMARK.md.
 """
-from .baselines import essential_matrix_baseline, estimate_relative_pose, relative_pose_gt, rotation_angle_deg
-from .metrics import failure_stats, pad_curves, pose_auc, success_curve, success_mask, time_to_success
+from .baselines import (
+    essential_matrix_baseline,
+    estimate_relative_pose,
+    relative_pose_gt,
+    rotation_angle_deg,
+)
+from .metrics import (
+    failure_stats,
+    pad_curves,
+    pose_auc,
+    success_curve,
+    success_mask,
+    time_to_success,
+)
 from .paper import NOT_FOUND, PAPER_NUMBERS, PaperValue, paper_value
 from .protocols import KINDS, METHODS, Interval, ProtocolSpec, method_config
 from .report import markdown, save_plots, summarize, table_rows
@@ -24,10 +36,38 @@ from .sampling import InitialPose, pose_seed, sample_initial_pose
 from .scene import BenchScene, Query, load_model_folder_scene, synthetic_scene
 
 __all__ = [
-    "BenchScene", "InitialPose", "Interval", "KINDS", "METHODS", "NOT_FOUND", "PAPER_NUMBERS", "PaperValue",
-    "ProtocolSpec", "Query", "ResultsWriter", "essential_matrix_baseline", "estimate_relative_pose",
-    "failure_stats", "load_done", "load_model_folder_scene", "markdown", "method_config", "pad_curves",
-    "paper_value", "pose_auc", "pose_seed", "record_key", "relative_pose_gt", "rotation_angle_deg",
-    "run_protocol", "sample_initial_pose", "save_plots", "success_curve", "success_mask", "summarize",
-    "synthetic_scene", "table_rows", "time_to_success",
+    "BenchScene",
+    "InitialPose",
+    "Interval",
+    "KINDS",
+    "METHODS",
+    "NOT_FOUND",
+    "PAPER_NUMBERS",
+    "PaperValue",
+    "ProtocolSpec",
+    "Query",
+    "ResultsWriter",
+    "essential_matrix_baseline",
+    "estimate_relative_pose",
+    "failure_stats",
+    "load_done",
+    "load_model_folder_scene",
+    "markdown",
+    "method_config",
+    "pad_curves",
+    "paper_value",
+    "pose_auc",
+    "pose_seed",
+    "record_key",
+    "relative_pose_gt",
+    "rotation_angle_deg",
+    "run_protocol",
+    "sample_initial_pose",
+    "save_plots",
+    "success_curve",
+    "success_mask",
+    "summarize",
+    "synthetic_scene",
+    "table_rows",
+    "time_to_success",
 ]

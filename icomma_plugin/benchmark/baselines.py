@@ -1,5 +1,7 @@
-"""Matching-only baseline: matcher + essential matrix (RANSAC) between the image rendered at the
-initial pose and the query, as the paper's LightGlue / LoFTR rows of the relative-pose table.
+"""Matching-only baseline: matcher + essential matrix (RANSAC).
+
+Between the image rendered at the initial pose and the query, as the paper's LightGlue / LoFTR
+rows of the relative-pose table.
 
 Relative pose convention: for cameras A (the render at the initial pose) and B (the query) with
 world-to-camera ``w2c_a``, ``w2c_b``, the relative pose maps A-camera coordinates to B-camera
@@ -33,6 +35,8 @@ __all__ = ["RelativePose", "relative_pose_gt", "rotation_angle_deg", "translatio
 
 @dataclass(frozen=True)
 class RelativePose:
+    """An estimated relative pose A -> B (module docstring) and its match counts."""
+
     R: np.ndarray  # [3, 3]
     t: np.ndarray  # [3] unit vector
     num_matches: int
@@ -85,8 +89,10 @@ def estimate_relative_pose(kpts_a, kpts_b, K_a, K_b, thresh_px: float = 1.0, con
     """Essential matrix with RANSAC + cheirality check (cv2). None with < 5 matches or no model.
 
     Args:
-        kpts_a, kpts_b: [N, 2] matched pixels in images A and B.
-        K_a, K_b: 3x3 calibrations.
+        kpts_a: [N, 2] matched pixels in image A.
+        kpts_b: [N, 2] the matching pixels in image B.
+        K_a: 3x3 calibration of camera A.
+        K_b: 3x3 calibration of camera B.
         thresh_px: RANSAC threshold in pixels (divided by the mean focal length of both cameras).
         conf: RANSAC confidence.
         seed: seeds OpenCV's RNG (``cv2.setRNGSeed``) for a reproducible RANSAC; None leaves it.
@@ -95,7 +101,9 @@ def estimate_relative_pose(kpts_a, kpts_b, K_a, K_b, thresh_px: float = 1.0, con
 
     pa, pb = _pts(kpts_a, "kpts_a"), _pts(kpts_b, "kpts_b")
     if pa.shape[0] != pb.shape[0]:
-        raise ValueError(f"kpts_a and kpts_b must have the same length, got {pa.shape[0]} and {pb.shape[0]}")
+        raise ValueError(
+            f"kpts_a and kpts_b must have the same length, got {pa.shape[0]} and {pb.shape[0]}"
+        )
     if not (isinstance(thresh_px, (int, float)) and thresh_px > 0):
         raise ValueError(f"thresh_px must be a positive number, got {thresh_px!r}")
     n = int(pa.shape[0])
@@ -126,8 +134,12 @@ def essential_matrix_baseline(
     bg: Optional[torch.Tensor] = None, backend: str = "auto", thresh_px: float = 1.0,
     conf: float = 0.99999, seed: Optional[int] = 0,
 ) -> Dict[str, Any]:
-    """Render at ``init_c2w``, match render <-> query, estimate the relative pose; errors against
-    the ground truth. Returns a JSON-ready dict (``rel_rot_err_deg`` is None when it failed)."""
+    """Render at ``init_c2w``, match render <-> query, estimate the relative pose.
+
+    Returns:
+        A JSON-ready dict with the errors against the ground truth (``rel_rot_err_deg`` is None
+        when the estimate failed).
+    """
     from ..render import render
 
     t0 = time.perf_counter()

@@ -1,11 +1,11 @@
-"""Benchmark metrics: success fractions (per iteration), pose AUC, failure statistics, time to
-success.
+"""Benchmark metrics: success fractions (per iteration), pose AUC, failures, time to success.
 
 Conventions: rotation errors in degrees (the angle of ``R_est R_gt^T``, iComMa's metric, computed
-well-conditioned by ``pose.convert.rotation_error_deg``),
-translation errors as camera-centre distances in the benchmark's translation unit (world distance /
-translation scale; the scale is 1 in world units; see docs/BENCHMARK.md). Success is strict: ``rot < rot_thr and trans < trans_thr``. A
-missing value (None / NaN, e.g. a failed baseline) counts as a failure and as an infinite error.
+well-conditioned by ``pose.convert.rotation_error_deg``), translation errors as camera-centre
+distances in the benchmark's translation unit (world distance / translation scale; the scale is 1
+in world units; see docs/BENCHMARK.md). Success is strict: ``rot < rot_thr and trans <
+trans_thr``. A missing value (None / NaN, e.g. a failed baseline) counts as a failure and as an
+infinite error.
 """
 from __future__ import annotations
 
@@ -32,14 +32,18 @@ def success_mask(rot, trans, rot_thr: float, trans_thr: Optional[float]) -> np.n
     if trans_thr is not None:
         t = as_errors(np.ravel(trans))
         if t.shape != r.shape:
-            raise ValueError(f"rot and trans must have the same length, got {r.shape} and {t.shape}")
+            raise ValueError(
+                f"rot and trans must have the same length, got {r.shape} and {t.shape}"
+            )
         ok &= t < float(trans_thr)
     return ok
 
 
 def pad_curves(curves: Sequence[Sequence[float]], length: Optional[int] = None) -> np.ndarray:
-    """Stack per-run curves ``[N][T_i]`` into ``[N, length]``, carrying each run's last value
-    forward (a run that stopped early keeps its final pose). ``length`` defaults to the longest."""
+    """Stack per-run curves ``[N][T_i]`` into ``[N, length]``, each run's last value carried on.
+
+    A run that stopped early keeps its final pose. ``length`` defaults to the longest.
+    """
     if len(curves) == 0:
         return np.zeros((0, length or 0))
     L = max(len(c) for c in curves) if length is None else int(length)
@@ -60,7 +64,10 @@ def success_curve(rot_curves, trans_curves, rot_thr: float, trans_thr: Optional[
     """Fraction of runs whose pose meets (rot_thr, trans_thr) after each iteration.
 
     ``rot_curves[i][k]`` is run i's rotation error after k iterations (k = 0 is the initial pose).
-    Returns ``[length]`` (0 rows -> zeros)."""
+
+    Returns:
+        ``[length]`` (0 rows -> zeros).
+    """
     R = pad_curves(rot_curves, length)
     if R.shape[0] == 0:
         return np.zeros(R.shape[1])
@@ -72,10 +79,11 @@ def success_curve(rot_curves, trans_curves, rot_thr: float, trans_thr: Optional[
 
 
 def pose_auc(errors, thresholds: Sequence[float]) -> List[float]:
-    """Area under the recall-vs-error curve up to each threshold, divided by the threshold
-    (SuperGlue / LoFTR ``pose_auc``; the relative-pose AUC@5/10/20 of image matching papers).
+    """Area under the recall-vs-error curve up to each threshold, divided by the threshold.
 
-    A perfect method scores 1; None / NaN / inf errors count as failures (never recalled)."""
+    SuperGlue / LoFTR ``pose_auc``; the relative-pose AUC@5/10/20 of image matching papers.
+    A perfect method scores 1; None / NaN / inf errors count as failures (never recalled).
+    """
     e = np.sort(as_errors(errors))
     n = len(e)
     out = []
@@ -96,11 +104,14 @@ def pose_auc(errors, thresholds: Sequence[float]) -> List[float]:
 
 
 def mean_or_none(values) -> Optional[float]:
+    """Mean of the finite values (None values skipped); None when there are none."""
     a = np.asarray([v for v in values if v is not None and math.isfinite(float(v))], np.float64)
     return float(a.mean()) if a.size else None
 
 
-def failure_stats(rot, trans, rot_thr: float, trans_thr: Optional[float]) -> Dict[str, Optional[float]]:
+def failure_stats(
+    rot, trans, rot_thr: float, trans_thr: Optional[float]
+) -> Dict[str, Optional[float]]:
     """Failure rate and the mean errors of the successes (the paper's ablation columns)."""
     r, t = as_errors(np.ravel(rot)), as_errors(np.ravel(trans))
     ok = success_mask(r, t, rot_thr, trans_thr)
@@ -123,7 +134,8 @@ def time_to_success(rot_curve, trans_curve, cum_seconds, rot_thr: float,
     """Seconds until the pose first meets the thresholds (None if it never does).
 
     ``rot_curve[k]`` / ``trans_curve[k]`` are the errors after k iterations and ``cum_seconds[k]``
-    the time spent to get there (``cum_seconds[0] = 0``)."""
+    the time spent to get there (``cum_seconds[0] = 0``).
+    """
     ok = success_mask(rot_curve, trans_curve, rot_thr, trans_thr)
     idx = np.flatnonzero(ok)
     if idx.size == 0:

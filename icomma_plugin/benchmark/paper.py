@@ -39,12 +39,15 @@ class PaperValue:
 
     @property
     def found(self) -> bool:
+        """Whether the paper gives this number."""
         return self.value is not None
 
     def text(self, fmt: str = ".3g") -> str:
+        """The number formatted with ``fmt``, or `NOT_FOUND`."""
         return NOT_FOUND if self.value is None else format(self.value, fmt)
 
     def to_json(self) -> dict:
+        """The fields as a dict."""
         return asdict(self)
 
 
@@ -52,7 +55,9 @@ Key = Tuple[str, str, str, str, str]  # (dataset, protocol, interval, method, me
 PAPER_NUMBERS: Dict[Key, PaperValue] = {}
 
 
-def _put(dataset: str, protocol: str, interval: str, method: str, metric: str, value: float, source: str):
+def _put(
+    dataset: str, protocol: str, interval: str, method: str, metric: str, value: float, source: str
+):
     PAPER_NUMBERS[(dataset, protocol, interval, method, metric)] = PaperValue(float(value), source)
 
 
@@ -72,18 +77,32 @@ for _iv, _rows in {
 # Baselines: matcher + RANSAC essential matrix (ours: essential_lightglue covers xfeat+LighterGlue
 # and ALIKED/DISK+LightGlue, essential_loftr LoFTR).
 _AUC = {
-    "synthetic": ("Table 2 (relative pose, synthetic)", {
-        "matchformer": ((39.65, 55.92, 70.94), (21.09, 33.16, 44.56), (6.08, 12.48, 19.44)),
-        "essential_lightglue": ((61.76, 76.93, 86.55), (42.24, 58.71, 70.56), (17.65, 27.58, 36.82)),
-        "essential_loftr": ((59.27, 75.34, 85.56), (31.85, 45.98, 58.41), (8.07, 13.93, 19.77)),
-        "icomma": ((90.95, 94.02, 96.71), (74.65, 78.40, 82.97), (37.93, 39.87, 43.98)),
-    }),
-    "360": ("Table 3 (relative pose, 360-degree scenes)", {
-        "matchformer": ((13.11, 34.86, 60.61), (0.39, 4.93, 28.06), (0.10, 0.80, 7.78)),
-        "essential_lightglue": ((13.77, 37.92, 64.25), (0.65, 5.48, 31.51), (0.23, 1.40, 10.32)),
-        "essential_loftr": ((13.64, 35.55, 61.82), (0.42, 4.67, 30.03), (0.14, 1.17, 10.04)),
-        "icomma": ((84.41, 86.39, 88.87), (73.27, 75.12, 78.30), (61.75, 63.50, 65.68)),
-    }),
+    "synthetic": (
+        "Table 2 (relative pose, synthetic)",
+        {
+            "matchformer": ((39.65, 55.92, 70.94), (21.09, 33.16, 44.56), (6.08, 12.48, 19.44)),
+            "essential_lightglue": (
+                (61.76, 76.93, 86.55),
+                (42.24, 58.71, 70.56),
+                (17.65, 27.58, 36.82),
+            ),
+            "essential_loftr": ((59.27, 75.34, 85.56), (31.85, 45.98, 58.41), (8.07, 13.93, 19.77)),
+            "icomma": ((90.95, 94.02, 96.71), (74.65, 78.40, 82.97), (37.93, 39.87, 43.98)),
+        },
+    ),
+    "360": (
+        "Table 3 (relative pose, 360-degree scenes)",
+        {
+            "matchformer": ((13.11, 34.86, 60.61), (0.39, 4.93, 28.06), (0.10, 0.80, 7.78)),
+            "essential_lightglue": (
+                (13.77, 37.92, 64.25),
+                (0.65, 5.48, 31.51),
+                (0.23, 1.40, 10.32),
+            ),
+            "essential_loftr": ((13.64, 35.55, 61.82), (0.42, 4.67, 30.03), (0.14, 1.17, 10.04)),
+            "icomma": ((84.41, 86.39, 88.87), (73.27, 75.12, 78.30), (61.75, 63.50, 65.68)),
+        },
+    ),
 }
 for _ds, (_src, _rows) in _AUC.items():
     for _m, _bins in _rows.items():
@@ -108,8 +127,14 @@ for _ds, _rows in {
         _put(_ds, "ablation", "r30-50", _m, "mean_trans", _t, _T4[_ds])
 
 #: The paper's method constants (Sec. 3.4), checked against conf/optimizer/icomma.yaml by a test.
-METHOD_CONSTANTS = {"lambda_match": 0.8, "switch_threshold": 1e-3, "lr": 0.05, "betas": (0.9, 0.999),
-                    "lr_decay_base": 0.6, "lr_decay_steps": 50}
+METHOD_CONSTANTS = {
+    "lambda_match": 0.8,
+    "switch_threshold": 1e-3,
+    "lr": 0.05,
+    "betas": (0.9, 0.999),
+    "lr_decay_base": 0.6,
+    "lr_decay_steps": 50,
+}
 
 
 def paper_value(protocol: str, interval: str, method: str, metric: str,
@@ -120,13 +145,18 @@ def paper_value(protocol: str, interval: str, method: str, metric: str,
     v = PAPER_NUMBERS.get((dataset, protocol, interval, method, metric))
     if v is not None:
         return v
-    return PaperValue(None, f"no cell for {protocol}/{interval}/{method}/{metric} ({dataset})", NOT_FOUND)
+    return PaperValue(
+        None, f"no cell for {protocol}/{interval}/{method}/{metric} ({dataset})", NOT_FOUND
+    )
 
 
 def paper_rows(protocol: str, dataset: str = "synthetic") -> List[dict]:
     """All cells of one protocol (JSON-ready), for results.json."""
-    return [{"interval": iv, "method": m, "metric": k, **v.to_json()}
-            for (ds, p, iv, m, k), v in sorted(PAPER_NUMBERS.items()) if p == protocol and ds == dataset]
+    return [
+        {"interval": iv, "method": m, "metric": k, **v.to_json()}
+        for (ds, p, iv, m, k), v in sorted(PAPER_NUMBERS.items())
+        if p == protocol and ds == dataset
+    ]
 
 
 def paper_summary() -> dict:

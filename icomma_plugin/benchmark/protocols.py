@@ -1,5 +1,6 @@
-"""Benchmark protocols (what is sampled, which methods run, which metrics are reported) and the
-methods compared.
+"""Benchmark protocols and the methods compared.
+
+A protocol says what is sampled, which methods run and which metrics are reported.
 
 Protocol kinds (conf/benchmark_protocol/*.yaml):
 
@@ -35,13 +36,15 @@ KINDS = ("curves", "time", "relative_pose", "ablation")
 
 #: method name -> what it is (the paper's naming in brackets)
 METHODS: Dict[str, str] = {
-    "robust": "the default localizer: geometric stage (render, match, lift, PnP), candidate views when the "
-              "start is unusable or absent, photometric refinement with roll-back, verdict",
-    "icomma": "full iComMa: matching + comparing, then comparing alone (the optimizer config as given)",
+    "robust": "the default localizer: geometric stage (render, match, lift, PnP), candidate "
+    "views when the start is unusable or absent, photometric refinement with roll-back, verdict",
+    "icomma": "full iComMa: matching + comparing, then comparing alone (the optimizer config as "
+    "given)",
     "compare_only": "w/o matching: photometric comparing loss only (use_matching=false)",
-    "match_only": "w/o comparing: matching loss only (lambda_match=1, never switches: switch_threshold=0)",
-    "essential": "matching only: matcher + essential matrix (RANSAC) between the image rendered at the "
-                 "initial pose and the query (the paper's LightGlue / LoFTR + E rows)",
+    "match_only": "w/o comparing: matching loss only (lambda_match=1, never switches: "
+    "switch_threshold=0)",
+    "essential": "matching only: matcher + essential matrix (RANSAC) between the image rendered "
+    "at the initial pose and the query (the paper's LightGlue / LoFTR + E rows)",
 }
 
 
@@ -50,15 +53,21 @@ NEEDS_START = ("icomma", "compare_only", "match_only", "essential")
 
 
 def is_localizer_method(name: str) -> bool:
+    """Whether ``name`` runs the localizer (not the essential-matrix baseline)."""
     return name in ("robust", "icomma", "compare_only", "match_only")
 
 
 def method_config(name: str, base: LocalizerConfig, max_iterations: Optional[int] = None,
                   robust: Optional[RobustConfig] = None):
-    """The config of a localizer method: ``robust`` (the default method's config) for
-    ``robust``, else a LocalizerConfig derived from ``base`` (the paper's optimizer group)."""
+    """The config of a localizer method.
+
+    ``robust`` (the default method's config) for ``robust``, else a LocalizerConfig derived from
+    ``base`` (the paper's optimizer group).
+    """
     if not is_localizer_method(name):
-        raise ValueError(f"method must be one of robust, icomma, compare_only, match_only, got {name!r}")
+        raise ValueError(
+            f"method must be one of robust, icomma, compare_only, match_only, got {name!r}"
+        )
     if name == "robust":
         return robust if robust is not None else RobustConfig()
     d = base.to_dict()
@@ -88,8 +97,10 @@ def _pair(v, name: str) -> Tuple[float, float]:
 
 @dataclass(frozen=True)
 class Interval:
-    """One row of a protocol: rotation and translation ranges of the start pose, or no start
-    (``no_start``)."""
+    """One row of a protocol.
+
+    The rotation and translation ranges of the start pose, or no start (``no_start``).
+    """
 
     label: str
     rot_deg: Tuple[float, float]
@@ -97,6 +108,7 @@ class Interval:
     no_start: bool = False
 
     def to_json(self) -> dict:
+        """The interval as in the protocol's YAML (``init: none`` for no start)."""
         d = {"label": self.label, "rot_deg": list(self.rot_deg), "trans": list(self.trans)}
         if self.no_start:
             d["init"] = "none"
@@ -133,50 +145,78 @@ class ProtocolSpec:
             raise ValueError("benchmark_protocol.intervals must not be empty")
         unknown = [m for m in self.methods if m not in METHODS]
         if unknown or not self.methods:
-            raise ValueError(f"benchmark_protocol.methods must be a non-empty list of {sorted(METHODS)}, "
-                             f"got {self.methods!r}")
+            raise ValueError(
+                f"benchmark_protocol.methods must be a non-empty list of {sorted(METHODS)}, "
+                f"got {self.methods!r}"
+            )
         for name in ("num_queries", "poses_per_query", "max_iterations"):
             v = getattr(self, name)
             if not (isinstance(v, int) and not isinstance(v, bool)) or v < 1:
                 raise ValueError(f"benchmark_protocol.{name} must be a positive int, got {v!r}")
         if self.translation_mode not in TRANSLATION_MODES:
-            raise ValueError(f"benchmark_protocol.translation_mode must be one of {TRANSLATION_MODES}, "
-                             f"got {self.translation_mode!r}")
+            raise ValueError(
+                f"benchmark_protocol.translation_mode must be one of {TRANSLATION_MODES}, "
+                f"got {self.translation_mode!r}"
+            )
         if self.pivot not in PIVOTS:
-            raise ValueError(f"benchmark_protocol.pivot must be one of {PIVOTS}, got {self.pivot!r}")
+            raise ValueError(
+                f"benchmark_protocol.pivot must be one of {PIVOTS}, got {self.pivot!r}"
+            )
         labels = [iv.label for iv in self.intervals]
         if len(set(labels)) != len(labels):
             raise ValueError(f"benchmark_protocol.intervals labels must be unique, got {labels}")
         for m, k in self.method_poses_per_query.items():
             if m not in self.methods or not isinstance(k, int) or isinstance(k, bool) or k < 1:
-                raise ValueError("benchmark_protocol.method_poses_per_query must map methods of the protocol "
-                                 f"to positive ints, got {self.method_poses_per_query!r}")
+                raise ValueError(
+                    "benchmark_protocol.method_poses_per_query must map methods of the protocol "
+                    f"to positive ints, got {self.method_poses_per_query!r}"
+                )
         if self.paper_dataset not in ("synthetic", "360"):
-            raise ValueError(f"benchmark_protocol.paper_dataset must be synthetic or 360, got {self.paper_dataset!r}")
+            raise ValueError(
+                "benchmark_protocol.paper_dataset must be synthetic or 360, got "
+                f"{self.paper_dataset!r}"
+            )
 
     def poses_for(self, method: str) -> int:
-        """How many start poses per query ``method`` runs (the first ones: a method given fewer
-        runs a subset of the others' starts)."""
-        return min(self.poses_per_query, self.method_poses_per_query.get(method, self.poses_per_query))
+        """How many start poses per query ``method`` runs.
+
+        The first ones: a method given fewer runs a subset of the others' starts.
+        """
+        return min(
+            self.poses_per_query, self.method_poses_per_query.get(method, self.poses_per_query)
+        )
 
     def runs(self, method: str, interval: "Interval") -> int:
-        """Planned runs of ``method`` in ``interval`` (a no-start interval runs each of
-        ``num_queries * poses_per_query`` distinct views once)."""
+        """Planned runs of ``method`` in ``interval``.
+
+        A no-start interval runs each of ``num_queries * poses_per_query`` distinct views once.
+        """
         if interval.no_start:
             return 0 if method in NEEDS_START else self.num_queries * self.poses_per_query
         return self.num_queries * self.poses_for(method)
 
     @classmethod
     def from_dict(cls, d: Dict[str, Any], quick: bool = False) -> "ProtocolSpec":
-        """From a plain mapping (the Hydra group as a container). With ``quick``, the mapping's
-        ``quick`` block overrides the sizes (num_queries, poses_per_query, max_iterations, ...)."""
+        """From a plain mapping (the Hydra group as a container).
+
+        With ``quick``, the mapping's ``quick`` block overrides the sizes (num_queries,
+        poses_per_query, max_iterations, ...).
+        """
         d = dict(d)
         q = d.pop("quick", None) or {}
         if quick:
-            allowed = {"num_queries", "poses_per_query", "max_iterations", "intervals", "method_poses_per_query"}
+            allowed = {
+                "num_queries",
+                "poses_per_query",
+                "max_iterations",
+                "intervals",
+                "method_poses_per_query",
+            }
             unknown_q = sorted(set(q) - allowed)
             if unknown_q:
-                raise ValueError(f"benchmark_protocol.quick may override {sorted(allowed)}; got {unknown_q}")
+                raise ValueError(
+                    f"benchmark_protocol.quick may override {sorted(allowed)}; got {unknown_q}"
+                )
             d.update(q)
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(d) - names)
@@ -185,11 +225,15 @@ class ProtocolSpec:
         ivs = []
         for i, iv in enumerate(d.get("intervals") or []):
             if isinstance(iv, dict) and iv.get("init") == "none":
-                ivs.append(Interval(str(iv.get("label") or "no_start"), (0.0, 0.0), (0.0, 0.0), True))
+                ivs.append(
+                    Interval(str(iv.get("label") or "no_start"), (0.0, 0.0), (0.0, 0.0), True)
+                )
                 continue
             if not isinstance(iv, dict) or "rot_deg" not in iv or "trans" not in iv:
-                raise ValueError(f"benchmark_protocol.intervals[{i}] must have rot_deg and trans (or "
-                                 f"init: none), got {iv!r}")
+                raise ValueError(
+                    f"benchmark_protocol.intervals[{i}] must have rot_deg and trans (or "
+                    f"init: none), got {iv!r}"
+                )
             rot = _pair(iv["rot_deg"], f"intervals[{i}].rot_deg")
             tr = _pair(iv["trans"], f"intervals[{i}].trans")
             label = iv.get("label") or f"r{rot[0]:g}-{rot[1]:g}"
@@ -200,12 +244,16 @@ class ProtocolSpec:
         if "auc_thresholds" in d:
             d["auc_thresholds"] = [float(x) for x in d["auc_thresholds"]]
         d["methods"] = [str(m) for m in d.get("methods", [])]
-        d["method_poses_per_query"] = {str(k): int(v) for k, v in (d.get("method_poses_per_query") or {}).items()
-                                       if str(k) in d["methods"]}
+        d["method_poses_per_query"] = {
+            str(k): int(v)
+            for k, v in (d.get("method_poses_per_query") or {}).items()
+            if str(k) in d["methods"]
+        }
         d["quick"] = bool(quick)
         return cls(**d)
 
     def to_json(self) -> dict:
+        """The protocol as JSON (intervals and thresholds as lists)."""
         d = dataclasses.asdict(self)
         d["intervals"] = [iv.to_json() for iv in self.intervals]
         d["thresholds"] = [list(t) for t in self.thresholds]
@@ -213,4 +261,5 @@ class ProtocolSpec:
 
     @property
     def num_runs(self) -> int:
+        """Planned runs of the whole protocol (every method x interval)."""
         return sum(self.runs(m, iv) for iv in self.intervals for m in self.methods)

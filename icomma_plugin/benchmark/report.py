@@ -21,7 +21,13 @@ from .runner import threshold_key
 
 __all__ = ["summarize", "table_rows", "markdown", "save_plots", "paper_method", "verdict_stats"]
 
-PERCENT_METRICS = ("success_rate", "failure_rate", "verdict_precision", "verdict_recall", "wrong_flagged")
+PERCENT_METRICS = (
+    "success_rate",
+    "failure_rate",
+    "verdict_precision",
+    "verdict_recall",
+    "wrong_flagged",
+)
 
 
 def _groups(spec: ProtocolSpec, records: Sequence[Dict[str, Any]]):
@@ -60,14 +66,17 @@ def summarize(spec: ProtocolSpec, records: Sequence[Dict[str, Any]]) -> Dict[str
             aucs = pose_auc(rot, spec.auc_thresholds) if rs else [None] * len(spec.auc_thresholds)
             for t, a in zip(spec.auc_thresholds, aucs):
                 cell[f"auc{t:g}"] = a
-            cell["median_rot_deg"] = (float(np.median([x if x is not None else np.inf for x in rot]))
-                                      if rs else None)
+            cell["median_rot_deg"] = (
+                float(np.median([x if x is not None else np.inf for x in rot])) if rs else None
+            )
         if m != "essential":
             for a, b in spec.thresholds:
                 ok = success_mask(rot, trans, a, b) if rs else np.zeros(0, bool)
                 cell["success_" + threshold_key(a, b)] = float(ok.mean()) if rs else None
-                if rs and all(r.get("final_trans_world", None) is not None or r.get("final_rot_deg") is None
-                              for r in rs):
+                if rs and all(
+                    r.get("final_trans_world", None) is not None or r.get("final_rot_deg") is None
+                    for r in rs
+                ):
                     # the same threshold read in WORLD units (for papers that do not normalise)
                     okw = success_mask(rot, [r.get("final_trans_world") for r in rs], a, b)
                     cell["success_" + threshold_key(a, b) + "_world_units"] = float(okw.mean())
@@ -83,7 +92,9 @@ def summarize(spec: ProtocolSpec, records: Sequence[Dict[str, Any]]) -> Dict[str
                 cell["success_rate"] = float(ok.mean()) if rs else None
                 cell["seconds_to_success"] = mean_or_none(
                     r.get("time_to_success", {}).get(tk) for r, s in zip(rs, ok) if s)
-                cell["seconds_total_success"] = mean_or_none(r.get("seconds") for r, s in zip(rs, ok) if s)
+                cell["seconds_total_success"] = mean_or_none(
+                    r.get("seconds") for r, s in zip(rs, ok) if s
+                )
             if spec.kind == "ablation":
                 a, b = spec.thresholds[0]
                 cell.update({k: v for k, v in failure_stats(rot, trans, a, b).items() if k != "n"})
@@ -92,17 +103,21 @@ def summarize(spec: ProtocolSpec, records: Sequence[Dict[str, Any]]) -> Dict[str
 
 
 def verdict_stats(records: Sequence[Dict[str, Any]], threshold) -> Dict[str, Any]:
-    """How far the verdict can be trusted, against ground truth: counts of ok / uncertain /
-    failed, precision (right among the poses called ok), recall (called ok among the right
-    poses), the share of wrong poses flagged (called uncertain or failed), and the median final
-    rotation error (all runs, and the successes)."""
+    """How far the verdict can be trusted, against ground truth.
+
+    Counts of ok / uncertain / failed, precision (right among the poses called ok), recall (called
+    ok among the right poses), the share of wrong poses flagged (called uncertain or failed), and
+    the median final rotation error (all runs, and the successes).
+    """
     a, b = threshold
     rot = [r.get("final_rot_deg") for r in records]
     trans = [r.get("final_trans") for r in records]
     ok = success_mask(rot, trans, a, b) if records else np.zeros(0, bool)
     verdicts = [r.get("verdict") for r in records]
     called = np.array([v == "ok" for v in verdicts], bool)
-    out: Dict[str, Any] = {f"verdict_{k}": sum(1 for v in verdicts if v == k) for k in ("ok", "uncertain", "failed")}
+    out: Dict[str, Any] = {
+        f"verdict_{k}": sum(1 for v in verdicts if v == k) for k in ("ok", "uncertain", "failed")
+    }
     n_called, n_right, n_wrong = int(called.sum()), int(ok.sum()), int((~ok).sum())
     out["verdict_precision"] = float((called & ok).sum() / n_called) if n_called else None
     out["verdict_recall"] = float((called & ok).sum() / n_right) if n_right else None
@@ -128,8 +143,18 @@ def paper_method(method: str, matcher: Optional[str]) -> str:
 
 
 def _metrics_of(spec: ProtocolSpec, method: str) -> List[str]:
-    extra = [] if method == "essential" else ["median_rot_deg", "median_seconds", "verdict_precision",
-                                              "verdict_recall", "wrong_flagged", "num_errors"]
+    extra = (
+        []
+        if method == "essential"
+        else [
+            "median_rot_deg",
+            "median_seconds",
+            "verdict_precision",
+            "verdict_recall",
+            "wrong_flagged",
+            "num_errors",
+        ]
+    )
     if spec.kind == "curves":
         return ["success_" + threshold_key(a, b) for a, b in spec.thresholds] + extra
     if spec.kind == "time":
@@ -147,7 +172,9 @@ def _our_value(cell: Dict[str, Any], metric: str):
     return cell.get(metric)
 
 
-def table_rows(spec: ProtocolSpec, summary: Dict[str, Any], matcher: Optional[str]) -> List[Dict[str, Any]]:
+def table_rows(
+    spec: ProtocolSpec, summary: Dict[str, Any], matcher: Optional[str]
+) -> List[Dict[str, Any]]:
     """Rows (interval, method, metric, ours, paper, source, delta) for the markdown / JSON."""
     rows = []
     for cell in summary["cells"]:
@@ -156,7 +183,9 @@ def table_rows(spec: ProtocolSpec, summary: Dict[str, Any], matcher: Optional[st
             if cell["method"] == "essential" and not metric.startswith("auc"):
                 continue
             pmetric = "success_rate" if metric == "success_rate" else metric
-            pv: PaperValue = paper_value(spec.name, cell["interval"], pm, pmetric, spec.paper_dataset)
+            pv: PaperValue = paper_value(
+                spec.name, cell["interval"], pm, pmetric, spec.paper_dataset
+            )
             ours = _our_value(cell, metric)
             delta = (ours - pv.value) if (ours is not None and pv.value is not None) else None
             rows.append({"interval": cell["interval"], "method": cell["method"], "paper_method": pm,
@@ -188,16 +217,23 @@ def markdown(spec: ProtocolSpec, summary: Dict[str, Any], matcher: Optional[str]
     if spec.description:
         lines += [spec.description, ""]
     h = header or {}
-    size = (f"{spec.num_queries} queries x {spec.poses_per_query} poses x {len(spec.intervals)} intervals, "
-            f"max {spec.max_iterations} iterations" + (" (quick)" if spec.quick else " (full size)"))
+    size = (
+        f"{spec.num_queries} queries x {spec.poses_per_query} poses x {len(spec.intervals)} "
+        "intervals, "
+        f"max {spec.max_iterations} iterations" + (" (quick)" if spec.quick else " (full size)")
+    )
     lines.append(f"- size: {size}")
     for k, v in h.items():
         lines.append(f"- {k}: {v}")
-    lines.append("- thresholds: " + ", ".join(f"< {a:g} deg and < {b:g}" for a, b in spec.thresholds))
+    lines.append(
+        "- thresholds: " + ", ".join(f"< {a:g} deg and < {b:g}" for a, b in spec.thresholds)
+    )
     lines.append("- methods: " + "; ".join(f"`{m}` = {METHODS[m]}" for m in spec.methods))
     lines.append("")
     rows = table_rows(spec, summary, matcher)
-    lines.append("| interval | method | metric | n | ours | paper | Δ (ours − paper) | paper source |")
+    lines.append(
+        "| interval | method | metric | n | ours | paper | Δ (ours − paper) | paper source |"
+    )
     lines.append("|---|---|---|---|---|---|---|---|")
     for r in rows:
         paper_txt = _fmt(r["paper"], r["metric"]) if r["paper"] is not None else NOT_FOUND
@@ -231,7 +267,9 @@ def _save(fig, path: Path) -> Path:
     return path
 
 
-def save_plots(spec: ProtocolSpec, summary: Dict[str, Any], out_dir, matcher: Optional[str] = None) -> List[str]:
+def save_plots(
+    spec: ProtocolSpec, summary: Dict[str, Any], out_dir, matcher: Optional[str] = None
+) -> List[str]:
     """Write the protocol's PNGs into ``out_dir``; returns their file names."""
     plt = _plt()
     out_dir = Path(out_dir)
@@ -241,7 +279,9 @@ def save_plots(spec: ProtocolSpec, summary: Dict[str, Any], out_dir, matcher: Op
     meths = list(spec.methods)
 
     if spec.kind in ("curves", "time") and any("curves" in c for c in cells):
-        fig, axes = plt.subplots(1, len(ivs), figsize=(4.2 * len(ivs), 3.4), squeeze=False, sharey=True)
+        fig, axes = plt.subplots(
+            1, len(ivs), figsize=(4.2 * len(ivs), 3.4), squeeze=False, sharey=True
+        )
         styles = ["-", "--", ":", "-."]
         for j, iv in enumerate(ivs):
             ax = axes[0, j]
@@ -272,12 +312,18 @@ def save_plots(spec: ProtocolSpec, summary: Dict[str, Any], out_dir, matcher: Op
             return paper_value(spec.name, iv, paper_method(m, matcher), key, spec.paper_dataset)
 
         name = f"curves_vs_paper_{spec.name}.png"
-        plot_curves_vs_paper(out_dir / name, summary, paper, title=f"{spec.name}: ours (lines) and the "
-                             "paper (dotted, where it reports a number)")
+        plot_curves_vs_paper(
+            out_dir / name,
+            summary,
+            paper,
+            title=f"{spec.name}: ours (lines) and the paper (dotted, where it reports a number)",
+        )
         files.append(name)
 
     def bars(metric_keys: List[str], title: str, name: str, ylabel: str, scale: float = 1.0):
-        fig, axes = plt.subplots(1, len(ivs), figsize=(4.2 * len(ivs), 3.2), squeeze=False, sharey=True)
+        fig, axes = plt.subplots(
+            1, len(ivs), figsize=(4.2 * len(ivs), 3.2), squeeze=False, sharey=True
+        )
         width = 0.8 / max(1, len(meths))
         for j, iv in enumerate(ivs):
             ax = axes[0, j]
@@ -297,9 +343,19 @@ def save_plots(spec: ProtocolSpec, summary: Dict[str, Any], out_dir, matcher: Op
         files.append(name)
 
     if spec.kind == "relative_pose":
-        bars([f"auc{t:g}" for t in spec.auc_thresholds], "rotation AUC", f"auc_{spec.name}.png", "AUC (%)", 100.0)
+        bars(
+            [f"auc{t:g}" for t in spec.auc_thresholds],
+            "rotation AUC",
+            f"auc_{spec.name}.png",
+            "AUC (%)",
+            100.0,
+        )
     if spec.kind == "time":
-        bars(["success_rate"], "success", f"success_rate_{spec.name}.png", "success rate (%)", 100.0)
+        bars(
+            ["success_rate"], "success", f"success_rate_{spec.name}.png", "success rate (%)", 100.0
+        )
     if spec.kind == "ablation":
-        bars(["failure_rate"], "failure", f"failure_rate_{spec.name}.png", "failure rate (%)", 100.0)
+        bars(
+            ["failure_rate"], "failure", f"failure_rate_{spec.name}.png", "failure rate (%)", 100.0
+        )
     return files

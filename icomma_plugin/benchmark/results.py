@@ -40,10 +40,13 @@ SCHEMA = "icomma-benchmark/1"
 
 
 def normalisation_text(unit: str, scale: float) -> str:
+    """One sentence saying the translation unit of the results (and its scale)."""
     if unit == "scene_radius":
-        return (f"translations (perturbations and errors) are in units of the scene radius = {scale:.6g} world "
-                "units (3DGS getNerfppNorm: 1.1 x the largest distance of a train camera centre from their "
-                "mean); world distance = normalised x scale")
+        return (
+            "translations (perturbations and errors) are in units of the scene radius = "
+            f"{scale:.6g} world units (3DGS getNerfppNorm: 1.1 x the largest distance of a train "
+            "camera centre from their mean); world distance = normalised x scale"
+        )
     return "translations are in world units (no normalisation; scale 1)"
 
 
@@ -58,16 +61,28 @@ def load_done(path) -> Dict[str, Dict[str, Any]]:
         raise FileNotFoundError(f"resume: no results.json at {p}")
     data = json.loads(p.read_text())
     if data.get("schema") != SCHEMA:
-        raise ValueError(f"resume: {p} is not a benchmark results.json (schema {data.get('schema')!r})")
+        raise ValueError(
+            f"resume: {p} is not a benchmark results.json (schema {data.get('schema')!r})"
+        )
     return {r["key"]: r for r in data.get("records", []) if "key" in r}
 
 
 class ResultsWriter:
     """Accumulates records and rewrites the outputs after each (``add``) and at the end."""
 
-    def __init__(self, out_dir, spec: ProtocolSpec, *, config: Dict[str, Any], scene: Dict[str, Any],
-                 matcher: Optional[str], localizer_config: Dict[str, Any], seed: int,
-                 plots: bool = True, plot_every: int = 1):
+    def __init__(
+        self,
+        out_dir,
+        spec: ProtocolSpec,
+        *,
+        config: Dict[str, Any],
+        scene: Dict[str, Any],
+        matcher: Optional[str],
+        localizer_config: Dict[str, Any],
+        seed: int,
+        plots: bool = True,
+        plot_every: int = 1,
+    ):
         self.out_dir = Path(out_dir)
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.spec = spec
@@ -84,23 +99,39 @@ class ResultsWriter:
         self.files: List[str] = ["results.json", "results.md"]
 
     def header(self) -> Dict[str, Any]:
+        """The lines above results.md's tables: model, queries, matcher, units, seed."""
         return {
             "model": self.scene.get("model_path", self.scene.get("kind")),
-            "queries": ", ".join(q["name"] for q in self.scene.get("queries", [])[: self.spec.num_queries]),
+            "queries": ", ".join(
+                q["name"] for q in self.scene.get("queries", [])[: self.spec.num_queries]
+            ),
             "matcher": self.matcher or "none",
-            "translation": normalisation_text(self.scene.get("translation_unit", "world"),
-                                              float(self.scene.get("translation_scale", 1.0))),
+            "translation": normalisation_text(
+                self.scene.get("translation_unit", "world"),
+                float(self.scene.get("translation_scale", 1.0)),
+            ),
             "seed": self.seed,
         }
 
     def add(self, record: Dict[str, Any]) -> None:
+        """Add a finished run and rewrite the results (plots every ``plot_every`` runs)."""
         self.records.append(record)
         self.write(final=False, plots=self.plots and len(self.records) % self.plot_every == 0)
 
     def set_records(self, records: List[Dict[str, Any]]) -> None:
+        """Replace the records (the protocol's final list, reused runs included)."""
         self.records = list(records)
 
     def write(self, final: bool = False, plots: Optional[bool] = None) -> Dict[str, Any]:
+        """Write results.json and results.md atomically (and the plots, when asked).
+
+        Args:
+            final: mark the results complete (else running).
+            plots: draw the plots; None: as the writer was configured.
+
+        Returns:
+            The results document (results.json's content).
+        """
         summary = summarize(self.spec, self.records)
         if plots if plots is not None else self.plots:
             try:
@@ -119,26 +150,38 @@ class ResultsWriter:
             "num_runs_done": len(self.records),
             "num_runs_planned": self.spec.num_runs,
             "scene": self.scene,
-            "translation_normalisation": normalisation_text(self.scene.get("translation_unit", "world"),
-                                                            float(self.scene.get("translation_scale", 1.0))),
+            "translation_normalisation": normalisation_text(
+                self.scene.get("translation_unit", "world"),
+                float(self.scene.get("translation_scale", 1.0)),
+            ),
             "matcher": self.matcher,
             "localizer_config": self.localizer_config,
             "config": self.config,
-            "timings": {"started": self.started, "updated": _now(),
-                        "wall_seconds": time.perf_counter() - self.t0},
+            "timings": {
+                "started": self.started,
+                "updated": _now(),
+                "wall_seconds": time.perf_counter() - self.t0,
+            },
             "summary": summary,
             "table": table_rows(self.spec, summary, self.matcher),
-            "paper": {**paper_summary(), "dataset": self.spec.paper_dataset,
-                      "protocol_cells": paper_rows(self.spec.name, self.spec.paper_dataset)},
+            "paper": {
+                **paper_summary(),
+                "dataset": self.spec.paper_dataset,
+                "protocol_cells": paper_rows(self.spec.name, self.spec.paper_dataset),
+            },
             "records": self.records,
             "files": list(self.files),
         }
         write_json_atomic(self.out_dir / "results.json", doc)
-        status = "complete" if final else f"partial: {len(self.records)} of {self.spec.num_runs} runs"
+        status = (
+            "complete" if final else f"partial: {len(self.records)} of {self.spec.num_runs} runs"
+        )
         md = [f"# iComMa benchmark: {self.spec.name} ({status})", "",
               markdown(self.spec, summary, self.matcher, self.header())]
-        md.append(f"Paper numbers: the {self.spec.paper_dataset} tables of the paper (source column; "
-                  "icomma_plugin/benchmark/paper.py). Our seconds are CPU seconds on this machine; the "
-                  "paper's are an RTX A6000 at 800x800.")
+        md.append(
+            f"Paper numbers: the {self.spec.paper_dataset} tables of the paper (source column; "
+            "icomma_plugin/benchmark/paper.py). Our seconds are CPU seconds on this machine; the "
+            "paper's are an RTX A6000 at 800x800."
+        )
         write_text_atomic(self.out_dir / "results.md", "\n".join(md) + "\n")
         return doc

@@ -30,10 +30,12 @@ Progress = Callable[[Dict[str, Any]], Any]
 
 
 def record_key(protocol: str, interval: str, query_index: int, pose_index: int, method: str) -> str:
+    """The key of one run's record (``resume`` reuses records by it)."""
     return f"{protocol}|{interval}|{int(query_index)}|{int(pose_index)}|{method}"
 
 
 def threshold_key(rot: float, trans: Optional[float]) -> str:
+    """The name of a (rotation, translation) threshold pair in summaries, e.g. ``5deg_0.05``."""
     return f"{rot:g}deg_{trans:g}" if trans is not None else f"{rot:g}deg"
 
 
@@ -59,7 +61,9 @@ def _localizer_record(res, scale: float, spec: ProtocolSpec) -> Dict[str, Any]:
     v = res.verdict
     return {
         "final_rot_deg": res.final_rotation_error_deg,
-        "final_trans": None if res.final_translation_error is None else res.final_translation_error / scale,
+        "final_trans": None
+        if res.final_translation_error is None
+        else res.final_translation_error / scale,
         "final_trans_world": res.final_translation_error,
         "iterations": res.iterations,
         "stop_reason": res.stop_reason,
@@ -106,6 +110,7 @@ def run_protocol(
         base_config: the paper's LocalizerConfig (icomma, compare_only, match_only derive theirs).
         matcher: the matcher (needed by every method but compare_only).
         robust_config: the default method's config (``robust``); None = its defaults.
+        backend: renderer backend ("auto" | "cpu" | "cuda" | "reference").
         on_record: called with each new record (dict) as soon as it is finished.
         done: records already computed, keyed by :func:`record_key`; reused, not recomputed.
         progress: called with events ``{"event": "run_start"|"iteration"|"run_end", ...}``.
@@ -120,7 +125,9 @@ def run_protocol(
     done = dict(done or {})
     needs_matcher = [m for m in spec.methods if m != "compare_only"]
     if needs_matcher and matcher is None:
-        raise ValueError(f"methods {needs_matcher} need a matcher; got matcher=None (choose e.g. matcher=xfeat)")
+        raise ValueError(
+            f"methods {needs_matcher} need a matcher; got matcher=None (choose e.g. matcher=xfeat)"
+        )
     queries = scene.queries[: spec.num_queries]
     scale = float(scene.translation_scale)
     configs = {m: method_config(m, base_config, spec.max_iterations, robust_config)
@@ -128,8 +135,10 @@ def run_protocol(
     pivot = spec.pivot
     if pivot == "scene_center":
         if scene.scene_centre is None:
-            raise ValueError("benchmark_protocol.pivot=scene_center needs the scene's centre (a model folder "
-                             "scene with cameras)")
+            raise ValueError(
+                "benchmark_protocol.pivot=scene_center needs the scene's centre (a model folder "
+                "scene with cameras)"
+            )
         pivot = np.asarray(scene.scene_centre, np.float64)
     records: List[Dict[str, Any]] = []
     def plan(iv):
@@ -139,8 +148,13 @@ def run_protocol(
             return qs, 1
         return queries, spec.poses_per_query
 
-    total = sum(0 if (iv.no_start and m in NEEDS_START) else len(plan(iv)[0]) * min(plan(iv)[1], spec.poses_for(m))
-                for iv in spec.intervals for m in spec.methods)
+    total = sum(
+        0
+        if (iv.no_start and m in NEEDS_START)
+        else len(plan(iv)[0]) * min(plan(iv)[1], spec.poses_for(m))
+        for iv in spec.intervals
+        for m in spec.methods
+    )
     count = 0
     for ii, iv in enumerate(spec.intervals):
         iv_queries, iv_poses = plan(iv)
@@ -150,8 +164,15 @@ def run_protocol(
                 seed = pose_seed(spec.seed, ii, q.index, k)
                 init = None
                 if not iv.no_start:
-                    init = sample_initial_pose(q.gt_c2w, iv.rot_deg, iv.trans, seed, translation_scale=scale,
-                                               translation_mode=spec.translation_mode, pivot=pivot)
+                    init = sample_initial_pose(
+                        q.gt_c2w,
+                        iv.rot_deg,
+                        iv.trans,
+                        seed,
+                        translation_scale=scale,
+                        translation_mode=spec.translation_mode,
+                        pivot=pivot,
+                    )
                 for method in spec.methods:
                     if k >= spec.poses_for(method) or (iv.no_start and method in NEEDS_START):
                         continue
@@ -160,27 +181,76 @@ def run_protocol(
                     if key in done:
                         records.append(done[key])
                         if progress:
-                            progress({"event": "run_end", "key": key, "count": count, "total": total,
-                                      "reused": True})
+                            progress(
+                                {
+                                    "event": "run_end",
+                                    "key": key,
+                                    "count": count,
+                                    "total": total,
+                                    "reused": True,
+                                }
+                            )
                         continue
                     if progress:
-                        progress({"event": "run_start", "key": key, "count": count, "total": total,
-                                  "method": method, "interval": iv.label, "query": q.name, "pose": k})
+                        progress(
+                            {
+                                "event": "run_start",
+                                "key": key,
+                                "count": count,
+                                "total": total,
+                                "method": method,
+                                "interval": iv.label,
+                                "query": q.name,
+                                "pose": k,
+                            }
+                        )
                     rec: Dict[str, Any] = {
-                        "key": key, "protocol": spec.name, "interval": iv.label, "interval_index": ii,
-                        "query": q.name, "query_index": q.index, "pose_index": k, "method": method,
-                        "seed": list(seed), "init": None if init is None else init.to_json(),
+                        "key": key,
+                        "protocol": spec.name,
+                        "interval": iv.label,
+                        "interval_index": ii,
+                        "query": q.name,
+                        "query_index": q.index,
+                        "pose_index": k,
+                        "method": method,
+                        "seed": list(seed),
+                        "init": None if init is None else init.to_json(),
                     }
                     if init is not None:
                         init_trans_w = float(np.linalg.norm(init.c2w[:3, 3] - q.gt_c2w[:3, 3]))
-                        rec.update({"init_rot_deg": init.rot_deg, "init_trans": init_trans_w / scale,
-                                    "init_trans_world": init_trans_w})
+                        rec.update(
+                            {
+                                "init_rot_deg": init.rot_deg,
+                                "init_trans": init_trans_w / scale,
+                                "init_trans_world": init_trans_w,
+                            }
+                        )
                     t0 = time.perf_counter()
                     try:
-                        rec.update(_run_one(scene, q, init, method, configs, matcher, backend, spec, scale,
-                                            gt_w2c, seed, key, progress))
+                        rec.update(
+                            _run_one(
+                                scene,
+                                q,
+                                init,
+                                method,
+                                configs,
+                                matcher,
+                                backend,
+                                spec,
+                                scale,
+                                gt_w2c,
+                                seed,
+                                key,
+                                progress,
+                            )
+                        )
                     except Exception as exc:  # noqa: BLE001 - one bad run must not end the benchmark
-                        logger.warning("run %s raised %s: %s (recorded as a failure)", key, type(exc).__name__, exc)
+                        logger.warning(
+                            "run %s raised %s: %s (recorded as a failure)",
+                            key,
+                            type(exc).__name__,
+                            exc,
+                        )
                         rec.update(_error_record(exc))
                     rec["wall_seconds"] = time.perf_counter() - t0
                     if not store_curves:
@@ -196,12 +266,23 @@ def run_protocol(
     return records
 
 
-def _run_one(scene, q, init, method, configs, matcher, backend, spec, scale, gt_w2c, seed, key, progress):
+def _run_one(
+    scene, q, init, method, configs, matcher, backend, spec, scale, gt_w2c, seed, key, progress
+):
     """One run: a localization (or the essential-matrix baseline); returns its record fields."""
     if not is_localizer_method(method):
-        out = essential_matrix_baseline(scene.model, q.rgb, q.intrinsics, init.c2w, q.gt_c2w, matcher,
-                                        bg=scene.bg, backend=backend, thresh_px=spec.essential_thresh_px,
-                                        seed=int(seed[-1]))
+        out = essential_matrix_baseline(
+            scene.model,
+            q.rgb,
+            q.intrinsics,
+            init.c2w,
+            q.gt_c2w,
+            matcher,
+            bg=scene.bg,
+            backend=backend,
+            thresh_px=spec.essential_thresh_px,
+            seed=int(seed[-1]),
+        )
         out = dict(out)
         out["final_rot_deg"] = out["rel_rot_err_deg"]
         out["final_trans"] = None
@@ -214,9 +295,22 @@ def _run_one(scene, q, init, method, configs, matcher, backend, spec, scale, gt_
     torch.manual_seed(int(np.random.SeedSequence(list(seed)).generate_state(1)[0]))
     cfg = configs[method]
     candidates = scene.candidate_set(q, matcher, cfg, backend) if method == "robust" else None
-    res = localize(scene.model, q.rgb, q.intrinsics, None if init is None else np.linalg.inv(init.c2w),
-                   matcher if method != "compare_only" else None, cfg, gt_w2c=gt_w2c, query_alpha=q.alpha,
-                   query_valid=q.valid, backend=backend, bg=scene.bg, progress=hook,
-                   cameras_c2w=scene.cameras_c2w, candidate_set=candidates, query_name=q.name,
-                   model_side=scene.model_side)
+    res = localize(
+        scene.model,
+        q.rgb,
+        q.intrinsics,
+        None if init is None else np.linalg.inv(init.c2w),
+        matcher if method != "compare_only" else None,
+        cfg,
+        gt_w2c=gt_w2c,
+        query_alpha=q.alpha,
+        query_valid=q.valid,
+        backend=backend,
+        bg=scene.bg,
+        progress=hook,
+        cameras_c2w=scene.cameras_c2w,
+        candidate_set=candidates,
+        query_name=q.name,
+        model_side=scene.model_side,
+    )
     return _localizer_record(res, scale, spec)

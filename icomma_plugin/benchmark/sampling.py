@@ -15,9 +15,9 @@ centre. The rotation error of the result against the ground truth is exactly the
 
 Translations are given in the benchmark's translation unit: world offset = offset x
 ``translation_scale`` (1 for world units, the default; the scene radius with
-``translation_unit=scene_radius``; see docs/BENCHMARK.md). ``per_axis`` draws each component's magnitude uniformly in
-``[t_lo, t_hi]`` with a random sign (iNeRF / iComMa "+-[a, b] per axis"); ``norm`` draws a
-uniform direction and a norm uniformly in ``[t_lo, t_hi]``.
+``translation_unit=scene_radius``; see docs/BENCHMARK.md). ``per_axis`` draws each component's
+magnitude uniformly in ``[t_lo, t_hi]`` with a random sign (iNeRF / iComMa "+-[a, b] per
+axis"); ``norm`` draws a uniform direction and a norm uniformly in ``[t_lo, t_hi]``.
 
 Reproducibility: :func:`pose_seed` derives one independent stream per
 (protocol seed, interval, query, pose), so a run draws the same poses whatever subset of them it
@@ -57,6 +57,7 @@ class InitialPose:
     seed: Tuple[int, ...]
 
     def to_json(self) -> dict:
+        """The sample as JSON (arrays as lists)."""
         return {
             "rot_deg": float(self.rot_deg),
             "axis": self.axis.tolist(),
@@ -70,14 +71,19 @@ class InitialPose:
 
 def pose_seed(seed: int, interval_index: int, query_index: int, pose_index: int) -> Tuple[int, ...]:
     """The seed sequence of one initial pose (recorded in results.json)."""
-    for name, v in (("seed", seed), ("interval_index", interval_index), ("query_index", query_index),
-                    ("pose_index", pose_index)):
+    for name, v in (
+        ("seed", seed),
+        ("interval_index", interval_index),
+        ("query_index", query_index),
+        ("pose_index", pose_index),
+    ):
         if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 0:
             raise ValueError(f"{name} must be a non-negative int, got {v!r}")
     return (int(seed), int(interval_index), int(query_index), int(pose_index))
 
 
 def pose_rng(seed_seq: Sequence[int]) -> np.random.Generator:
+    """A numpy generator seeded by the whole sequence (e.g. ``pose_seed``'s)."""
     return np.random.default_rng(np.random.SeedSequence(list(seed_seq)))
 
 
@@ -87,8 +93,10 @@ def sample_axis(rng: np.random.Generator) -> np.ndarray:
 
 
 def rotation_matrix(axis: np.ndarray, angle_deg: float) -> np.ndarray:
-    """Rodrigues rotation (float64 [3, 3]) by ``angle_deg`` about ``axis``
-    (``pose.convert.rotation_about_axis``)."""
+    """Rodrigues rotation (float64 [3, 3]) by ``angle_deg`` about ``axis``.
+
+    ``pose.convert.rotation_about_axis``.
+    """
     return rotation_about_axis(axis, angle_deg)
 
 
@@ -135,9 +143,13 @@ def sample_initial_pose(
     tlo, thi = _range(trans_range, "trans_range")
     if not (isinstance(translation_scale, (int, float)) and math.isfinite(translation_scale)
             and translation_scale > 0):
-        raise ValueError(f"translation_scale must be a positive finite number, got {translation_scale!r}")
+        raise ValueError(
+            f"translation_scale must be a positive finite number, got {translation_scale!r}"
+        )
     if translation_mode not in TRANSLATION_MODES:
-        raise ValueError(f"translation_mode must be one of {TRANSLATION_MODES}, got {translation_mode!r}")
+        raise ValueError(
+            f"translation_mode must be one of {TRANSLATION_MODES}, got {translation_mode!r}"
+        )
     seed: Tuple[int, ...] = ()
     if not isinstance(rng, np.random.Generator):
         seed = tuple(int(s) for s in rng)
@@ -155,7 +167,9 @@ def sample_initial_pose(
     else:
         p = np.asarray(pivot, np.float64).reshape(-1)
         if p.shape != (3,) or not np.all(np.isfinite(p)):
-            raise ValueError(f"pivot must be one of {PIVOTS} or a finite world point [3], got {pivot!r}")
+            raise ValueError(
+                f"pivot must be one of {PIVOTS} or a finite world point [3], got {pivot!r}"
+            )
 
     angle = float(rng.uniform(rlo, rhi)) if rhi > rlo else rlo
     axis = sample_axis(rng)

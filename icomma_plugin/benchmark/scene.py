@@ -1,5 +1,6 @@
-"""What a benchmark runs on: a model, query images with ground-truth poses, and the scale that
-normalises translations.
+"""What a benchmark runs on.
+
+A model, query images with ground-truth poses, and the scale that normalises translations.
 
 - :func:`load_model_folder_scene`: a trained 3DGS model folder (e.g. lego fitted on its train
   split) plus a dataset whose split (``test``) provides the queries and their poses.
@@ -26,8 +27,18 @@ from ..gaussians import GaussianModel
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Query", "BenchScene", "TRANSLATION_UNITS", "shared_data_root", "default_lego_dataset",
-           "select_indices", "training_scale", "load_model_folder_scene", "synthetic_scene", "camera_radius"]
+__all__ = [
+    "Query",
+    "BenchScene",
+    "TRANSLATION_UNITS",
+    "shared_data_root",
+    "default_lego_dataset",
+    "select_indices",
+    "training_scale",
+    "load_model_folder_scene",
+    "synthetic_scene",
+    "camera_radius",
+]
 
 TRANSLATION_UNITS = ("scene_radius", "world")
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -35,6 +46,8 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 
 @dataclass
 class Query:
+    """One query photo of a benchmark, with its true pose."""
+
     name: str
     rgb: torch.Tensor  # [3, H, W] in [0, 1], composited over the background
     alpha: Optional[torch.Tensor]  # [1, H, W] or None
@@ -46,9 +59,11 @@ class Query:
 
 @dataclass
 class BenchScene:
-    """A model, its queries and what the methods may use besides: the candidate views
-    (``cameras_c2w``: the model's cameras, never a camera of the queries' split) and the scene
-    centre (the ``scene_center`` pivot)."""
+    """A model, its queries and what the methods may use besides.
+
+    That is the candidate views (``cameras_c2w``: the model's cameras, never a camera of the
+    queries' split) and the scene centre (the ``scene_center`` pivot).
+    """
 
     model: GaussianModel
     queries: List[Query]
@@ -72,10 +87,18 @@ class BenchScene:
         key = (query.intrinsics, cfg.candidates.rank_side, cfg.candidates.num_sampled)
         if key not in self._candidate_sets:
             self._candidate_sets[key] = CandidateSet.for_model(
-                self.model, query.intrinsics, matcher, self.bg, self.cameras_c2w, cfg.candidates, backend)
+                self.model,
+                query.intrinsics,
+                matcher,
+                self.bg,
+                self.cameras_c2w,
+                cfg.candidates,
+                backend,
+            )
         return self._candidate_sets[key]
 
     def describe(self) -> Dict[str, Any]:
+        """The scene as results.json records it (model, queries, image size, units, ...)."""
         q = self.queries[0].intrinsics if self.queries else None
         return {
             **self.info,
@@ -90,12 +113,14 @@ class BenchScene:
 
 
 def shared_data_root() -> Path:
+    """The shared data folder (``io.datasets.shared_data_root``)."""
     from ..io.datasets import shared_data_root as root
 
     return root()
 
 
 def default_lego_dataset() -> Path:
+    """The shared NeRF-synthetic lego at 400x400."""
     return shared_data_root() / "nerf_synthetic" / "lego_400"
 
 
@@ -146,9 +171,15 @@ def load_model_folder_scene(
         model_path: trained 3DGS output folder (cfg_args, point_cloud/iteration_N/).
         dataset: dataset folder; None = cfg_args ``source_path`` when it exists here, else the
             shared lego_400 (``ICOMMA_SHARED_DATA``).
+        num_queries: how many views of the split, evenly spaced (unless ``query_indices``).
+        split: the split the queries come from: ``train``, ``test`` or ``val`` (Blender
+            datasets only).
+        query_indices: explicit view indices in the split instead of ``num_queries``.
         image_scale: query scale; None = the scale the model was trained at (cfg_args
             ``resolution``, see :func:`training_scale`).
         white_background: None = cfg_args ``white_background``.
+        iteration: the model's iteration to load; None = the highest.
+        translation_unit: ``world`` or ``scene_radius`` (module docstring).
         no_start_queries: also load this many evenly spaced views for the runs without a start
             pose (they have nothing random to vary, so each run takes another view).
     """
@@ -167,7 +198,9 @@ def load_model_folder_scene(
         dataset = src if src and Path(str(src)).is_dir() else default_lego_dataset()
     root = Path(str(dataset)).expanduser()
     if not root.is_dir():
-        raise FileNotFoundError(f"dataset folder not found: {root} (set scene.query.dataset or ICOMMA_SHARED_DATA)")
+        raise FileNotFoundError(
+            f"dataset folder not found: {root} (set scene.query.dataset or ICOMMA_SHARED_DATA)"
+        )
     if split not in ("train", "test", "val"):
         raise ValueError(f"split must be train, test or val (Blender datasets), got {split!r}")
     kw = {"white_background": white}
@@ -179,8 +212,10 @@ def load_model_folder_scene(
         if "does not take" not in str(e):
             raise
         if split == "val":
-            raise ValueError(f"split 'val' exists only for Blender / NeRF-synthetic datasets; {root} is "
-                             "another kind") from None
+            raise ValueError(
+                f"split 'val' exists only for Blender / NeRF-synthetic datasets; {root} is "
+                "another kind"
+            ) from None
         sd = read_dataset(root)
     split_of_views = "test" if split == "val" else split
     views = getattr(sd, split_of_views)
@@ -197,15 +232,24 @@ def load_model_folder_scene(
 
     queries = [load(i) for i in idx]
     by_index = {q.index: q for q in queries}
-    extra = [by_index.get(i) or load(i) for i in select_indices(len(views), min(len(views), no_start_queries))] \
-        if no_start_queries > 0 else []
+    extra = (
+        [
+            by_index.get(i) or load(i)
+            for i in select_indices(len(views), min(len(views), no_start_queries))
+        ]
+        if no_start_queries > 0
+        else []
+    )
     radius = sd.scene_radius() if sd.train else camera_radius([v.c2w for v in views])
     # Candidate views: the model's cameras, never one at a pose of the queries' split (upstream's
     # cameras.json lists the test cameras too; a query must not find its own pose there).
     split_c2ws = [np.asarray(v.c2w, np.float64) for v in views]
     cams = [np.asarray(e.c2w, np.float64) for e in (mf.cameras or [])]
     if not cams:
-        cams = [np.asarray(v.c2w, np.float64) for v in (sd.train if split_of_views == "test" else sd.test)]
+        cams = [
+            np.asarray(v.c2w, np.float64)
+            for v in (sd.train if split_of_views == "test" else sd.test)
+        ]
     cams = [c for c in cams if not any(np.allclose(c, t, atol=1e-5) for t in split_c2ws)]
     if split_of_views != "train" and sd.train:
         # Keep the cameras the model was fitted from (upstream's cameras.json lists the other
@@ -215,12 +259,26 @@ def load_model_folder_scene(
         cams = fitted or cams
     centre, _, _ = scene_frame(mf.model, cams)
     return BenchScene(
-        model=mf.model, queries=queries, bg=bg, translation_scale=_scale_of(translation_unit, radius),
-        translation_unit=translation_unit, scene_radius=radius, cameras_c2w=cams, scene_centre=centre,
-        no_start_queries=extra, model_side=mf.training_side(),
-        info={"kind": "model_folder", "model_path": str(mp), "iteration": mf.iteration,
-              "dataset": str(root), "split": split, "image_scale": float(image_scale),
-              "white_background": white, "candidate_cameras": len(cams)},
+        model=mf.model,
+        queries=queries,
+        bg=bg,
+        translation_scale=_scale_of(translation_unit, radius),
+        translation_unit=translation_unit,
+        scene_radius=radius,
+        cameras_c2w=cams,
+        scene_centre=centre,
+        no_start_queries=extra,
+        model_side=mf.training_side(),
+        info={
+            "kind": "model_folder",
+            "model_path": str(mp),
+            "iteration": mf.iteration,
+            "dataset": str(root),
+            "split": split,
+            "image_scale": float(image_scale),
+            "white_background": white,
+            "candidate_cameras": len(cams),
+        },
     )
 
 
@@ -229,8 +287,11 @@ def synthetic_scene(
     seed: int = 0, radius: float = 4.0, fov_deg: float = 40.0, translation_unit: str = "world",
     backend: str = "auto",
 ) -> BenchScene:
-    """A procedural model around the origin, 12 "train" cameras on a ring (for the scene radius)
-    and ``num_queries`` query cameras between them; queries are rendered by the model."""
+    """A procedural model around the origin, with ring cameras and queries rendered by the model.
+
+    12 "train" cameras on a ring (for the scene radius) and ``num_queries`` query cameras between
+    them.
+    """
     from ..pose.convert import look_at_c2w
     from ..render import render
 
@@ -241,7 +302,9 @@ def synthetic_scene(
 
     def cam(az_deg, el_deg):
         az, el = math.radians(az_deg), math.radians(el_deg)
-        eye = radius * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+        eye = radius * np.array(
+            [math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)]
+        )
         return look_at_c2w(eye, np.zeros(3), up=(0.0, 0.0, 1.0))
 
     train = [cam(a, 30.0) for a in range(0, 360, 30)]
@@ -253,9 +316,24 @@ def synthetic_scene(
         with torch.no_grad():
             img = render(model, intr, torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32), bg,
                          backend=backend).color.clamp(0, 1)
-        queries.append(Query(name=f"synthetic_{i}", rgb=img.contiguous(), alpha=None, intrinsics=intr,
-                             gt_c2w=c2w, index=i))
-    return BenchScene(model=model, queries=queries, bg=bg, translation_scale=_scale_of(translation_unit, r),
-                      translation_unit=translation_unit, scene_radius=r, cameras_c2w=train,
-                      scene_centre=np.zeros(3),
-                      info={"kind": "synthetic", "seed": int(seed), "num_gaussians": int(num_gaussians)})
+        queries.append(
+            Query(
+                name=f"synthetic_{i}",
+                rgb=img.contiguous(),
+                alpha=None,
+                intrinsics=intr,
+                gt_c2w=c2w,
+                index=i,
+            )
+        )
+    return BenchScene(
+        model=model,
+        queries=queries,
+        bg=bg,
+        translation_scale=_scale_of(translation_unit, r),
+        translation_unit=translation_unit,
+        scene_radius=r,
+        cameras_c2w=train,
+        scene_centre=np.zeros(3),
+        info={"kind": "synthetic", "seed": int(seed), "num_gaussians": int(num_gaussians)},
+    )
