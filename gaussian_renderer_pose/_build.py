@@ -17,7 +17,8 @@ cpu_sources = [
 
 # Compiled only when torch has CUDA and CUDA_HOME is set (CUDAExtension, -DGRP_WITH_CUDA):
 # the pure-CUDA kernels (nvcc) and their torch-facing wrapper (host compiler).
-# tests/renderer/test_cuda_compile.py compiles them with nvcc on machines without a GPU.
+# tests/gaussian_renderer_pose/test_cuda_compile.py compiles them with nvcc on machines without a
+# GPU.
 cuda_sources: list[str] = [
     f"{_CSRC}/cuda/kernels.cu",
     f"{_CSRC}/cuda/rasterize_cuda.cpp",

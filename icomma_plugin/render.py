@@ -10,7 +10,8 @@ A scene rendered many times from different poses (a localization) is prepared on
 :func:`prepare_scene`: the activations, the SH concatenation and, at SH degree 0, the colours
 (view independent there) are computed once, the tensors are checked for NaN/Inf once, and each
 render then skips the rasterizer's per-call scans. The image, depth, alpha and pose gradient are
-bit-identical to ``render(model, ...)`` (tests/plugin/test_render.py); timings in docs/SPEED.md.
+bit-identical to ``render(model, ...)`` (tests/icomma_plugin/test_render.py); timings in
+docs/SPEED.md.
 """
 from __future__ import annotations
 

@@ -16,7 +16,8 @@ from gaussian_renderer_pose import (
     rasterize_gaussians,
 )
 from gaussian_renderer_pose import _dispatch
-from tests.renderer.scenes import make_scene
+from tests.helpers.paths import REPO
+from tests.helpers.scenes import make_scene
 
 UPSTREAM_FIELDS = (
     "image_height", "image_width", "tanfovx", "tanfovy", "bg", "scale_modifier", "viewmatrix",
@@ -306,10 +307,8 @@ def test_auto_warns_once_and_falls_back(native_missing):
     torch.testing.assert_close(a.color, b.color, rtol=0, atol=0)
 
 
-def test_auto_uses_native_when_available(monkeypatch):
+def test_auto_uses_native_when_available(monkeypatch, native_backend):
     monkeypatch.delenv(_dispatch.ENV_VAR, raising=False)
-    if available_backends()["cpu"] is not None:
-        pytest.skip(f"native cpu backend unavailable: {available_backends()['cpu']}")
     from gaussian_renderer_pose._native import rasterize_gaussians_native
 
     assert _dispatch.select_backend("auto", torch.device("cpu"), torch.float32) is rasterize_gaussians_native
@@ -353,4 +352,4 @@ def test_import_does_not_compile():
         "assert 'gaussian_renderer_pose._C' not in sys.modules; "
         "assert 'torch.utils.cpp_extension' not in sys.modules, 'cpp_extension imported'"
     )
-    subprocess.run([sys.executable, "-c", code], check=True, cwd=str(__import__("pathlib").Path(__file__).parents[2]))
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=str(REPO))

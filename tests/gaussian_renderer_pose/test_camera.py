@@ -8,7 +8,7 @@ import torch
 
 from gaussian_renderer_pose import camera_matrices, projection_matrix
 from gaussian_renderer_pose.reference.projection import preprocess
-from tests.renderer.scenes import random_w2c
+from tests.helpers.scenes import random_w2c
 
 F64 = torch.float64
 

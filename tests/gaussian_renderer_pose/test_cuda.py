@@ -2,7 +2,7 @@
 
 Runs only where `torch.cuda.is_available()` and the extension was built with CUDA (`_C.WITH_CUDA`);
 skipped cleanly elsewhere, with the reason. Scenes are generated on the CPU
-(tests/renderer/scenes.py::make_scene) and moved, so every backend sees the same float32 values.
+(tests/helpers/scenes.py::make_scene) and moved, so every backend sees the same float32 values.
 
 Checked: color, radii, invdepth, depth, alpha, and the gradients of a random linear loss of all four
 images w.r.t. every tensor input (means3D, means2D, opacities, shs / colors_precomp, scales,
@@ -21,22 +21,10 @@ import torch
 
 from gaussian_renderer_pose import GaussianRasterizer, available_backends, rasterize_gaussians
 from gaussian_renderer_pose._backend import native_status
-from tests.renderer.scenes import Scene, make_scene, scene_tensors_requiring_grad, se3_exp
+from tests.helpers.scenes import Scene, make_scene, scene_tensors_requiring_grad, se3_exp
 
 
-def _cuda_skip_reason() -> Optional[str]:
-    ok, why = native_status("cuda")
-    if not torch.cuda.is_available():
-        built = "" if ok else f"; {why}"
-        return f"no CUDA device (torch.cuda.is_available() is False){built}"
-    return None if ok else why
-
-
-_REASON = _cuda_skip_reason()
-pytestmark = [
-    pytest.mark.cuda,
-    pytest.mark.skipif(_REASON is not None, reason=f"CUDA backend not testable here: {_REASON}"),
-]
+pytestmark = [pytest.mark.cuda, pytest.mark.usefixtures("cuda_backend")]
 HAVE_CPU = native_status("cpu")[0]
 CUDA = torch.device("cuda")
 
@@ -161,12 +149,11 @@ def test_cuda_matches_cpu_and_reference(case):
     assert float(got["d_xi"].abs().max()) > 0, "pose gradient is zero"
 
 
-@pytest.mark.skipif(not HAVE_CPU, reason="native cpu backend not built")
-def test_cuda_matches_cpu_on_a_larger_scene():
+def test_cuda_matches_cpu_on_a_larger_scene(native_backend):
     """20k Gaussians at 256x192 (reference too slow here): CUDA vs native CPU."""
     scene = make_scene(20_000, height=192, width=256, scale_range=(0.01, 0.15), seed=11)
     got = run(scene, "cuda", CUDA)
-    cpu = run(scene, "cpu", "cpu")
+    cpu = run(scene, native_backend, "cpu")
     compare(got, cpu, "20k: cuda vs native cpu", GRAD_RTOL_CPU, GRAD_COS_CPU)
 
 

@@ -26,7 +26,8 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[2]
+from tests.helpers.paths import REPO
+
 CSRC = REPO / "gaussian_renderer_pose" / "csrc"
 TIMEOUT_S = 600
 

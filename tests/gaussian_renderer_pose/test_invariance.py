@@ -11,17 +11,7 @@ import pytest
 import torch
 
 from gaussian_renderer_pose import rasterize_gaussians
-from gaussian_renderer_pose._backend import native_status
-from tests.renderer.scenes import Scene, make_scene, se3_exp
-
-BACKENDS = [
-    pytest.param("reference", torch.float64, id="reference"),
-    pytest.param(
-        "cpu", torch.float32, id="cpu",
-        marks=pytest.mark.skipif(not native_status("cpu")[0], reason="native cpu backend not built"),
-    ),
-]
-
+from tests.helpers.scenes import Scene, make_scene, se3_exp
 
 def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
     """(w, x, y, z) of a rotation matrix (Shepperd, branch on the largest component)."""
@@ -97,8 +87,8 @@ CASES = [
 
 
 @pytest.mark.parametrize("kw", CASES)
-@pytest.mark.parametrize("backend,dtype", BACKENDS)
-def test_pose_equals_moved_gaussians(backend, dtype, kw):
+def test_pose_equals_moved_gaussians(backend, backend_dtype, kw):
+    dtype = backend_dtype
     scene = make_scene(120, height=40, width=56, seed=11, dtype=torch.float64, **kw)
     if scene.rotations is not None:  # composition is exact for unit quaternions only
         scene.rotations = scene.rotations / scene.rotations.norm(dim=-1, keepdim=True)

@@ -5,13 +5,11 @@ from __future__ import annotations
 import pytest
 import torch
 
-from gaussian_renderer_pose import _backend
 from gaussian_renderer_pose.camera import camera_matrices
-from tests.renderer.scenes import make_scene, se3_exp
-from tests.renderer.test_native_vs_reference import run_backend
+from tests.helpers.scenes import make_scene, se3_exp
+from tests.gaussian_renderer_pose.test_native_vs_reference import run_backend
 
-_OK, _WHY = _backend.native_status("cpu")
-pytestmark = pytest.mark.skipif(not _OK, reason=f"native CPU backend not built: {_WHY}")
+pytestmark = pytest.mark.usefixtures("native_backend")
 
 
 def _native():

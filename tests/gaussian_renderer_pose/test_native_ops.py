@@ -11,10 +11,9 @@ import torch
 
 from gaussian_renderer_pose import _backend
 from gaussian_renderer_pose.camera import camera_matrices
-from tests.renderer.scenes import make_scene
+from tests.helpers.scenes import make_scene
 
-_OK, _WHY = _backend.native_status("cpu")
-pytestmark = pytest.mark.skipif(not _OK, reason=f"native CPU backend not built: {_WHY}")
+pytestmark = pytest.mark.usefixtures("native_backend")
 
 DEVICES = ["cpu"] + (["cuda"] if _backend.native_status("cuda")[0] else [])
 IMAGES = ("color", "invdepth", "depth_acc", "alpha")

@@ -12,13 +12,11 @@ from typing import Dict, Optional
 import pytest
 import torch
 
-from gaussian_renderer_pose import _backend
 from gaussian_renderer_pose.camera import camera_matrices
 from gaussian_renderer_pose.reference import rasterize_gaussians_reference
-from tests.renderer.scenes import make_scene, se3_exp
+from tests.helpers.scenes import make_scene, se3_exp
 
-_OK, _WHY = _backend.native_status("cpu")
-pytestmark = pytest.mark.skipif(not _OK, reason=f"native CPU backend not built: {_WHY}")
+pytestmark = pytest.mark.usefixtures("native_backend")
 
 GAUSSIAN_INPUTS = ("means3D", "means2D", "opacities", "shs", "colors_precomp", "scales", "rotations",
                    "cov3D_precomp", "bg")

@@ -19,7 +19,7 @@ from gaussian_renderer_pose import GaussianRasterizationSettings, camera_matrice
 from gaussian_renderer_pose.reference import projection as ref_projection
 from gaussian_renderer_pose.reference import rasterize_gaussians_reference
 from gaussian_renderer_pose.reference.sh import eval_sh
-from tests.renderer.scenes import Scene, cov3d_from_scale_rot, make_scene, random_w2c, se3_exp
+from tests.helpers.scenes import Scene, cov3d_from_scale_rot, make_scene, random_w2c, se3_exp
 
 F64 = torch.float64
 EPS = 1e-6

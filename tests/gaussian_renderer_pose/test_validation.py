@@ -6,7 +6,7 @@ import torch
 
 from gaussian_renderer_pose import rasterize_gaussians
 from gaussian_renderer_pose._validate import RasterizerInputError
-from tests.renderer.scenes import make_scene
+from tests.helpers.scenes import make_scene
 
 
 @pytest.fixture
@@ -71,14 +71,10 @@ def test_dtype(scene):
         call(scene, scene.settings("reference")._replace(bg=scene.bg.double()))
 
 
-def test_native_backend_requires_float32():
-    from gaussian_renderer_pose._backend import native_status
-
-    if not native_status("cpu")[0]:
-        pytest.skip("native cpu backend not built")
+def test_native_backend_requires_float32(native_backend):
     s = make_scene(4, height=16, width=20, dtype=torch.float64)
     with pytest.raises(ValueError, match="float32"):
-        call(s, s.settings("cpu"))
+        call(s, s.settings(native_backend))
 
 
 def test_device_mismatch(scene):

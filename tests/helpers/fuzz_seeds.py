@@ -1,34 +1,23 @@
 """Valid seed files for the reader fuzz tests, small enough to read hundreds of times a second.
 
-PLY, cameras.json and cfg_args seeds come from the library's writers. COLMAP files are packed
-here (layouts of COLMAP's ``scripts/python/read_write_model.py``, as the writers in
-tests/plugin/test_datasets.py) because the fuzzer needs the offset of every binary field.
+PLY, cameras.json and cfg_args seeds come from the library's writers (PLY Gaussians:
+tests/helpers/gaussians.py). COLMAP files come from the packers of tests/helpers/colmap.py,
+which the dataset tests write with too; they also give the offset of every binary field.
 """
 from __future__ import annotations
 
 import io
 import math
-import struct
 from typing import Dict, List, Optional, Tuple
 
-import torch
 from plyfile import PlyData
 
-from icomma_plugin.gaussians import GaussianModel
 from icomma_plugin.io.cameras_json import CameraEntry
-from icomma_plugin.io.datasets.colmap import CAMERA_MODELS
 from icomma_plugin.pose.convert import look_at_c2w
+from tests.helpers import colmap
 
 CFG = {"data_device": "cuda", "eval": True, "images": "images", "model_path": "./output/x",
        "resolution": -1, "sh_degree": 1, "source_path": "/data/lego", "white_background": True}
-
-
-def gaussians(P: int, degree: int, seed: int = 0) -> GaussianModel:
-    """``P`` random Gaussians of SH degree ``degree``."""
-    g = torch.Generator().manual_seed(seed)
-    K = (degree + 1) ** 2 - 1
-    r = lambda *s: torch.randn(*s, generator=g)  # noqa: E731
-    return GaussianModel(r(P, 3), r(P, 1, 3), r(P, K, 3), r(P, 1), r(P, 3), r(P, 4), degree)
 
 
 def as_ascii(binary_ply: bytes) -> bytes:
@@ -52,74 +41,31 @@ def cameras(n: int) -> List[CameraEntry]:
 
 # ----------------------------------------------------------------------------- COLMAP
 
-# cameras: (id, model id, w, h, params); images: (id, qvec, tvec, camera id, name, n points2D);
-# points: (id, xyz, rgb, error, track length).
+# The seed model (tests/helpers/colmap.py describes the tuples); images name files that exist.
 COLMAP_CAMERAS = [(1, 1, 32, 24, [30.0, 28.0, 18.0, 11.0]),  # PINHOLE, off-centre
                   (2, 2, 20, 16, [22.0, 10.0, 8.0, 0.01])]   # SIMPLE_RADIAL (distorted)
-COLMAP_IMAGES = [(10, (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 4.0), 1, "img_00.png", 2),
-                 (11, (0.9, 0.1, 0.3, 0.3), (0.5, -0.2, 3.0), 2, "img_01.png", 0),
-                 (12, (0.5, 0.5, -0.5, 0.5), (0.1, 0.2, 5.0), 1, "sub/img_02.png", 1)]
-COLMAP_POINTS = [(1, (0.1, 0.2, 0.3), (255, 128, 0), 0.5, 2),
-                 (2, (1.0, -2.0, 3.0), (0, 0, 255), 0.1, 0),
-                 (3, (0.0, 0.0, 0.0), (7, 7, 7), 1.5, 1)]
+COLMAP_IMAGES = [(10, (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 4.0), 1, "img_00.png",
+                  [(1.0, 2.0, -1), (2.0, 2.0, -1)]),
+                 (11, (0.9, 0.1, 0.3, 0.3), (0.5, -0.2, 3.0), 2, "img_01.png", []),
+                 (12, (0.5, 0.5, -0.5, 0.5), (0.1, 0.2, 5.0), 1, "sub/img_02.png",
+                  [(1.0, 2.0, -1)])]
+COLMAP_POINTS = [(1, (0.1, 0.2, 0.3), (255, 128, 0), 0.5, [(1, 0), (1, 1)]),
+                 (2, (1.0, -2.0, 3.0), (0, 0, 255), 0.1, []),
+                 (3, (0.0, 0.0, 0.0), (7, 7, 7), 1.5, [(1, 0)])]
 
 
 def colmap_binary() -> Tuple[Dict[str, bytes], Dict[str, List[Tuple[int, str]]]]:
-    """The seed scene as ``cameras/images/points3D.bin`` bytes and, per file, the
-    ``(offset, struct fmt)`` of every count, id and value field."""
-    files, slots = {}, {}
-
-    def put(buf, sl, fmt, *vals):
-        sl.extend((len(buf) + struct.calcsize("<" + fmt[:k]), f) for k, f in enumerate(fmt))
-        buf += struct.pack("<" + fmt, *vals)
-
-    buf, sl = bytearray(), []
-    put(buf, sl, "Q", len(COLMAP_CAMERAS))
-    for cid, mid, w, h, params in COLMAP_CAMERAS:
-        put(buf, sl, "iiQQ", cid, mid, w, h)
-        put(buf, sl, "d" * len(params), *params)
-    files["cameras.bin"], slots["cameras.bin"] = bytes(buf), sl
-
-    buf, sl = bytearray(), []
-    put(buf, sl, "Q", len(COLMAP_IMAGES))
-    for iid, q, t, cid, name, npts in COLMAP_IMAGES:
-        put(buf, sl, "idddddddi", iid, *q, *t, cid)
-        buf += name.encode() + b"\x00"
-        put(buf, sl, "Q", npts)
-        for k in range(npts):
-            put(buf, sl, "ddq", 1.0 + k, 2.0, -1)
-    files["images.bin"], slots["images.bin"] = bytes(buf), sl
-
-    buf, sl = bytearray(), []
-    put(buf, sl, "Q", len(COLMAP_POINTS))
-    for pid, xyz, rgb, err, tl in COLMAP_POINTS:
-        put(buf, sl, "QdddBBBd", pid, *xyz, *rgb, err)
-        put(buf, sl, "Q", tl)
-        for k in range(tl):
-            put(buf, sl, "ii", 1, k)
-    files["points3D.bin"], slots["points3D.bin"] = bytes(buf), sl
-    return files, slots
+    """The seed model as binary files and their fields (tests/helpers/colmap.py)."""
+    return colmap.colmap_binary(COLMAP_CAMERAS, COLMAP_IMAGES, COLMAP_POINTS)
 
 
 def colmap_text() -> Dict[str, Optional[bytes]]:
-    """The seed scene as COLMAP ``.txt`` bytes, with the ``.bin`` names mapped to None (absent,
-    so that the reader reads the text files)."""
-    name = {k: v[0] for k, v in CAMERA_MODELS.items()}
-    cam = ["# Camera list with one line of data per camera:"]
-    cam += [" ".join([str(c[0]), name[c[1]], str(c[2]), str(c[3])]
-                     + [repr(float(p)) for p in c[4]]) for c in COLMAP_CAMERAS]
-    img = ["# Image list with two lines of data per image:"]
-    for iid, q, t, cid, fname, npts in COLMAP_IMAGES:
-        img.append(" ".join([str(iid)] + [repr(float(v)) for v in (*q, *t)] + [str(cid), fname]))
-        img.append(" ".join(f"{1.0 + k!r} 2.0 -1" for k in range(npts)))
-    pts = ["# 3D point list with one line of data per point:"]
-    for pid, xyz, rgb, err, tl in COLMAP_POINTS:
-        pts.append(" ".join([str(pid)] + [repr(float(v)) for v in xyz] + [str(c) for c in rgb]
-                            + [repr(float(err))] + [f"1 {k}" for k in range(tl)]))
-    files: Dict[str, Optional[bytes]] = {
-        "cameras.txt": ("\n".join(cam) + "\n").encode(),
-        "images.txt": ("\n".join(img) + "\n").encode(),
-        "points3D.txt": ("\n".join(pts) + "\n").encode()}
+    """The seed model as COLMAP ``.txt`` bytes.
+
+    The ``.bin`` names map to None (absent), so that the reader reads the text files.
+    """
+    files: Dict[str, Optional[bytes]] = dict(
+        colmap.colmap_text(COLMAP_CAMERAS, COLMAP_IMAGES, COLMAP_POINTS))
     files.update({n.replace(".txt", ".bin"): None for n in list(files)})
     return files
 

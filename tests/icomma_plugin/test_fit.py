@@ -27,17 +27,11 @@ from icomma_plugin.fit import (
 )
 from icomma_plugin.fit.state import PARAM_NAMES
 from icomma_plugin.gaussians import GaussianModel, rgb_to_sh
+from tests.helpers.geometry import look_at_c2w
 
-BACKEND = "auto"  # native CPU kernel when built, else the reference
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Tiny images: one intra-op thread is fastest (and far faster on a busy, shared machine)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+# The backend is the library's default ("auto": the native CPU kernel when built, else the
+# reference). Tiny images: one intra-op thread is fastest (far faster on a busy, shared machine).
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 # ---------------------------------------------------------------------------------------- helpers
@@ -81,15 +75,7 @@ def _check_consistent(st: GaussianTrainState):
 
 def _look_at_w2c(campos, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> np.ndarray:
     """World-to-camera of a camera at `campos` looking at `target` (OpenCV axes)."""
-    c = np.asarray(campos, float)
-    z = np.asarray(target, float) - c
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = x, y, z, c
-    return np.linalg.inv(c2w)
+    return np.linalg.inv(look_at_c2w(campos, target, up))
 
 
 def _ring_poses(n, radius=3.0, height=1.0):
@@ -128,7 +114,7 @@ def _render_views(model, poses, size=32, bg=(0.0, 0.0, 0.0)):
     with torch.no_grad():
         for k, w2c in enumerate(poses):
             v = FitView(f"v{k}", torch.zeros(3, size, size), intr, torch.as_tensor(w2c, dtype=torch.float32))
-            out = render_state(st, v, torch.tensor(bg), BACKEND)
+            out = render_state(st, v, torch.tensor(bg))
             views.append((v.name, out.color.clamp(0, 1), out.alpha.clamp(0, 1), intr, w2c))
     return views
 
@@ -279,7 +265,7 @@ def test_tiny_end_to_end_fit():
     xyz, rgb = random_cube_points(300, 0.8, seed=0)
     init = model_from_points(xyz, rgb, sh_degree=1)
     cfg = FitConfig.scaled_schedule(300, sh_degree=1, num_random_points=300, densify_grad_threshold=1e-4,
-                                    max_gaussians=2000, backend=BACKEND)
+                                    max_gaussians=2000)
     trainer = Trainer(init, train, scene_extent=3.3, config=cfg, background=(0, 0, 0), test=test)
     p0 = trainer.evaluate(train)
     seen = []
@@ -330,8 +316,7 @@ def test_fit_scene_writes_loadable_model_folder(tiny_dataset, tmp_path):
     from icomma_plugin.render import render
 
     out = tmp_path / "model"
-    cfg = FitConfig.scaled_schedule(60, sh_degree=1, num_random_points=200, save_iterations=(30,),
-                                    backend=BACKEND)
+    cfg = FitConfig.scaled_schedule(60, sh_degree=1, num_random_points=200, save_iterations=(30,))
     calls = []
     res = fit_scene(tiny_dataset, out, cfg, white_background=False, progress=lambda *a: calls.append(a))
     assert res.model_path == out.resolve() and calls
@@ -357,14 +342,14 @@ def test_fit_scene_writes_loadable_model_folder(tiny_dataset, tmp_path):
     intr = Intrinsics(cam.width, cam.height, cam.fx, cam.fy)
     w2c = torch.as_tensor(cam.w2c, dtype=torch.float32)
     bg = torch.zeros(3)
-    a = render(m, intr, w2c, bg, backend=BACKEND).color
-    b = render(res.fit.model, intr, w2c, bg, backend=BACKEND).color
+    a = render(m, intr, w2c, bg).color
+    b = render(res.fit.model, intr, w2c, bg).color
     assert torch.allclose(a, b, atol=1e-5)
 
     # never overwrites unless asked
     with pytest.raises(ValueError, match="already exists"):
         fit_scene(tiny_dataset, out, cfg)
-    cfg2 = FitConfig.scaled_schedule(5, sh_degree=1, num_random_points=50, backend=BACKEND)
+    cfg2 = FitConfig.scaled_schedule(5, sh_degree=1, num_random_points=50)
     fit_scene(tiny_dataset, out, cfg2, overwrite=True)
     assert load_model_folder(out).iteration == 5
     assert not (out / "point_cloud" / "iteration_60").exists()
@@ -479,7 +464,7 @@ def test_fit_ignores_invalid_pixels():
 
     def fit(train):
         xyz, rgb = random_cube_points(200, 0.8, seed=0)
-        cfg = FitConfig.scaled_schedule(30, sh_degree=1, backend=BACKEND)
+        cfg = FitConfig.scaled_schedule(30, sh_degree=1)
         t = Trainer(model_from_points(xyz, rgb, sh_degree=1), train, 3.3, cfg, test=train)
         t.run()
         return t, t.state.get("means").detach().clone()
@@ -572,7 +557,7 @@ def test_fit_scene_on_transforms_json_capture(tmp_path):
     assert len(scene.train) == 7 and len(scene.test) == 2  # v0 and v8 held out
     fv = views_to_fit(scene.train, -1, None, (0.0, 0.0, 0.0))
     assert fv[0].valid is not None and 0.5 < float(fv[0].valid.mean()) < 1.0
-    cfg = FitConfig.scaled_schedule(40, sh_degree=1, num_sweep_points=300, backend=BACKEND)
+    cfg = FitConfig.scaled_schedule(40, sh_degree=1, num_sweep_points=300)
     res = fit_scene(tmp_path, tmp_path / "model", cfg)
     m = res.metrics
     assert m["init"] == {"source": "views", "points": 300}

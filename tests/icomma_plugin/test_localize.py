@@ -20,7 +20,6 @@ from icomma_plugin.matchers import make_matcher
 from icomma_plugin.pose.se3 import se3_log
 from icomma_plugin.render import render
 
-BACKEND = "auto"
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
@@ -32,7 +31,7 @@ def plane():
     gt_c2w = look_at_c2w((0.2, -1.1, 1.1), (0.0, 0.0, 0.0))
     with torch.no_grad():
         query = render(model, intr, torch.tensor(np.linalg.inv(gt_c2w), dtype=torch.float32),
-                       torch.zeros(3), backend=BACKEND).color.clamp(0, 1)
+                       torch.zeros(3)).color.clamp(0, 1)
     return model, intr, gt_c2w, query
 
 
@@ -112,7 +111,7 @@ def test_one_step_moves_toward_truth(plane, mode):
     cfg = LocalizerConfig(lambda_match=1.0, lr=0.005, max_iterations=1, gradient_mode=mode,
                           switch_threshold=0.0, converge_patience=0)
     gt_w2c = np.linalg.inv(gt_c2w)
-    res = localize(model, query, intr, np.linalg.inv(init_c2w), matcher, cfg, gt_w2c=gt_w2c, backend=BACKEND)
+    res = localize(model, query, intr, np.linalg.inv(init_c2w), matcher, cfg, gt_w2c=gt_w2c)
     assert res.iterations == 1
     rec = res.trace[0]
     assert rec["stage"] == 1 and rec["matches_used"] >= 20 and rec["loss_match"] > 0
@@ -129,7 +128,7 @@ def test_losses_wiring_and_switch_schedule(plane):
     # Identity correspondences: in depth mode L_match is 0 at the current pose, below any threshold.
     matcher = make_matcher("fake", grid_step=8)
     cfg = LocalizerConfig(max_iterations=6, switch_threshold=1.0, converge_patience=0, gradient_mode="depth")
-    res = localize(model, query, intr, np.linalg.inv(init_c2w), matcher, cfg, backend=BACKEND)
+    res = localize(model, query, intr, np.linalg.inv(init_c2w), matcher, cfg)
     t0 = res.trace[0]
     # L = (1 - lambda) L_compare + lambda L_match in stage 1.
     assert t0["stage"] == 1 and t0["loss_match"] is not None
@@ -149,7 +148,7 @@ def test_no_switch_above_threshold(plane):
     init_c2w = perturb_pose(gt_c2w, 8.0, 0.0, generator=np.random.default_rng(2), pivot="origin")
     matcher = make_matcher("fake", grid_step=8, noise=2.0)  # never exact: L_match > 0
     cfg = LocalizerConfig(max_iterations=3, switch_threshold=1e-9, converge_patience=0, gradient_mode="depth")
-    res = localize(model, query, intr, np.linalg.inv(init_c2w), matcher, cfg, backend=BACKEND)
+    res = localize(model, query, intr, np.linalg.inv(init_c2w), matcher, cfg)
     assert res.switch_iteration is None
     assert all(r["stage"] == 1 and r["lr"] == 0.05 for r in res.trace)
 
@@ -161,7 +160,7 @@ def test_too_few_matches_compare_alone(plane, mode):
     k = torch.tensor([[20.0, 20.0], [40.0, 30.0], [30.0, 44.0]])
     matcher = make_matcher("fake", kpts0=k, kpts1=k)  # 3 matches < min_matches = 5
     cfg = LocalizerConfig(max_iterations=2, converge_patience=0, gradient_mode=mode)
-    res = localize(model, query, intr, np.linalg.inv(init_c2w), matcher, cfg, backend=BACKEND)
+    res = localize(model, query, intr, np.linalg.inv(init_c2w), matcher, cfg)
     for r in res.trace:
         assert r["stage"] == 1 and r["matches"] == 3 and r["matches_used"] == 0
         assert r["loss_match"] is None and r["loss"] == r["loss_compare"]  # weight 1, as iComMa
@@ -173,7 +172,7 @@ def test_low_confidence_matches_dropped(plane):
     model, intr, gt_c2w, query = plane
     matcher = make_matcher("fake", grid_step=8, confidence=0.3)
     cfg = LocalizerConfig(max_iterations=1, converge_patience=0, gradient_mode="depth")
-    res = localize(model, query, intr, np.linalg.inv(gt_c2w), matcher, cfg, backend=BACKEND)
+    res = localize(model, query, intr, np.linalg.inv(gt_c2w), matcher, cfg)
     assert res.trace[0]["matches"] > 5 and res.trace[0]["matches_used"] == 0
 
 
@@ -184,7 +183,7 @@ def test_convergence_stop(plane):
                           converge_rot_deg=0.5, converge_trans_rel=0.05, lr=1e-4)
     calls = []
     res = localize(model, query, intr, np.linalg.inv(gt_c2w), None, cfg, gt_w2c=np.linalg.inv(gt_c2w),
-                   backend=BACKEND, progress=calls.append)
+                   progress=calls.append)
     assert res.stop_reason == "converged"
     assert res.iterations == 5 and len(calls) == 5 and len(res.trace) == 5
     assert res.switch_iteration == 0  # compare-only: stage 2 from the start, lr decaying
@@ -197,7 +196,7 @@ def test_max_iterations_stop_and_json(plane):
     init_c2w = perturb_pose(gt_c2w, 3.0, 0.0, generator=np.random.default_rng(5), pivot="origin")
     cfg = LocalizerConfig(use_matching=False, max_iterations=2, converge_patience=0)
     res = localize(model, query, intr, np.linalg.inv(init_c2w), make_matcher("none"), cfg,
-                   gt_w2c=np.linalg.inv(gt_c2w), backend=BACKEND)
+                   gt_w2c=np.linalg.inv(gt_c2w))
     assert isinstance(res, LocalizationResult)
     assert res.stop_reason == "max_iterations" and res.iterations == 2
     assert math.isclose(res.initial_rotation_error_deg, 3.0, abs_tol=1e-6)
@@ -215,7 +214,7 @@ def test_pose_update_is_left_perturbation_of_w2c(plane):
     model, intr, gt_c2w, query = plane
     init_c2w = perturb_pose(gt_c2w, 3.0, 0.02, generator=np.random.default_rng(6), pivot="origin")
     cfg = LocalizerConfig(use_matching=False, max_iterations=3, converge_patience=0)
-    res = localize(model, query, intr, np.linalg.inv(init_c2w), None, cfg, backend=BACKEND)
+    res = localize(model, query, intr, np.linalg.inv(init_c2w), None, cfg)
     xi = torch.tensor(res.trace[2]["xi"], dtype=torch.float64)
     w2c2 = (se3_exp(xi) @ torch.as_tensor(np.linalg.inv(init_c2w))).numpy()
     assert res.trace[0]["xi"] == [0.0] * 6
@@ -230,29 +229,29 @@ def test_image_mode_needs_gradient_matcher(plane):
         supports_image_gradient = False
 
     with pytest.raises(ValueError, match="gradient_mode='depth'"):
-        localize(model, query, intr, np.linalg.inv(gt_c2w), NoGrad(), LocalizerConfig(), backend=BACKEND)
+        localize(model, query, intr, np.linalg.inv(gt_c2w), NoGrad(), LocalizerConfig())
 
 
 def test_bad_inputs(plane):
     model, intr, gt_c2w, query = plane
     w2c = np.linalg.inv(gt_c2w)
     with pytest.raises(ValueError, match="intrinsics size"):
-        localize(model, query[:, :32], intr, w2c, None, backend=BACKEND)
+        localize(model, query[:, :32], intr, w2c, None)
     with pytest.raises(ValueError, match="init_w2c"):
-        localize(model, query, intr, np.eye(3), None, backend=BACKEND)
+        localize(model, query, intr, np.eye(3), None)
     bad = w2c.copy()
     bad[:3, :3] *= 2
     with pytest.raises(ValueError, match="init_w2c.*rigid"):
-        localize(model, query, intr, bad, None, backend=BACKEND)
+        localize(model, query, intr, bad, None)
     with pytest.raises(ValueError, match="query_alpha"):
-        localize(model, query, intr, w2c, None, query_alpha=torch.ones(1, 8, 8), backend=BACKEND)
+        localize(model, query, intr, w2c, None, query_alpha=torch.ones(1, 8, 8))
 
 
 def test_lift_keypoints_roundtrip(plane):
     model, intr, gt_c2w, query = plane
     w2c = torch.tensor(np.linalg.inv(gt_c2w), dtype=torch.float32)
     with torch.no_grad():
-        out = render(model, intr, w2c, torch.zeros(3), backend=BACKEND)
+        out = render(model, intr, w2c, torch.zeros(3))
     k = torch.tensor([[32.0, 32.0], [20.5, 40.25], [45.0, 25.0]])
     pts, keep = lift_keypoints(k, out.depth, out.alpha, intr, torch.as_tensor(gt_c2w))
     assert bool(keep.all())
@@ -265,5 +264,5 @@ def test_lift_keypoints_roundtrip(plane):
 def test_image_scale(plane):
     model, intr, gt_c2w, query = plane
     cfg = LocalizerConfig(use_matching=False, max_iterations=1, image_scale=0.5, converge_patience=0)
-    res = localize(model, query, intr, np.linalg.inv(gt_c2w), None, cfg, backend=BACKEND)
+    res = localize(model, query, intr, np.linalg.inv(gt_c2w), None, cfg)
     assert res.iterations == 1 and res.trace[0]["loss_compare"] < 0.05

@@ -14,7 +14,6 @@ from icomma_plugin.localization.verify import VerdictConfig, decide, score_obser
 from icomma_plugin.matchers import make_matcher
 from icomma_plugin.pose.convert import look_at_c2w, perturb_pose, rotation_error_deg
 
-BACKEND = "auto"
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +35,7 @@ def xfeat():
 def _state(demo, matcher=None, query=None):
     scene, model, q, _ = demo
     return LocalizationState(model, Query(q if query is None else query, scene.intrinsics), torch.zeros(3),
-                             backend=BACKEND, matcher=matcher, gt_c2w=scene.gt_c2w)
+                             matcher=matcher, gt_c2w=scene.gt_c2w)
 
 
 # ------------------------------------------------------------------------------------------- PnP
@@ -198,7 +197,7 @@ def test_empty_start_is_reported_with_what_to_do(demo, xfeat):
     away = scene.gt_c2w.copy()
     away[:3, :3] = away[:3, :3] @ np.diag([-1.0, 1.0, -1.0])
     res = localize(model, q, scene.intrinsics, np.linalg.inv(away), xfeat, gt_w2c=np.linalg.inv(scene.gt_c2w),
-                   backend=BACKEND, cameras_c2w=cams)
+                   cameras_c2w=cams)
     assert res.verdict.signals["start_render_empty"] is True
     assert "start pose was empty" in res.verdict.reason
     assert res.final_rotation_error_deg < 1.0 and res.verdict.status in ("ok", "uncertain")
@@ -215,7 +214,7 @@ def test_demo_end_to_end_from_90_degrees_and_from_no_start(demo, xfeat, start):
     init = None
     if start == "90deg":
         init = np.linalg.inv(perturb_pose(scene.gt_c2w, 90.0, 0.1, 11, pivot=scene.scene_centre))
-    res = localize(model, q, scene.intrinsics, init, xfeat, gt_w2c=np.linalg.inv(scene.gt_c2w), backend=BACKEND,
+    res = localize(model, q, scene.intrinsics, init, xfeat, gt_w2c=np.linalg.inv(scene.gt_c2w),
                    cameras_c2w=cams)
     assert res.final_rotation_error_deg < 0.1, res.verdict
     assert res.final_translation_error < 0.01 * scene.scene_scale
@@ -232,9 +231,9 @@ def test_default_method_needs_a_matcher_and_the_paper_needs_a_start(demo):
 
     scene, model, q, _ = demo
     with pytest.raises(ValueError, match="needs a matcher"):
-        localize(model, q, scene.intrinsics, np.linalg.inv(scene.gt_c2w), None, backend=BACKEND)
+        localize(model, q, scene.intrinsics, np.linalg.inv(scene.gt_c2w), None)
     with pytest.raises(ValueError, match="init_w2c is required"):
-        localize(model, q, scene.intrinsics, None, None, LocalizerConfig(), backend=BACKEND)
+        localize(model, q, scene.intrinsics, None, None, LocalizerConfig())
 
 
 def test_features_of_the_query_are_reused_and_match_like_match(demo, xfeat):
@@ -277,7 +276,7 @@ def test_renders_above_one_reach_the_matcher_clamped(demo, xfeat):
     assert float(st.render(np.linalg.inv(scene.gt_c2w)).color.max()) > 1.3
     init = np.linalg.inv(perturb_pose(scene.gt_c2w, 5.0, 0.05, 4, pivot=scene.scene_centre))
     for cfg in (LocalizerConfig(max_iterations=2, converge_patience=0), None):
-        res = localize(bright, q, scene.intrinsics, init, xfeat, cfg, backend=BACKEND, cameras_c2w=cams)
+        res = localize(bright, q, scene.intrinsics, init, xfeat, cfg, cameras_c2w=cams)
         assert res.verdict is not None  # ran to the end: no range error from the matcher
 
 
@@ -289,7 +288,7 @@ def test_a_photo_sharper_than_the_model_is_worked_at_the_model_resolution(demo, 
     big = resize_image(q, 200, 200).clamp(0, 1)
     intr = scene.intrinsics.scaled(2.0)
     init = np.linalg.inv(perturb_pose(scene.gt_c2w, 10.0, 0.05, 8, pivot=scene.scene_centre))
-    res = localize(model, big, intr, init, xfeat, gt_w2c=np.linalg.inv(scene.gt_c2w), backend=BACKEND,
+    res = localize(model, big, intr, init, xfeat, gt_w2c=np.linalg.inv(scene.gt_c2w),
                    cameras_c2w=cams, model_side=100)
     scales = {r.scale for r in res.trace if r.stage == Stage.GEOMETRIC}
     assert scales == {0.5} and res.config["work_side"] == 100

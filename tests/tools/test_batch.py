@@ -7,7 +7,6 @@ Photos are rendered from a 100x100 demo scene at known poses, so the truth is kn
 from __future__ import annotations
 
 import csv
-import importlib.util
 import json
 import math
 import os
@@ -19,52 +18,27 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
-from hydra import compose, initialize_config_dir
 from PIL import Image
 
 from icomma_plugin.localization.inputs import list_photos, read_poses_file
 from icomma_plugin.localization.ledger import CSV_COLUMNS, LedgerError, PosesLedger
 from icomma_plugin.localization.problem import ProblemError
+from tests.helpers.demo import demo_model, photo
+from tests.helpers.paths import REPO
+from tests.helpers.tools import LOCALIZE_TOOL, compose, localize_tool
 
-REPO = Path(__file__).resolve().parents[1]
-CONF = REPO / "conf"
-TOOL = REPO / "tools" / "localize.py"
 SIZE = 100
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
 
-def _tool():
-    name = "icomma_tools_localize"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, TOOL)
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules[name] = mod
-        spec.loader.exec_module(mod)
-    return sys.modules[name]
-
-
-def _compose(overrides):
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return compose(config_name="localize", overrides=list(overrides))
-
-
-def _png(path: Path, img: torch.Tensor) -> None:
-    Image.fromarray((img.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)).save(path)
-
-
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     """A 100x100 demo model folder, 6 photos rendered around it, their true poses (JSON)."""
-    from icomma_plugin.demo_scene import build_demo_scene
-    from icomma_plugin.io.model_folder import load_model_folder
     from icomma_plugin.pose.convert import look_at_c2w
-    from icomma_plugin.render import render
 
     root = tmp_path_factory.mktemp("batch")
-    s = build_demo_scene(root / "model", seed=0, width=SIZE, height=SIZE)
-    model = load_model_folder(s.path).model
+    s, model = demo_model(root / "model", SIZE)
     photos = root / "photos"
     photos.mkdir()
     gt = {}
@@ -73,14 +47,7 @@ def scene(tmp_path_factory):
         c2w = look_at_c2w(
             np.array([3.8 * math.cos(az), 3.8 * math.sin(az), 2.0]), np.array([0.0, 0.0, 0.4])
         )
-        with torch.no_grad():
-            img = render(
-                model,
-                s.intrinsics,
-                torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32),
-                torch.zeros(3),
-            ).color.clamp(0, 1)
-        _png(photos / f"p{i}.png", img)
+        Image.fromarray(photo(model, s.intrinsics, c2w)).save(photos / f"p{i}.png")
         gt[f"p{i}.png"] = c2w.tolist()
     (root / "gt.json").write_text(json.dumps(gt))
     return {
@@ -110,7 +77,7 @@ def _base(scene, out: Path, *extra):
 def _cli(args, timeout=600, **kw):
     env = dict(os.environ, PYTHONWARNINGS="ignore", HYDRA_FULL_ERROR="0", OMP_NUM_THREADS="1")
     return subprocess.run(
-        [sys.executable, str(TOOL), *args],
+        [sys.executable, str(LOCALIZE_TOOL), *args],
         cwd=str(REPO),
         capture_output=True,
         text=True,
@@ -203,7 +170,7 @@ def test_batch_poses_json_csv_exports_and_bad_photos(scene, tmp_path):
     Image.new("RGB", (80, SIZE)).save(photos / "small.png")
     (photos / "broken.png").write_bytes(b"not a png")
     out = tmp_path / "out"
-    cfg = _compose(
+    cfg = compose(
         [
             "data=model_folder",
             f"data.model_path={scene['model']}",
@@ -218,7 +185,7 @@ def test_batch_poses_json_csv_exports_and_bad_photos(scene, tmp_path):
             "output.convergence_plot=false",
         ]
     )
-    doc = _tool().run(cfg, out)
+    doc = localize_tool().run(cfg, out)
     assert doc == json.loads((out / "poses.json").read_text()) | {"summary": doc["summary"]}
     rows = {r["name"]: r for r in doc["photos"]}
     assert set(rows) == {"broken.png", "p0.png", "p1.png", "small.png"}
@@ -280,12 +247,12 @@ def test_per_photo_start_poses_and_missing(scene, tmp_path):
     pf = tmp_path / "starts.json"
     pf.write_text(json.dumps(starts))
     out = tmp_path / "out"
-    cfg = _compose(
+    cfg = compose(
         _base(
             scene, out, "data.limit=2", f"data.init.poses_file={pf}", "output.contact_sheet=false"
         )
     )
-    doc = _tool().run(cfg, out)
+    doc = localize_tool().run(cfg, out)
     rows = {r["name"]: r for r in doc["photos"]}
     assert rows["p0.png"]["status"] != "failed" and np.allclose(
         rows["p0.png"]["init_c2w"], starts["p0.png"]
@@ -324,7 +291,7 @@ def test_resume_after_kill_redoes_no_finished_photo(scene, tmp_path):
     args = _base(scene, out, "data.init=none", "output.contact_sheet=false")
     env = dict(os.environ, PYTHONWARNINGS="ignore", OMP_NUM_THREADS="1")
     proc = subprocess.Popen(
-        [sys.executable, str(TOOL), *args],
+        [sys.executable, str(LOCALIZE_TOOL), *args],
         cwd=str(REPO),
         env=env,
         stdout=subprocess.DEVNULL,
@@ -369,12 +336,12 @@ def test_resume_after_kill_redoes_no_finished_photo(scene, tmp_path):
 
 def test_two_worker_processes(scene, tmp_path):
     out = tmp_path / "out"
-    cfg = _compose(
+    cfg = compose(
         _base(
             scene, out, "data.limit=4", "data.init=none", "workers=2", "output.contact_sheet=false"
         )
     )
-    doc = _tool().run(cfg, out)
+    doc = localize_tool().run(cfg, out)
     assert doc["done"] == 4 and [r["index"] for r in doc["photos"]] == [0, 1, 2, 3]
     pids = {r["worker"] for r in doc["photos"]}
     assert os.getpid() not in pids and 1 <= len(pids) <= 2

@@ -4,20 +4,8 @@ writes its JSON and markdown, the two render paths end on the same poses, bad in
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
-
-pytest.importorskip("gaussian_renderer_pose")
-
-
-@pytest.fixture(scope="module")
-def small_demo(tmp_path_factory) -> Path:
-    from icomma_plugin.demo_scene import build_demo_scene
-
-    path = tmp_path_factory.mktemp("demo") / "scene"
-    build_demo_scene(path, seed=0, width=64, height=64)
-    return path
 
 
 def test_both_methods_and_render_paths(small_demo, tmp_path, capsys):

@@ -4,16 +4,13 @@ defaults do not drift from the code's, and only tools/ imports Hydra."""
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
 
 from icomma_plugin.localize import LocalizerConfig, RobustConfig
 from icomma_plugin.matchers import Matcher, available_matchers
-
-REPO = Path(__file__).resolve().parents[1]
-CONF = REPO / "conf"
+from tests.helpers.paths import CONF, REPO
+from tests.helpers.tools import compose
 
 
 def _tools_common():
@@ -29,15 +26,9 @@ def _options(group: str):
     return sorted(p.stem for p in (CONF / group).glob("*.yaml"))
 
 
-def _compose(overrides=(), name="localize"):
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return compose(config_name=name, overrides=list(overrides), return_hydra_config=False)
-
-
 def test_default_composition_builds_the_default_localizer():
     common = _tools_common()
-    cfg = _compose()
-    assert cfg.data.kind == "demo"
+    cfg = compose()  # its data is the demo: test_demo_converges_from_20_degrees runs it
     assert isinstance(common.build_optimizer(cfg.optimizer), RobustConfig)
     matcher, name = common.build_matcher(cfg.matcher)
     assert isinstance(matcher, Matcher) and name == "xfeat"
@@ -45,7 +36,7 @@ def test_default_composition_builds_the_default_localizer():
 
 @pytest.mark.parametrize("option", _options("optimizer"))
 def test_every_optimizer_builds_its_config(option):
-    built = _tools_common().build_optimizer(_compose([f"optimizer={option}"]).optimizer)
+    built = _tools_common().build_optimizer(compose([f"optimizer={option}"]).optimizer)
     if option == "robust":
         assert isinstance(built, RobustConfig)
     else:
@@ -55,7 +46,7 @@ def test_every_optimizer_builds_its_config(option):
 @pytest.mark.parametrize("option", _options("matcher"))
 def test_every_matcher_builds_or_says_why_not(option):
     common = _tools_common()
-    node = _compose([f"matcher={option}"]).matcher
+    node = compose([f"matcher={option}"]).matcher
     if option == "none":
         assert common.build_matcher(node) == (None, None)
     elif option == "loftr":  # needs a user checkpoint: a one-line error naming the key
@@ -70,23 +61,23 @@ def test_every_matcher_builds_or_says_why_not(option):
 def test_every_renderer_names_a_backend(option):
     import gaussian_renderer_pose as grp
 
-    assert _compose([f"renderer={option}"]).renderer.backend in set(grp.available_backends()) | {"auto"}
+    assert compose([f"renderer={option}"]).renderer.backend in set(grp.available_backends()) | {"auto"}
 
 
 def test_yaml_defaults_are_the_code_defaults():
     """What the YAML documents is what the dataclasses do (no silent drift)."""
     common = _tools_common()
-    assert common.build_optimizer(_compose(["optimizer=icomma"]).optimizer) == LocalizerConfig()
-    assert common.build_optimizer(_compose(["optimizer=robust"]).optimizer) == RobustConfig()
+    assert common.build_optimizer(compose(["optimizer=icomma"]).optimizer) == LocalizerConfig()
+    assert common.build_optimizer(compose(["optimizer=robust"]).optimizer) == RobustConfig()
 
 
 def test_overrides_reach_the_built_configs():
     common = _tools_common()
-    lc = common.build_optimizer(_compose([
+    lc = common.build_optimizer(compose([
         "optimizer=icomma", "optimizer.lambda_match=0.5", "optimizer.switch_threshold=1e-2",
         "optimizer.lr=0.02", "optimizer.gradient_mode=depth"]).optimizer)
     assert (lc.lambda_match, lc.switch_threshold, lc.lr, lc.gradient_mode) == (0.5, 1e-2, 0.02, "depth")
-    rc = common.build_optimizer(_compose([
+    rc = common.build_optimizer(compose([
         "optimizer.geometric.max_rounds=2", "optimizer.refine.iterations=[5]", "optimizer.refine.blur=[0]",
         "optimizer.refine.scales=[1]", "optimizer.verdict.ok_inliers=7"]).optimizer)
     assert rc.geometric.max_rounds == 2 and rc.refine.iterations == (5,) and rc.verdict.ok_inliers == 7
@@ -95,15 +86,15 @@ def test_overrides_reach_the_built_configs():
 def test_bad_optimizer_value_is_a_user_error_naming_the_field():
     common = _tools_common()
     with pytest.raises(ValueError, match="lambda_match"):
-        common.build_optimizer(_compose(["optimizer=icomma", "optimizer.lambda_match=2"]).optimizer)
+        common.build_optimizer(compose(["optimizer=icomma", "optimizer.lambda_match=2"]).optimizer)
     with pytest.raises(ValueError, match="hessian"):
-        common.build_optimizer(_compose(["optimizer.refine.hessian=newton"]).optimizer)
+        common.build_optimizer(compose(["optimizer.refine.hessian=newton"]).optimizer)
 
 
 def test_data_init_none_reaches_the_problem(tmp_path):
     from icomma_plugin.localization.problem import load_problem
 
-    cfg = _compose([f"data.path={tmp_path / 'demo'}", "data.width=48", "data.height=48", "data.init=none"])
+    cfg = compose([f"data.path={tmp_path / 'demo'}", "data.width=48", "data.height=48", "data.init=none"])
     problem = load_problem(_tools_common().container(cfg.data))
     assert problem.init_c2w is None and problem.gt_c2w is not None
     assert len(problem.candidate_c2ws()) == len(problem.cameras) > 0

@@ -2,7 +2,6 @@
 one-line errors for bad inputs, and the demo converging from 20 degrees off on CPU."""
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import subprocess
@@ -11,39 +10,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hydra import compose, initialize_config_dir
 
-REPO = Path(__file__).resolve().parents[1]
-CONF = REPO / "conf"
-TOOL = REPO / "tools" / "localize.py"
+from tests.helpers.paths import REPO
+from tests.helpers.tools import LOCALIZE_TOOL, compose, localize_tool
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
-
-
-def _tool():
-    """tools/localize.py as a module (registered before execution: it defines dataclasses)."""
-    name = "icomma_tools_localize"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, TOOL)
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules[name] = mod
-        spec.loader.exec_module(mod)
-    return sys.modules[name]
-
-
-def _compose(overrides):
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return compose(config_name="localize", overrides=list(overrides))
-
-
-@pytest.fixture(scope="module")
-def small_demo(tmp_path_factory) -> Path:
-    """A 64x64 demo scene folder (built once for this module)."""
-    from icomma_plugin.demo_scene import build_demo_scene
-
-    path = tmp_path_factory.mktemp("demo") / "scene"
-    build_demo_scene(path, seed=0, width=64, height=64)
-    return path
 
 
 def _demo_overrides(path: Path):
@@ -52,13 +23,13 @@ def _demo_overrides(path: Path):
 
 def _cli(args, timeout=600):
     env = dict(os.environ, PYTHONWARNINGS="ignore", HYDRA_FULL_ERROR="0")
-    return subprocess.run([sys.executable, str(TOOL), *args], cwd=str(REPO), capture_output=True,
-                          text=True, timeout=timeout, env=env)
+    return subprocess.run([sys.executable, str(LOCALIZE_TOOL), *args], cwd=str(REPO),
+                          capture_output=True, text=True, timeout=timeout, env=env)
 
 
 def test_run_writes_every_output(small_demo, tmp_path):
-    tool = _tool()
-    cfg = _compose(_demo_overrides(small_demo) + [
+    tool = localize_tool()
+    cfg = compose(_demo_overrides(small_demo) + [
         "optimizer=icomma", "optimizer.max_iterations=4", "output.progress=false", "output.gif=true",
         "output.gif_every=2"])
     out = tmp_path / "out"
@@ -87,8 +58,8 @@ def test_run_writes_every_output(small_demo, tmp_path):
 
 
 def test_init_override_and_compare_only(small_demo, tmp_path):
-    tool = _tool()
-    cfg = _compose(_demo_overrides(small_demo) + [
+    tool = localize_tool()
+    cfg = compose(_demo_overrides(small_demo) + [
         "optimizer=compare_only", "matcher=none", "optimizer.max_iterations=2", "output.progress=false",
         "data.init.rot_deg=5", "output.overlays=false", "output.convergence_plot=false",
         "output.trace_format=csv"])
@@ -151,7 +122,7 @@ def test_cli_bad_inputs(small_demo, tmp_path):
 
 def test_model_folder_query_image_and_c2w_file(small_demo, tmp_path):
     """data=model_folder with a query image, intrinsics from a camera entry, an init c2w file."""
-    tool = _tool()
+    tool = localize_tool()
     from icomma_plugin.demo_scene import build_demo_scene
 
     scene = build_demo_scene(small_demo, seed=0, width=64, height=64)
@@ -159,7 +130,7 @@ def test_model_folder_query_image_and_c2w_file(small_demo, tmp_path):
     np.save(init, scene.init_c2w)
     gt = tmp_path / "gt.txt"
     np.savetxt(gt, scene.gt_c2w)
-    cfg = _compose(["data=model_folder", f"data.model_path={small_demo}",
+    cfg = compose(["data=model_folder", f"data.model_path={small_demo}",
                     f"data.query.image={scene.query_image_path}", "data.intrinsics.camera=ring_003",
                     f"data.init.c2w_file={init}", f"data.gt.c2w_file={gt}", "matcher=none",
                     "optimizer=compare_only", "optimizer.max_iterations=1", "output.progress=false",
@@ -173,10 +144,10 @@ def test_model_folder_query_image_and_c2w_file(small_demo, tmp_path):
 def test_demo_converges_from_20_degrees(tmp_path):
     """The paper's method, acceptance run at reduced resolution: 20 degrees off -> < 0.5 deg, < 1%
     of the scene scale."""
-    tool = _tool()
+    tool = localize_tool()
     # The demo built at 100x100 (a query rendered at the working size: resizing a 200 px query
     # instead biases the photometric optimum by a few tenths of a degree).
-    cfg = _compose([f"data.path={tmp_path / 'demo100'}", "data.width=100", "data.height=100",
+    cfg = compose([f"data.path={tmp_path / 'demo100'}", "data.width=100", "data.height=100",
                     "optimizer=icomma", "data.init.rot_deg=20", "data.init.seed=1", "output.progress=false",
                     "output.overlays=false", "output.match_lines=false", "output.convergence_plot=false"])
     res = tool.run(cfg, tmp_path / "out")
@@ -195,7 +166,7 @@ def test_model_folder_query_from_dataset_view(small_demo, tmp_path):
     from icomma_plugin.demo_scene import build_demo_scene
     from icomma_plugin.pose.convert import opengl_to_opencv_c2w
 
-    tool = _tool()
+    tool = localize_tool()
     scene = build_demo_scene(small_demo, seed=0, width=64, height=64)
     root = tmp_path / "blender"
     (root / "test").mkdir(parents=True)
@@ -204,7 +175,7 @@ def test_model_folder_query_from_dataset_view(small_demo, tmp_path):
     doc = {"camera_angle_x": 2 * math.atan(64 / (2 * scene.intrinsics.fx)), "frames": [frame]}
     for split in ("train", "test"):
         (root / f"transforms_{split}.json").write_text(json.dumps(doc))
-    cfg = _compose(["data=model_folder", f"data.model_path={small_demo}", f"data.query.dataset={root}",
+    cfg = compose(["data=model_folder", f"data.model_path={small_demo}", f"data.query.dataset={root}",
                     "data.query.index=0", "data.init.rot_deg=5", "data.init.trans=0.01", "matcher=none",
                     "optimizer=compare_only", "optimizer.max_iterations=1", "output.progress=false",
                     "output.overlays=false", "output.convergence_plot=false"])

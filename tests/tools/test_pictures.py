@@ -3,56 +3,38 @@ by verdict colour), the trajectory plot, and the benchmark curves beside the pap
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
-from hydra import compose, initialize_config_dir
 from PIL import Image
 
 from icomma_plugin import visualize as viz
 from icomma_plugin.io.video import video_info
-
-REPO = Path(__file__).resolve().parents[1]
-TOOL = REPO / "tools" / "localize.py"
+from tests.helpers.tools import compose, localize_tool
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
-
-
-def _tool():
-    name = "icomma_tools_localize"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, TOOL)
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules[name] = mod
-        spec.loader.exec_module(mod)
-    return sys.modules[name]
 
 
 def test_optimisation_as_mp4(tmp_path):
     from icomma_plugin.demo_scene import build_demo_scene
 
     scene = build_demo_scene(tmp_path / "demo", seed=0, width=64, height=64)
-    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        cfg = compose(
-            config_name="localize",
-            overrides=[
-                f"data.path={scene.path}",
-                "data.width=64",
-                "data.height=64",
-                "optimizer=icomma",
-                "optimizer.max_iterations=4",
-                "output.progress=false",
-                "output.mp4=true",
-                "output.gif_every=1",
-                "output.overlays=false",
-                "output.match_lines=false",
-                "output.convergence_plot=false",
-            ],
-        )
-    res = _tool().run(cfg, tmp_path / "out")
+    cfg = compose(
+        [
+            f"data.path={scene.path}",
+            "data.width=64",
+            "data.height=64",
+            "optimizer=icomma",
+            "optimizer.max_iterations=4",
+            "output.progress=false",
+            "output.mp4=true",
+            "output.gif_every=1",
+            "output.overlays=false",
+            "output.match_lines=false",
+            "output.convergence_plot=false",
+        ]
+    )
+    res = localize_tool().run(cfg, tmp_path / "out")
     assert "optimisation.mp4" in res["files"] and "optimisation.gif" not in res["files"]
     w, h, n, _ = video_info(tmp_path / "out" / "optimisation.mp4")
     assert n == res["iterations"] == 4 and h == 64 and w >= 4 * 64

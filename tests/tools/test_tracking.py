@@ -4,17 +4,13 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
-import sys
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from PIL import Image
 
 from icomma_plugin.io import video
@@ -22,29 +18,13 @@ from icomma_plugin.localization.ledger import PosesLedger
 from icomma_plugin.localization.tracking import FrameSource, TrackingConfig, predict_w2c, track
 from icomma_plugin.localization.types import Verdict
 from icomma_plugin.pose.se3 import se3_exp
+from tests.helpers.demo import demo_model, photo
+from tests.helpers.tools import compose, localize_tool
 
-REPO = Path(__file__).resolve().parents[1]
-CONF = REPO / "conf"
-TOOL = REPO / "tools" / "localize.py"
 SIZE = 100
 N_FRAMES = 6
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
-
-
-def _tool():
-    name = "icomma_tools_localize"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, TOOL)
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules[name] = mod
-        spec.loader.exec_module(mod)
-    return sys.modules[name]
-
-
-def _compose(overrides):
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return compose(config_name="localize", overrides=list(overrides))
 
 
 # ------------------------------------------------------------------------------------ prediction
@@ -194,14 +174,10 @@ def test_a_failed_frame_is_relocalized_from_candidates(tmp_path):
 @pytest.fixture(scope="module")
 def path_scene(tmp_path_factory):
     """A 100x100 demo model and N_FRAMES frames along an arc around it (PNG folder + MP4)."""
-    from icomma_plugin.demo_scene import build_demo_scene
-    from icomma_plugin.io.model_folder import load_model_folder
     from icomma_plugin.pose.convert import look_at_c2w
-    from icomma_plugin.render import render
 
     root = tmp_path_factory.mktemp("track")
-    s = build_demo_scene(root / "model", seed=0, width=SIZE, height=SIZE)
-    model = load_model_folder(s.path).model
+    s, model = demo_model(root / "model", SIZE)
     folder = root / "frames"
     folder.mkdir()
     gts, frames = {}, []
@@ -209,14 +185,7 @@ def path_scene(tmp_path_factory):
         az = 0.4 + 0.05 * i
         eye = np.array([3.8 * math.cos(az), 3.8 * math.sin(az), 2.0 + 0.03 * i])
         c2w = look_at_c2w(eye, np.array([0.0, 0.0, 0.4]))
-        with torch.no_grad():
-            img = render(
-                model,
-                s.intrinsics,
-                torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32),
-                torch.zeros(3),
-            ).color.clamp(0, 1)
-        a = (img.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
+        a = photo(model, s.intrinsics, c2w)
         Image.fromarray(a).save(folder / f"frame{i}.png")
         frames.append(a)
         gts[f"frame{i}.png"] = c2w.tolist()
@@ -253,8 +222,8 @@ def _args(ps, out, *extra):
 
 def test_tracking_a_path_from_a_folder_of_frames(path_scene, tmp_path):
     out = tmp_path / "out"
-    doc = _tool().run(
-        _compose(
+    doc = localize_tool().run(
+        compose(
             _args(path_scene, out, f"data.sequence={path_scene['frames']}", "output.video=false")
         ),
         out,
@@ -277,8 +246,8 @@ def test_tracking_a_path_from_a_folder_of_frames(path_scene, tmp_path):
 
 def test_tracking_an_mp4_every_second_frame_with_its_video(path_scene, tmp_path):
     out = tmp_path / "out"
-    doc = _tool().run(
-        _compose(
+    doc = localize_tool().run(
+        compose(
             _args(
                 path_scene,
                 out,
@@ -301,8 +270,8 @@ def test_tracking_an_mp4_every_second_frame_with_its_video(path_scene, tmp_path)
         r["name"] for r in rows if r["status"] != "failed"
     ]
     # run again on the same folder: nothing is redone
-    again = _tool().run(
-        _compose(
+    again = localize_tool().run(
+        compose(
             _args(
                 path_scene,
                 out,

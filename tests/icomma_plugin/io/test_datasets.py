@@ -1,14 +1,14 @@
 """Dataset readers (icomma_plugin.io.datasets) on small files written here, plus the real lego data.
 
-Files are written by independent helpers in this test (COLMAP struct layouts as in COLMAP's
-read_write_model.py, rotations from axis-angle via cv2.Rodrigues), so conventions are checked
-against known geometry rather than against the reader's own helpers.
+Files are written by helpers independent of the readers (tests/helpers/: COLMAP struct layouts
+as in COLMAP's read_write_model.py, look-at poses; here: rotations from axis-angle via
+cv2.Rodrigues), so conventions are checked against known geometry rather than against the
+reader's own helpers.
 """
 from __future__ import annotations
 
 import json
 import math
-import struct
 from pathlib import Path
 
 import cv2
@@ -29,15 +29,11 @@ from icomma_plugin.io.datasets import (
     read_dataset,
     read_llff,
 )
+from tests.helpers.colmap import write_colmap_bin, write_colmap_txt
+from tests.helpers.geometry import look_at_c2w, project
+from tests.helpers.images import write_png
 
 # ----------------------------------------------------------------------------- helpers
-
-
-def write_png(path: Path, arr: np.ndarray) -> Path:
-    """uint8 [H, W, 3|4] RGB(A) -> PNG (with PIL, independent of the reader's cv2 decode)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(np.ascontiguousarray(arr)).save(path)
-    return path
 
 
 def solid(h, w, rgb, alpha=None):
@@ -49,27 +45,6 @@ def solid(h, w, rgb, alpha=None):
     return arr
 
 
-def look_at_c2w(centre, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """OpenCV camera-to-world (x right, y down, z forward) at `centre` looking at `target`."""
-    c = np.asarray(centre, float)
-    z = np.asarray(target, float) - c
-    z /= np.linalg.norm(z)
-    x = np.cross(-np.asarray(up, float), z)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = x, y, z, c
-    return m
-
-
-def project(view_or_w2c, intr: Intrinsics, X) -> np.ndarray:
-    """Pixel (our convention: centres at integers) of world point X."""
-    w2c = view_or_w2c.w2c if isinstance(view_or_w2c, View) else view_or_w2c
-    xc = w2c[:3, :3] @ np.asarray(X, float) + w2c[:3, 3]
-    assert xc[2] > 0
-    return np.array([intr.fx * xc[0] / xc[2] + intr.cx_px, intr.fy * xc[1] / xc[2] + intr.cy_px])
-
-
 def quat_from_axis_angle(axis, angle):
     """COLMAP qvec (w, x, y, z) and the rotation matrix (via cv2.Rodrigues) it stands for."""
     n = np.asarray(axis, float)
@@ -77,60 +52,6 @@ def quat_from_axis_angle(axis, angle):
     q = np.concatenate([[math.cos(angle / 2)], math.sin(angle / 2) * n])
     R, _ = cv2.Rodrigues(n * angle)
     return q, R
-
-
-# COLMAP writers (layouts of colmap/scripts/python/read_write_model.py)
-MODEL_IDS = {"SIMPLE_PINHOLE": 0, "PINHOLE": 1, "SIMPLE_RADIAL": 2, "RADIAL": 3, "OPENCV": 4,
-             "OPENCV_FISHEYE": 5, "FULL_OPENCV": 6}
-
-
-def write_colmap_bin(sparse: Path, cameras, images, points):
-    """cameras: [(id, model, w, h, params)]; images: [(id, qvec, tvec, cam_id, name, pts2d)];
-    points: [(id, xyz, rgb, error, track[(img_id, idx)])]."""
-    sparse.mkdir(parents=True, exist_ok=True)
-    with open(sparse / "cameras.bin", "wb") as f:
-        f.write(struct.pack("<Q", len(cameras)))
-        for cid, model, w, h, params in cameras:
-            mid = MODEL_IDS[model] if isinstance(model, str) else model
-            f.write(struct.pack("<iiQQ", cid, mid, w, h))
-            f.write(struct.pack("<" + "d" * len(params), *params))
-    with open(sparse / "images.bin", "wb") as f:
-        f.write(struct.pack("<Q", len(images)))
-        for iid, q, t, cid, name, pts in images:
-            f.write(struct.pack("<idddddddi", iid, *q, *t, cid))
-            f.write(name.encode() + b"\x00")
-            f.write(struct.pack("<Q", len(pts)))
-            for x, y, pid in pts:
-                f.write(struct.pack("<ddq", x, y, pid))
-    with open(sparse / "points3D.bin", "wb") as f:
-        f.write(struct.pack("<Q", len(points)))
-        for pid, xyz, rgb, err, track in points:
-            f.write(struct.pack("<QdddBBBd", pid, *xyz, *rgb, err))
-            f.write(struct.pack("<Q", len(track)))
-            for iid, idx in track:
-                f.write(struct.pack("<ii", iid, idx))
-
-
-def write_colmap_txt(sparse: Path, cameras, images, points):
-    sparse.mkdir(parents=True, exist_ok=True)
-    lines = ["# Camera list with one line of data per camera:",
-             "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]", f"# Number of cameras: {len(cameras)}"]
-    for cid, model, w, h, params in cameras:
-        lines.append(" ".join([str(cid), model, str(w), str(h)] + [repr(float(p)) for p in params]))
-    (sparse / "cameras.txt").write_text("\n".join(lines) + "\n")
-    lines = ["# Image list with two lines of data per image:",
-             "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
-             "#   POINTS2D[] as (X, Y, POINT3D_ID)", f"# Number of images: {len(images)}"]
-    for iid, q, t, cid, name, pts in images:
-        lines.append(" ".join([str(iid)] + [repr(float(v)) for v in (*q, *t)] + [str(cid), name]))
-        lines.append(" ".join(f"{x!r} {y!r} {pid}" for x, y, pid in pts))
-    (sparse / "images.txt").write_text("\n".join(lines) + "\n")
-    lines = ["# 3D point list with one line of data per point:",
-             "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)"]
-    for pid, xyz, rgb, err, track in points:
-        lines.append(" ".join([str(pid)] + [repr(float(v)) for v in xyz] + [str(int(c)) for c in rgb]
-                              + [repr(float(err))] + [f"{a} {b}" for a, b in track]))
-    (sparse / "points3D.txt").write_text("\n".join(lines) + "\n")
 
 
 def colmap_scene(root: Path, fmt: str = "bin", extra_unregistered: bool = True):

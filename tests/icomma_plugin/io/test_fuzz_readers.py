@@ -3,10 +3,10 @@ transforms.json or cfg_args file gives a clean error naming the file, or a valid
 crash, a hang or an allocation sized by a corrupt count.
 
 Two kinds of test per format: random corruption (hypothesis, fixed example counts,
-derandomized: strategies.fuzz_settings) of a valid seed file (seeds.py), and an exhaustive sweep
-that sets every field of the seed to each telling value once (random edits rarely put NaN into
-one chosen coordinate; a sweep always does). Outcomes are checked by strategies.read_clean and
-the assert_valid_* functions below.
+derandomized: fuzz_strategies.fuzz_settings) of a valid seed file (fuzz_seeds.py, both in
+tests/helpers/), and an exhaustive sweep that sets every field of the seed to each telling value
+once (random edits rarely put NaN into one chosen coordinate; a sweep always does). Outcomes are
+checked by fuzz_strategies.read_clean and the assert_valid_* functions below.
 """
 from __future__ import annotations
 
@@ -38,9 +38,8 @@ from icomma_plugin.io.ply import (
     write_gaussian_ply,
     write_points_ply,
 )
-
-from . import seeds
-from .strategies import (
+from tests.helpers import fuzz_seeds as seeds
+from tests.helpers.fuzz_strategies import (
     corrupt_bytes,
     corrupt_json,
     corrupt_ply,
@@ -50,6 +49,7 @@ from .strategies import (
     pack,
     read_clean,
 )
+from tests.helpers.gaussians import random_gaussians
 
 # Corrupt values such as 1e308 make numpy warn about overflow on the way to a clean error.
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
@@ -111,7 +111,7 @@ def assert_valid_scene(s):
 @given(data=st.data())
 def test_fuzz_gaussian_ply(work, data):
     src = work / "_seed.ply"
-    write_gaussian_ply(seeds.gaussians(data.draw(st.sampled_from([0, 1, 3])),
+    write_gaussian_ply(random_gaussians(data.draw(st.sampled_from([0, 1, 3])),
                                        data.draw(st.integers(0, 3))), src)
     seed = src.read_bytes()
     if data.draw(st.booleans()):
@@ -169,7 +169,7 @@ def test_fuzz_parse_cfg_args(data):
 def model_folder(tmp_path_factory):
     """A model folder and the valid bytes of its three files (restored before each example)."""
     root = tmp_path_factory.mktemp("model")
-    write_model_folder(root, seeds.gaussians(3, 1), seeds.CFG, seeds.cameras(2), iteration=7)
+    write_model_folder(root, random_gaussians(3, 1), seeds.CFG, seeds.cameras(2), iteration=7)
     rels = ["cfg_args", "cameras.json", "point_cloud/iteration_7/point_cloud.ply"]
     return root, {r: (root / r).read_bytes() for r in rels}
 

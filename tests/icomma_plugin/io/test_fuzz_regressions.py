@@ -22,9 +22,9 @@ from icomma_plugin.io.ply import (
     write_gaussian_ply,
     write_points_ply,
 )
-
-from . import seeds
-from .strategies import read_clean
+from tests.helpers import fuzz_seeds as seeds
+from tests.helpers.fuzz_strategies import read_clean
+from tests.helpers.gaussians import random_gaussians
 
 
 def _clean_error(call, path, *needles):
@@ -50,7 +50,7 @@ def _with_count(path, count):
 def test_ply_huge_vertex_count_rejected_before_allocation(tmp_path, count):
     # plyfile allocated count x row size up front: 139 GiB for 2^31 - 1 Gaussians.
     p = tmp_path / "point_cloud.ply"
-    write_gaussian_ply(seeds.gaussians(2, 0), p)
+    write_gaussian_ply(random_gaussians(2, 0), p)
     _with_count(p, count)
     _clean_error(lambda: read_gaussian_ply(p), p, "end-of-file", str(count))
     q = tmp_path / "input.ply"
@@ -128,7 +128,7 @@ def test_cameras_json_size_limit_is_inclusive(tmp_path):
 @pytest.fixture
 def folder(tmp_path):
     root = tmp_path / "m"
-    write_model_folder(root, seeds.gaussians(2, 1), seeds.CFG, seeds.cameras(2), iteration=7)
+    write_model_folder(root, random_gaussians(2, 1), seeds.CFG, seeds.cameras(2), iteration=7)
     return root
 
 

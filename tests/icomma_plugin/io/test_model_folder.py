@@ -8,7 +8,6 @@ import pytest
 import torch
 
 from icomma_plugin.camera import Intrinsics
-from icomma_plugin.gaussians import GaussianModel
 from icomma_plugin.io.cameras_json import (
     CameraEntry,
     entry_to_intrinsics,
@@ -24,6 +23,7 @@ from icomma_plugin.io.model_folder import (
 )
 from icomma_plugin.io.ply import read_points_ply, write_gaussian_ply
 from icomma_plugin.pose.convert import look_at_c2w
+from tests.helpers.gaussians import random_gaussians
 
 CFG_2023 = ("Namespace(data_device='cuda', eval=True, images='images', "
             "model_path='./output/7a3c1b2e-4', resolution=-1, sh_degree=3, "
@@ -31,13 +31,6 @@ CFG_2023 = ("Namespace(data_device='cuda', eval=True, images='images', "
 CFG_2024 = ("Namespace(data_device='cuda', depths='', eval=True, images='images', "
             "model_path='/home/u/output/bicycle', resolution=4, sh_degree=3, "
             "source_path='/home/u/360_v2/bicycle', train_test_exp=False, white_background=False)\n")
-
-
-def _model(P=6, degree=3, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    K = (degree + 1) ** 2 - 1
-    r = lambda *s: torch.randn(*s, generator=g)  # noqa: E731
-    return GaussianModel(r(P, 3), r(P, 1, 3), r(P, K, 3), r(P, 1), r(P, 3), r(P, 4), degree)
 
 
 def _cameras(n=3):
@@ -188,7 +181,8 @@ def test_find_entry():
 
 def _write(root, iterations=(7000, 30000), cfg=CFG_2023, **kw):
     for it in iterations:
-        write_model_folder(root, _model(seed=it), parse_cfg_args(cfg), _cameras(), it, **kw)
+        write_model_folder(root, random_gaussians(6, seed=it), parse_cfg_args(cfg), _cameras(), it,
+                           **kw)
 
 
 def test_write_and_load_latest(tmp_path):
@@ -199,7 +193,7 @@ def test_write_and_load_latest(tmp_path):
     mf = load_model_folder(root)
     assert mf.iteration == 30000 and mf.path == root
     assert mf.cfg["white_background"] is True and mf.white_background
-    for k, v in _model(seed=30000).tensors().items():
+    for k, v in random_gaussians(6, seed=30000).tensors().items():
         assert torch.equal(getattr(mf.model, k), v)
     assert len(mf.cameras) == 3 and mf.cameras[2].img_name == "r_2"
     assert load_model_folder(root, iteration=7000).iteration == 7000
@@ -251,7 +245,8 @@ def test_bad_folders(tmp_path):
     err(root, "no iteration_<N>", "junk/")
     (root / "point_cloud" / "iteration_100").mkdir()
     err(root, "missing", "point_cloud.ply")
-    write_gaussian_ply(_model(), root / "point_cloud" / "iteration_100" / "point_cloud.ply")
+    write_gaussian_ply(random_gaussians(6),
+                       root / "point_cloud" / "iteration_100" / "point_cloud.ply")
     assert load_model_folder(root).iteration == 100
     (root / "cfg_args").write_text("Namespace(a=__import__('os'))")
     err(root, "not a Python literal", "'a'", named=root / "cfg_args")
@@ -265,15 +260,16 @@ def test_never_overwrites_iteration_silently(tmp_path, caplog):
     _write(root, iterations=(30000,))
     before = (root / "point_cloud" / "iteration_30000" / "point_cloud.ply").read_bytes()
     with pytest.raises(ValueError, match="overwrite=True"):
-        write_model_folder(root, _model(seed=5), parse_cfg_args(CFG_2023), [], 30000)
+        write_model_folder(root, random_gaussians(6, seed=5), parse_cfg_args(CFG_2023), [], 30000)
     assert (root / "point_cloud" / "iteration_30000" / "point_cloud.ply").read_bytes() == before
-    write_model_folder(root, _model(seed=5), parse_cfg_args(CFG_2023), [], 30000, overwrite=True)
-    assert torch.equal(load_model_folder(root).model.means, _model(seed=5).means)
+    write_model_folder(root, random_gaussians(6, seed=5), parse_cfg_args(CFG_2023), [], 30000,
+                       overwrite=True)
+    assert torch.equal(load_model_folder(root).model.means, random_gaussians(6, seed=5).means)
     # Writing an earlier iteration keeps the later one (and says the later one stays the default).
     with caplog.at_level(logging.WARNING, logger="icomma_plugin.io.model_folder"):
-        write_model_folder(root, _model(seed=6), parse_cfg_args(CFG_2023), [], 100)
+        write_model_folder(root, random_gaussians(6, seed=6), parse_cfg_args(CFG_2023), [], 100)
     assert "later iterations [30000]" in caplog.text
     assert load_model_folder(root).iteration == 30000
     assert not [p for p in root.rglob("*.tmp")]
     with pytest.raises(ValueError, match="iteration"):
-        write_model_folder(root, _model(), {}, [], -5)
+        write_model_folder(root, random_gaussians(6), {}, [], -5)

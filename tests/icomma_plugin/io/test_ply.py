@@ -12,13 +12,7 @@ from icomma_plugin.io.ply import (
     write_gaussian_ply,
     write_points_ply,
 )
-
-
-def _model(P=7, degree=3, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    K = (degree + 1) ** 2 - 1
-    r = lambda *s: torch.randn(*s, generator=g)  # noqa: E731
-    return GaussianModel(r(P, 3), r(P, 1, 3), r(P, K, 3), r(P, 1), r(P, 3), r(P, 4), degree)
+from tests.helpers.gaussians import random_gaussians
 
 
 def _upstream_attributes(degree):
@@ -60,7 +54,7 @@ def _assert_same(a: GaussianModel, b: GaussianModel):
 
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])
 def test_round_trip(tmp_path, degree):
-    m = _model(degree=degree)
+    m = random_gaussians(7, degree)
     p = tmp_path / "sub" / "point_cloud.ply"
     write_gaussian_ply(m, p)
     back = read_gaussian_ply(p)
@@ -71,7 +65,7 @@ def test_round_trip(tmp_path, degree):
 
 def test_header_layout_matches_upstream(tmp_path):
     p = tmp_path / "a.ply"
-    write_gaussian_ply(_model(degree=3), p)
+    write_gaussian_ply(random_gaussians(7, 3), p)
     ply = PlyData.read(str(p))
     assert ply.text is False and ply.byte_order == "<"
     props = ply["vertex"].properties
@@ -83,7 +77,7 @@ def test_header_layout_matches_upstream(tmp_path):
 
 def test_reads_upstream_written_file_channel_major(tmp_path):
     P, K = 4, 15
-    m = _model(P=P, degree=3)
+    m = random_gaussians(P, 3)
     # Identifiable SH values: sh_rest[p, k, c] = 100 p + 10 k + c.
     p_, k_, c_ = torch.meshgrid(torch.arange(P), torch.arange(K), torch.arange(3), indexing="ij")
     m = GaussianModel(m.means, m.sh_dc, (100 * p_ + 10 * k_ + c_).float(), m.opacity_logit,
@@ -144,7 +138,7 @@ def test_not_a_ply(tmp_path):
 
 def test_truncated(tmp_path):
     p = tmp_path / "t.ply"
-    write_gaussian_ply(_model(P=10), p)
+    write_gaussian_ply(random_gaussians(10), p)
     data = p.read_bytes()
     p.write_bytes(data[:-37])
     _err(p, "end-of-file")
@@ -179,13 +173,13 @@ def test_bad_f_rest_count(tmp_path):
 @pytest.mark.parametrize("field,dtype,word", [("opacity", "f8", "float64"), ("x", "i4", "int32")])
 def test_wrong_types(tmp_path, field, dtype, word):
     p = tmp_path / "w.ply"
-    _upstream_save_ply(_model(P=3, degree=1), p, dtypes={field: dtype})
+    _upstream_save_ply(random_gaussians(3, 1), p, dtypes={field: dtype})
     _err(p, "float32", field, word)
 
 
 def test_nan_and_inf(tmp_path):
     p = tmp_path / "n.ply"
-    m = _model(P=5, degree=0)
+    m = random_gaussians(5, 0)
     _upstream_save_ply(m, p, values={
         "opacity": np.array([np.nan, 0, np.nan, 0, 0], np.float32),
         "x": np.array([0, np.inf, 0, 0, 0], np.float32),
@@ -204,7 +198,7 @@ def test_zero_gaussians_allowed_with_warning(tmp_path, caplog):
 
 
 def test_write_refuses_non_finite(tmp_path):
-    m = _model(P=2, degree=0)
+    m = random_gaussians(2, 0)
     m.scale_log[1, 2] = float("nan")
     with pytest.raises(ValueError, match="scale_2"):
         write_gaussian_ply(m, tmp_path / "bad.ply")

@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 from pathlib import Path
 
 import numpy as np
@@ -28,34 +27,15 @@ from icomma_plugin.io.datasets import (
 )
 from icomma_plugin.camera import Intrinsics
 from icomma_plugin.io.ply import write_points_ply
-
-REPO_ROOT = Path(__file__).resolve().parents[2]
+from tests.helpers.geometry import gl_look_at_c2w, project
+from tests.helpers.images import write_png
 
 # ----------------------------------------------------------------------------- helpers
 
 
-def write_png(path: Path, arr: np.ndarray) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(np.ascontiguousarray(arr)).save(path)
-    return path
-
-
-def gl_look_at(centre, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """OpenGL camera-to-world (x right, y up, z back) at `centre` looking at `target`."""
-    c = np.asarray(centre, float)
-    back = c - np.asarray(target, float)
-    back /= np.linalg.norm(back)
-    right = np.cross(np.asarray(up, float), back)
-    right /= np.linalg.norm(right)
-    upv = np.cross(back, right)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, upv, back, c
-    return m
-
-
 def ring(n, radius=4.0):
     a = [2 * math.pi * k / n for k in range(n)]
-    return [gl_look_at((radius * math.cos(t), radius * math.sin(t), 0.5 * (k % 3)))
+    return [gl_look_at_c2w((radius * math.cos(t), radius * math.sin(t), 0.5 * (k % 3)))
             for k, t in enumerate(a)]
 
 
@@ -77,15 +57,6 @@ def write_capture(root: Path, n=10, W=16, H=12, missing=(), order=None, top=None
     data = dict(top, frames=frames)
     (root / "transforms.json").write_text(json.dumps(data))
     return data
-
-
-def project(view: View, X) -> np.ndarray:
-    """Pixel (centres at integers) of world point X in a view."""
-    w2c = view.w2c
-    xc = w2c[:3, :3] @ np.asarray(X, float) + w2c[:3, 3]
-    assert xc[2] > 0
-    i = view.intrinsics
-    return np.array([i.fx * xc[0] / xc[2] + i.cx_px, i.fy * xc[1] / xc[2] + i.cy_px])
 
 
 # ----------------------------------------------------------------------------- reader
@@ -120,9 +91,9 @@ def test_poses_intrinsics_split_and_detection(tmp_path, caplog):
     # OpenGL -> OpenCV: the look-at target projects to the principal point, world +z (the
     # cameras' up) is up in the image (smaller row), and z looks forward
     for v in s.views("all"):
-        np.testing.assert_allclose(project(v, [0, 0, 0]), [v.intrinsics.cx_px, v.intrinsics.cy_px],
+        np.testing.assert_allclose(project(v, v.intrinsics, [0, 0, 0]), [v.intrinsics.cx_px, v.intrinsics.cy_px],
                                    atol=1e-9)
-        assert project(v, [0, 0, 0.3])[1] < v.intrinsics.cy_px
+        assert project(v, v.intrinsics, [0, 0, 0.3])[1] < v.intrinsics.cy_px
         gl = np.array(ring(20)[int(v.name[2:])])
         np.testing.assert_allclose(v.c2w[:3, 0], gl[:3, 0])
         np.testing.assert_allclose(v.c2w[:3, 1:3], -gl[:3, 1:3])
@@ -354,13 +325,9 @@ def test_bad_input_misc(tmp_path):
 
 
 @pytest.mark.shared_data
-def test_real_fox(caplog):
-    shared = Path(os.environ.get("ICOMMA_SHARED_DATA", REPO_ROOT.parent / "shared" / "data"))
-    root = shared / "fox"
-    if not (root / "transforms.json").is_file():
-        pytest.skip(f"fox capture not found at {root} (set ICOMMA_SHARED_DATA)")
+def test_real_fox(fox_root, caplog):
     with caplog.at_level(logging.WARNING):
-        s = read_dataset(root)
+        s = read_dataset(fox_root)
     assert s.source == "transforms_json" and len(s.train) == 43 and len(s.test) == 7
     assert any("17 of 67" in r.getMessage() for r in caplog.records)
     names = sorted(v.name for v in s.views("all"))
@@ -374,7 +341,7 @@ def test_real_fox(caplog):
     # the cameras look at the figurine near the origin from 3.8 to 6.3 units away
     assert np.linalg.norm(s.init_box[0]) < 0.3 and 4.0 < s.init_box[1] < 8.0
     for w in s.views("all"):
-        assert np.all(np.abs(project(w, s.init_box[0]) - [i.cx_px, i.cy_px]) < [540, 960])
+        assert np.all(np.abs(project(w, w.intrinsics, s.init_box[0]) - [i.cx_px, i.cy_px]) < [540, 960])
     im = v.load_image(scale=0.25)
     assert im.rgb.shape == (3, 480, 270) and im.valid.shape == (1, 480, 270)
     valid = im.valid[0]
