@@ -1,6 +1,8 @@
-"""Many photos against one model: plan the photos (start pose, truth, intrinsics of each), run
-them in one process or in several worker processes, record every result in ``poses.json`` /
-``poses.csv`` (``ledger.py``), resumable, shardable across cluster jobs.
+"""Many photos against one model.
+
+Plan the photos (start pose, truth, intrinsics of each), run them in one process or in several
+worker processes, record every result in ``poses.json`` / ``poses.csv`` (``ledger.py``),
+resumable, shardable across cluster jobs.
 
     plan, mf = plan_batch(data)                       # the tool's data group (model_folder)
     setup = WorkerSetup(model_path=..., method=RobustConfig(), matcher={"name": "xfeat"}, ...)
@@ -84,6 +86,8 @@ class PhotoTask:
 
 @dataclass
 class BatchPlan:
+    """The photos of a batch (`plan_batch`) and the model they are localized in."""
+
     tasks: List[PhotoTask]
     model_path: str
     iteration: Optional[int]
@@ -224,8 +228,10 @@ def plan_batch(data: Dict[str, Any], mf=None) -> Tuple[BatchPlan, Any]:
 
     Returns:
         (plan, model folder). ``mf`` may be passed when the caller has loaded it already.
+
     Raises:
-        ProblemError: naming the key (no photos found, an unreadable poses file, no intrinsics...).
+        ProblemError: naming the key (no photos found, an unreadable poses file, no
+            intrinsics...).
     """
     from ..io.datasets.base import image_size
 
@@ -301,8 +307,11 @@ def run_identity(kind: str, data: Dict[str, Any], model_path: str) -> Dict[str, 
 
 
 def make_matcher_from_spec(spec: Optional[Dict[str, Any]]):
-    """A matcher from a matcher group mapping (``name`` + keyword arguments, optionally
-    ``_target_``: a dotted path to a factory); None for ``none``. No Hydra needed."""
+    """A matcher from a matcher group mapping; None for ``none``. No Hydra needed.
+
+    The mapping has ``name`` and keyword arguments, optionally ``_target_``: a dotted path to a
+    factory.
+    """
     if not spec:
         return None
     d = dict(spec)
@@ -537,6 +546,11 @@ class BatchWorker:
 
     # ------------------------------------------------------------------ one photo
     def load_query(self, task: PhotoTask) -> Query:
+        """The photo of ``task`` as a query, resized to the setup's ``resize``.
+
+        Raises:
+            ProblemError: the photo's size is not the one its intrinsics were planned for.
+        """
         if task.view is not None:
             im = task.view.load_image(background=self.bg)
             q = Query(im.rgb, task.view.intrinsics, im.alpha, im.valid, task.name)
@@ -552,6 +566,7 @@ class BatchWorker:
         return resize_query(q, self.setup.resize)
 
     def problem(self, task: PhotoTask, query: Query) -> Problem:
+        """The localization problem of ``task``: this worker's model, the query, its poses."""
         return Problem(
             model=self.model,
             query=query,
@@ -571,6 +586,10 @@ class BatchWorker:
     def localize(
         self, problem: Problem, init_c2w: Optional[np.ndarray], progress=None
     ) -> LocalizationResult:
+        """Localize ``problem`` from ``init_c2w`` (None: no start pose).
+
+        The candidate views leave out a model camera at the photo's known true pose.
+        """
         from ..localize import localize
 
         q = problem.query
@@ -676,8 +695,10 @@ _WORKER: Optional[BatchWorker] = None
 
 
 def _init_worker(setup: WorkerSetup, threads: int) -> None:
-    """Initializer of a worker process (started by :func:`run_batch`): its own thread count,
-    its own model, matcher and candidate sets."""
+    """Initializer of a worker process (started by :func:`run_batch`).
+
+    Its own thread count, its own model, matcher and candidate sets.
+    """
     global _WORKER
     torch.set_num_threads(max(1, int(threads)))
     _WORKER = BatchWorker(setup)
@@ -701,6 +722,7 @@ class BatchSummary:
 
     @property
     def photos_per_minute(self) -> Optional[float]:
+        """Photos localized per minute of this call; None when it localized none."""
         return (
             None if self.done_now == 0 or self.seconds <= 0 else 60.0 * self.done_now / self.seconds
         )
@@ -721,14 +743,17 @@ def run_batch(
     """Localize this shard's unfinished photos of ``plan``, recording each in ``ledger``.
 
     Args:
-        plan, setup: from :func:`plan_batch` and the tool's config.
+        plan: from :func:`plan_batch`.
+        setup: what each worker loads (from the tool's config).
         ledger: the output folder's record; photos it already holds are skipped.
         workers: 1 runs in this process (threads as the caller set them); more start that many
             worker processes (spawned), each with ``threads_per_worker`` torch threads (set in
             those processes only) and its own model and candidate sets.
+        threads_per_worker: torch threads of each worker process.
         retry_failed: redo photos recorded as failed.
         progress: called after each photo with ``{"row", "counts", "done", "todo"}``.
-        model_folder, matcher: reuse the caller's (``workers == 1`` only).
+        model_folder: reuse the caller's loaded model folder (``workers == 1`` only).
+        matcher: reuse the caller's matcher (``workers == 1`` only).
     """
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers must be a positive int, got {workers!r}")
@@ -790,8 +815,13 @@ def export_rows(
     formats: Sequence[str],
     verdicts: Sequence[str] = ("ok", "uncertain"),
 ) -> Dict[str, List[str]]:
-    """Write the estimated poses of ``rows`` (those with a verdict in ``verdicts``) in each of
-    ``formats`` (``io.export.FORMATS``) under ``out_dir/exports``; returns format -> files.
+    """Write the estimated poses of ``rows`` in each of ``formats`` under ``out_dir/exports``.
+
+    Only the rows with a verdict in ``verdicts`` are written; ``formats`` are among
+    ``io.export.FORMATS``.
+
+    Returns:
+        Format -> the files written.
 
     Raises:
         ProblemError: an unknown format (naming ``output.export``), or a writer's error.

@@ -51,9 +51,12 @@ class CandidateConfig:
 
 
 def scene_frame(model: GaussianModel, cameras_c2w: Sequence[np.ndarray]):
-    """(centre [3], radius, up [3]) of the scene: from the cameras when there are any (the point
-    their optical axes pass closest to, their median distance to it, their mean 'up'), else from
-    the Gaussians (median position, 3x their spread, +z)."""
+    """(centre [3], radius, up [3]) of the scene.
+
+    From the cameras when there are any (the point their optical axes pass closest to, their
+    median distance to it, their mean 'up'), else from the Gaussians (median position, 3x their
+    spread, +z).
+    """
     means = model.means.detach().double().cpu().numpy()
     if len(cameras_c2w) >= 2:
         C = np.stack([c[:3, 3] for c in cameras_c2w])
@@ -81,8 +84,11 @@ def scene_frame(model: GaussianModel, cameras_c2w: Sequence[np.ndarray]):
 
 
 def sample_views(centre: np.ndarray, radius: float, up: np.ndarray, n: int) -> List[np.ndarray]:
-    """``n`` c2w poses on a sphere of ``radius`` about ``centre`` (Fibonacci lattice), looking at
-    the centre with image 'up' towards ``up``; directions too close to ``up`` are skipped."""
+    """``n`` c2w poses on a sphere of ``radius`` about ``centre`` (Fibonacci lattice).
+
+    They look at the centre with image 'up' towards ``up``; directions too close to ``up`` are
+    skipped.
+    """
     out = []
     if n <= 0:
         return out
@@ -104,8 +110,10 @@ def sample_views(centre: np.ndarray, radius: float, up: np.ndarray, n: int) -> L
 
 @dataclass
 class CandidateSet:
-    """Candidate poses with their low-resolution renders' features (built once per model and
-    query camera; reusable across queries with the same intrinsics)."""
+    """Candidate poses with their low-resolution renders' features.
+
+    Built once per model and query camera; reusable across queries with the same intrinsics.
+    """
 
     c2w: List[np.ndarray]
     source: List[str]
@@ -113,10 +121,17 @@ class CandidateSet:
     features: List = field(default_factory=list)
 
     @classmethod
-    def build(cls, state: LocalizationState, cameras_c2w: Sequence[np.ndarray], cfg: CandidateConfig,
-              names: Optional[Sequence[str]] = None) -> "CandidateSet":
-        """Candidates from ``cameras_c2w`` (the model's cameras) plus ``cfg.num_sampled`` sampled
-        views, rendered with the query's intrinsics at ``cfg.rank_side``."""
+    def build(
+        cls,
+        state: LocalizationState,
+        cameras_c2w: Sequence[np.ndarray],
+        cfg: CandidateConfig,
+        names: Optional[Sequence[str]] = None,
+    ) -> "CandidateSet":
+        """Candidates: ``cameras_c2w`` (the model's cameras) and ``cfg.num_sampled`` sampled views.
+
+        They are rendered with the query's intrinsics at ``cfg.rank_side``.
+        """
         cams = [np.asarray(c, np.float64) for c in cameras_c2w]
         centre, radius, up = scene_frame(state.model, cams)
         sampled = sample_views(centre, radius, up, cfg.num_sampled)
@@ -133,28 +148,50 @@ class CandidateSet:
                     feats.append(None)  # sees nothing of the scene
                     continue
                 feats.append(state.matcher.extract(obs.color))
-        logger.debug("candidate set: %d cameras + %d sampled views at %dx%d", len(cams), len(sampled),
-                     intr.width, intr.height)
+        logger.debug(
+            "candidate set: %d cameras + %d sampled views at %dx%d",
+            len(cams),
+            len(sampled),
+            intr.width,
+            intr.height,
+        )
         return cls(c2w, source, intr, feats)
 
     @classmethod
-    def for_model(cls, model: GaussianModel, intrinsics: Intrinsics, matcher, bg, cameras_c2w: Sequence[np.ndarray],
-                  cfg: Optional[CandidateConfig] = None, backend: str = "auto",
-                  names: Optional[Sequence[str]] = None) -> "CandidateSet":
-        """A candidate set for photos taken with ``intrinsics`` (build once, pass it to every
-        ``localize(..., candidate_set=...)`` of a batch)."""
+    def for_model(
+        cls,
+        model: GaussianModel,
+        intrinsics: Intrinsics,
+        matcher,
+        bg,
+        cameras_c2w: Sequence[np.ndarray],
+        cfg: Optional[CandidateConfig] = None,
+        backend: str = "auto",
+        names: Optional[Sequence[str]] = None,
+    ) -> "CandidateSet":
+        """A candidate set for photos taken with ``intrinsics``.
+
+        Build it once and pass it to every ``localize(..., candidate_set=...)`` of a batch.
+        """
         import torch
 
         from .types import Query
 
         if not usable(matcher):
-            raise ValueError(f"candidate views need a matcher that extracts features, got {matcher!r}")
+            raise ValueError(
+                f"candidate views need a matcher that extracts features, got {matcher!r}"
+            )
         blank = torch.zeros(3, intrinsics.height, intrinsics.width)
-        state = LocalizationState(model, Query(blank, intrinsics), bg, backend=backend, matcher=matcher)
+        state = LocalizationState(
+            model, Query(blank, intrinsics), bg, backend=backend, matcher=matcher
+        )
         return cls.build(state, cameras_c2w, cfg or CandidateConfig(), names)
 
     def compatible(self, intrinsics: Intrinsics, cfg: CandidateConfig) -> bool:
-        """Whether this set was rendered for photos with ``intrinsics`` (ranked at ``cfg.rank_side``)."""
+        """Whether this set was rendered for photos with ``intrinsics``.
+
+        Rendered at ``cfg.rank_side``, as `rank` needs.
+        """
         return self.intrinsics == intrinsics.scaled(rank_scale(intrinsics, cfg.rank_side)) \
             if rank_scale(intrinsics, cfg.rank_side) != 1.0 else self.intrinsics == intrinsics
 
@@ -166,13 +203,16 @@ class CandidateSet:
         scale = rank_scale(state.query.intrinsics, cfg.rank_side)
         with state.timed("candidates"):
             fq = state.query_features(scale)
-            counts = [(-1 if f is None else mutual_nn_count(f, fq, cfg.min_cosine)) for f in self.features]
+            counts = [
+                (-1 if f is None else mutual_nn_count(f, fq, cfg.min_cosine)) for f in self.features
+            ]
         order = sorted(range(len(counts)), key=lambda i: -counts[i])
         self.last_counts = counts
         return order
 
 
 def rank_scale(intrinsics: Intrinsics, side: int) -> float:
+    """The scale that brings the longer image side to ``side`` px (never above 1)."""
     return min(1.0, float(side) / max(intrinsics.width, intrinsics.height))
 
 

@@ -1,12 +1,15 @@
-"""The geometric stage: render colour, depth and alpha at the current pose, match the render against
-the query, lift the render keypoints to world points with the rendered depth, and solve PnP for the
-query camera. Repeated from the new pose while it gets better.
+"""The geometric stage: render, match, lift the render keypoints to 3D, solve PnP; repeat.
 
-Each round renders and matches at a pose, which both scores that pose (``verify.score_observation``:
-how many matches agree with it) and proposes the next one (PnP). A proposal is accepted only when its
-own render scores better than the pose it came from; otherwise the stage keeps the better pose and
-stops. It also stops when a proposal barely moves the pose (then that last, tiny step is taken: the
-photometric refinement and the final verification that follow check it).
+It renders colour, depth and alpha at the current pose, matches the render against the query,
+lifts the render keypoints to world points with the rendered depth, and solves PnP for the query
+camera. Repeated from the new pose while it gets better.
+
+Each round renders and matches at a pose, which both scores that pose
+(``verify.score_observation``: how many matches agree with it) and proposes the next one (PnP). A
+proposal is accepted only when its own render scores better than the pose it came from;
+otherwise the stage keeps the better pose and stops. It also stops when a proposal barely moves
+the pose (then that last, tiny step is taken: the photometric refinement and the final
+verification that follow check it).
 """
 from __future__ import annotations
 
@@ -110,9 +113,13 @@ def pnp_from_observation(state: LocalizationState, obs: Observation, cfg: Geomet
         from ..matchers.refine import refine_render_keypoints
 
         with state.timed("pnp"):
-            kpts0 = refine_render_keypoints(obs.color, state.query_at(obs.scale).rgb.to(obs.color.dtype),
-                                            kpts0.to(obs.color.dtype), kpts1.to(obs.color.dtype),
-                                            window=1).detach()
+            kpts0 = refine_render_keypoints(
+                obs.color,
+                state.query_at(obs.scale).rgb.to(obs.color.dtype),
+                kpts0.to(obs.color.dtype),
+                kpts1.to(obs.color.dtype),
+                window=1,
+            ).detach()
     with state.timed("pnp"):
         c2w = np.linalg.inv(obs.w2c)
         import torch
@@ -122,8 +129,9 @@ def pnp_from_observation(state: LocalizationState, obs: Observation, cfg: Geomet
         if int(keep.sum()) < cfg.min_pnp_inliers:
             return None
         pix = kpts1[keep].double().cpu().numpy()
-        return solve_pnp(pts.cpu().numpy(), pix, intr, cfg.ransac_px, min_inliers=cfg.min_pnp_inliers,
-                         seed=seed)
+        return solve_pnp(
+            pts.cpu().numpy(), pix, intr, cfg.ransac_px, min_inliers=cfg.min_pnp_inliers, seed=seed
+        )
 
 
 def run_geometric(state: LocalizationState, w2c_start: np.ndarray, cfg: GeometricConfig,
@@ -142,8 +150,15 @@ def run_geometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Geometri
         if r == 0:
             start_cov = sc.coverage
         accepted = sc.better_than(best_score)
-        rec = state.new_record(Stage.GEOMETRIC, w2c, matches=0 if obs.matches is None else len(obs.matches),
-                               inliers=sc.inliers, accepted=accepted, hypothesis=hypothesis, scale=scale)
+        rec = state.new_record(
+            Stage.GEOMETRIC,
+            w2c,
+            matches=0 if obs.matches is None else len(obs.matches),
+            inliers=sc.inliers,
+            accepted=accepted,
+            hypothesis=hypothesis,
+            scale=scale,
+        )
         if not accepted:
             state.record(rec)
             logger.debug("geometric round %d: %d inliers, worse than %d: keep the previous pose", r,
@@ -167,8 +182,16 @@ def run_geometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Geometri
             converged = True
             best_w2c = w2c  # the last, tiny step (checked by the refinement and verification)
             break
-    return GeometricOutcome(best_w2c, best_obs, best_score, rounds, converged, first_inliers, start_cov,
-                            inliers_per_round)
+    return GeometricOutcome(
+        best_w2c,
+        best_obs,
+        best_score,
+        rounds,
+        converged,
+        first_inliers,
+        start_cov,
+        inliers_per_round,
+    )
 
 
 def _median_depth(obs: Observation) -> float:

@@ -1,5 +1,7 @@
-"""2D-3D geometry of the localizer: sample an image at keypoints, lift render keypoints to world
-points with the rendered depth, and solve PnP with RANSAC.
+"""2D-3D geometry of the localizer.
+
+Sample an image at keypoints, lift render keypoints to world points with the rendered depth, and
+solve PnP with RANSAC.
 
 Conventions (docs/CONTRACTS.md): pixel centres at integer coordinates, OpenCV camera axes; OpenCV's
 ``solvePnP`` uses the same pixel convention (``u = fx x / z + cx``), so our ``Intrinsics.K()`` is
@@ -23,8 +25,13 @@ __all__ = ["PnPResult", "depth_edges", "lift_keypoints", "project", "sample_bili
 
 
 def sample_bilinear(img: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
-    """Sample ``img [C, H, W]`` at pixel coordinates ``xy [N, 2]`` (pixel centres at integers,
-    3DGS convention) bilinearly; points outside get 0. Returns ``[N, C]``."""
+    """Sample ``img [C, H, W]`` bilinearly at pixel coordinates ``xy [N, 2]``.
+
+    Pixel centres are at integers (3DGS convention); points outside get 0.
+
+    Returns:
+        ``[N, C]``.
+    """
     C, H, W = img.shape
     gx = 2.0 * xy[:, 0] / max(W - 1, 1) - 1.0
     gy = 2.0 * xy[:, 1] / max(H - 1, 1) - 1.0
@@ -87,7 +94,9 @@ def lift_keypoints(
     return pw, keep
 
 
-def project(points_world: np.ndarray, w2c: np.ndarray, intrinsics: Intrinsics) -> Tuple[np.ndarray, np.ndarray]:
+def project(
+    points_world: np.ndarray, w2c: np.ndarray, intrinsics: Intrinsics
+) -> Tuple[np.ndarray, np.ndarray]:
     """Pixel positions ``[N, 2]`` and camera depths ``[N]`` of world points under ``w2c``."""
     pc = points_world @ w2c[:3, :3].T + w2c[:3, 3]
     z = pc[:, 2]
@@ -112,6 +121,7 @@ class PnPResult:
 
     @property
     def num_inliers(self) -> int:
+        """The number of inliers."""
         return int(self.inliers.sum())
 
 
@@ -125,15 +135,18 @@ def solve_pnp(
     min_inliers: int = 6,
     seed: int = 0,
 ) -> Optional[PnPResult]:
-    """Camera pose from 2D-3D correspondences: RANSAC with USAC-MAGSAC (OpenCV), then
-    Levenberg-Marquardt on the inliers; the inliers are re-selected after refinement.
+    """Camera pose from 2D-3D correspondences.
+
+    RANSAC with USAC-MAGSAC (OpenCV), then Levenberg-Marquardt on the inliers; the inliers are
+    re-selected after refinement.
 
     Args:
         points_world: ``[N, 3]`` world points.
         pixels: ``[N, 2]`` their observations in the image [px].
         intrinsics: the image's camera.
         threshold_px: RANSAC inlier threshold on the reprojection error [px].
-        iterations, confidence: RANSAC budget.
+        iterations: RANSAC iterations at most.
+        confidence: RANSAC confidence.
         min_inliers: fewer inliers than this is a failure (None is returned).
         seed: RANSAC seed (OpenCV's RNG), for repeatable results.
 
@@ -145,7 +158,9 @@ def solve_pnp(
     X = np.ascontiguousarray(points_world, dtype=np.float64).reshape(-1, 3)
     x = np.ascontiguousarray(pixels, dtype=np.float64).reshape(-1, 2)
     if X.shape[0] != x.shape[0]:
-        raise ValueError(f"points_world and pixels must have the same length, got {X.shape[0]} and {x.shape[0]}")
+        raise ValueError(
+            f"points_world and pixels must have the same length, got {X.shape[0]} and {x.shape[0]}"
+        )
     n = X.shape[0]
     if n < max(min_inliers, 6):
         return None

@@ -1,5 +1,7 @@
-"""The paper's method (iComMa, ECCV 2024), kept exactly for reproduction and the benchmark's paper
-rows: Adam on an se(3) twist, a matching stage and then a comparing stage.
+"""The paper's method (iComMa, ECCV 2024).
+
+Kept exactly, for reproduction and the benchmark's paper rows: Adam on an se(3) twist, a matching
+stage and then a comparing stage.
 
 Pose parametrisation (docs/CONTRACTS.md): a twist ``xi = (rho, phi)`` in se(3), translation part
 first, optimised by Adam. The pose is the LEFT perturbation of world-to-camera,
@@ -148,7 +150,9 @@ class LocalizerConfig:
         check_real(self.lambda_match, n("lambda_match"), 0.0, 1.0)
         check_real(self.lr_decay_base, n("lr_decay_base"), 0.0, 1.0, lo_open=True)
         if not (isinstance(self.betas, tuple) and len(self.betas) == 2):
-            raise ValueError(f"{n('betas')} must be a pair of numbers in [0, 1), got {self.betas!r}")
+            raise ValueError(
+                f"{n('betas')} must be a pair of numbers in [0, 1), got {self.betas!r}"
+            )
         for i, b in enumerate(self.betas):
             check_real(b, f"{n('betas')}[{i}]", 0.0, 1.0, hi_open=True)
         for name in ("min_matches", "converge_patience", "min_iterations"):
@@ -164,10 +168,17 @@ class LocalizerConfig:
 
     @classmethod
     def from_dict(cls, d: Dict[str, Any]) -> "LocalizerConfig":
-        """Build from a plain mapping (e.g. a Hydra config converted to a container); unknown
-        keys raise ValueError listing the known ones."""
+        """Build from a plain mapping (e.g. a Hydra config converted to a container).
+
+        Raises:
+            ValueError: unknown keys (the message lists the known ones), or bad values.
+        """
         names = {f.name for f in dataclasses.fields(cls)}
-        d = {k: v for k, v in d.items() if k not in ("_target_", "_convert_", "_recursive_", "_partial_")}
+        d = {
+            k: v
+            for k, v in d.items()
+            if k not in ("_target_", "_convert_", "_recursive_", "_partial_")
+        }
         unknown = sorted(set(d) - names)
         if unknown:
             raise ValueError(f"unknown LocalizerConfig keys {unknown}; known keys: {sorted(names)}")
@@ -180,6 +191,7 @@ class LocalizerConfig:
         return cls(**kw)
 
     def to_dict(self) -> Dict[str, Any]:
+        """The fields as a JSON-friendly dict (``betas`` as a list)."""
         d = dataclasses.asdict(self)
         d["betas"] = list(self.betas)
         return d
@@ -191,6 +203,8 @@ class LocalizerConfig:
 
 @dataclass
 class IcommaOutcome:
+    """What the paper's method ends with: the pose, how and when it stopped, its match counts."""
+
     w2c: np.ndarray
     iterations: int
     stop_reason: str
@@ -209,7 +223,9 @@ def match_step(state: LocalizationState, cfg: LocalizerConfig, image, out, query
     # gradient wherever the render is in range).
     image = image.clamp(0.0, 1.0)
     with state.timed("matcher"):
-        m = state.matcher.match(image if image_mode else image.detach(), query, differentiable=image_mode)
+        m = state.matcher.match(
+            image if image_mode else image.detach(), query, differentiable=image_mode
+        )
     n_raw = len(m)
     if cfg.confidence_threshold > 0 and n_raw:
         m = m.filter(cfg.confidence_threshold)
@@ -220,10 +236,14 @@ def match_step(state: LocalizationState, cfg: LocalizerConfig, image, out, query
             n_used = len(m)
     elif len(m) >= cfg.min_matches:
         c2w_now = invert_rigid(w2c.detach())
-        pts, keep = lift_keypoints(m.kpts0, out.depth, out.alpha, intr, c2w_now, cfg.depth_min_alpha)
+        pts, keep = lift_keypoints(
+            m.kpts0, out.depth, out.alpha, intr, c2w_now, cfg.depth_min_alpha
+        )
         n_used = int(keep.sum())
         if n_used >= cfg.min_matches:
-            l_match = reprojection_match_loss(pts, m.kpts1[keep].detach().to(torch.float64), w2c, intr)
+            l_match = reprojection_match_loss(
+                pts, m.kpts1[keep].detach().to(torch.float64), w2c, intr
+            )
         if l_match is None:
             n_used = 0
     if l_match is None:
@@ -233,11 +253,19 @@ def match_step(state: LocalizationState, cfg: LocalizerConfig, image, out, query
     return loss, l_match, n_raw, n_used, float(l_match.detach()) < cfg.switch_threshold
 
 
-def run_icomma(state: LocalizationState, init_w2c: np.ndarray, cfg: LocalizerConfig) -> IcommaOutcome:
+def run_icomma(
+    state: LocalizationState, init_w2c: np.ndarray, cfg: LocalizerConfig
+) -> IcommaOutcome:
     """The paper's loop from ``init_w2c`` (module docstring); appends to ``state.trace``."""
     matcher = state.matcher
-    use_matching = cfg.use_matching and matcher is not None and getattr(matcher, "name", None) != "none"
-    if use_matching and cfg.gradient_mode == "image" and not getattr(matcher, "supports_image_gradient", False):
+    use_matching = (
+        cfg.use_matching and matcher is not None and getattr(matcher, "name", None) != "none"
+    )
+    if (
+        use_matching
+        and cfg.gradient_mode == "image"
+        and not getattr(matcher, "supports_image_gradient", False)
+    ):
         raise ValueError(
             f"gradient_mode='image' needs a matcher whose keypoints carry image gradients; "
             f"matcher {getattr(matcher, 'name', matcher)!r} does not: use gradient_mode='depth'"
@@ -288,8 +316,9 @@ def run_icomma(state: LocalizationState, init_w2c: np.ndarray, cfg: LocalizerCon
         switch_now = False
         if stage == STAGE_MATCH:
             stage1_iters += 1
-            loss, l_match, n_raw, n_used, switch_now = match_step(state, cfg, image, out, query, w2c, intr,
-                                                                  l_compare)
+            loss, l_match, n_raw, n_used, switch_now = match_step(
+                state, cfg, image, out, query, w2c, intr, l_compare
+            )
             counts.append(n_used)
             if l_match is None:
                 n_compare_alone += 1
@@ -327,7 +356,9 @@ def run_icomma(state: LocalizationState, init_w2c: np.ndarray, cfg: LocalizerCon
             a, b = np.linalg.inv(history[0]), np.linalg.inv(history[-1])
             drot = float(rotation_error_deg(a, b))
             dtrans = float(np.linalg.norm(a[:3, 3] - b[:3, 3]))
-            if drot < cfg.converge_rot_deg and dtrans < cfg.converge_trans_rel * max(scene_depth, 1e-12):
+            if drot < cfg.converge_rot_deg and dtrans < cfg.converge_trans_rel * max(
+                scene_depth, 1e-12
+            ):
                 stop_reason = "converged"
                 break
 
@@ -342,5 +373,9 @@ def run_icomma(state: LocalizationState, init_w2c: np.ndarray, cfg: LocalizerCon
         "min": int(min(counts)) if counts else None,
         "max": int(max(counts)) if counts else None,
     }
-    sw = switch_iteration if (use_matching and stage == STAGE_COMPARE) else (None if use_matching else 0)
+    sw = (
+        switch_iteration
+        if (use_matching and stage == STAGE_COMPARE)
+        else (None if use_matching else 0)
+    )
     return IcommaOutcome(final_w2c, it + 1, stop_reason, sw, match_counts, last_loss, scene_depth)

@@ -1,5 +1,7 @@
-"""Inputs of batches and sequences: lists of photos, files of poses by name, and the intrinsics
-of each photo. Bad input raises :class:`~.problem.ProblemError` naming the ``data`` key.
+"""Inputs of batches and sequences: lists of photos, poses files, the intrinsics of each photo.
+
+Poses files give the poses by image name. Bad input raises :class:`~.problem.ProblemError`
+naming the ``data`` key.
 
 Photo lists (``data.queries``): a folder (its image files, natural order), a glob
 (``photos/*.jpg``, ``**`` recursive), a list file (one path per line, relative to the list's
@@ -52,8 +54,10 @@ _GLOB = re.compile(r"[*?\[]")
 
 
 class PhotoMismatch(ProblemError):
-    """A photo that does not fit the intrinsics it was given (another size or aspect ratio): a
-    per-photo failure in a batch, not a configuration error."""
+    """A photo that does not fit the intrinsics it was given (another size or aspect ratio).
+
+    A per-photo failure in a batch, not a configuration error.
+    """
 
 
 def natural_key(s: str):
@@ -213,6 +217,7 @@ class PoseTable:
         return len(self.poses)
 
     def get(self, name: str) -> Optional[np.ndarray]:
+        """The pose of ``name``: by name, else by file name, else by stem (when unambiguous)."""
         if name in self.poses:
             return self.poses[name]
         b = os.path.basename(name)

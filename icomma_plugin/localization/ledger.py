@@ -1,6 +1,7 @@
-"""The record of a batch or a sequence: ``poses.json`` (one row per photo or frame) and
-``poses.csv``, so that a run killed at any moment loses no photo that it finished, and restarted
-on the same folder skips them.
+"""The record of a batch or a sequence: ``poses.json`` (one row per photo or frame), ``poses.csv``.
+
+A run killed at any moment loses no photo that it finished, and restarted on the same folder
+skips them.
 
 Every row is first appended to the journal ``poses.jsonl`` (one JSON line per photo, flushed to
 disk); then poses.json and poses.csv are rewritten atomically: after every photo while the run
@@ -77,8 +78,11 @@ def counts_of(rows: Sequence[Dict[str, Any]]) -> Dict[str, int]:
 
 
 def read_poses_json(path) -> Dict[str, Any]:
-    """A poses.json (or a shard part) as a dict with a ``photos`` list; LedgerError if it is
-    unreadable."""
+    """A poses.json (or a shard part) as a dict with a ``photos`` list.
+
+    Raises:
+        LedgerError: the file is unreadable or not a poses.json.
+    """
     p = Path(path)
     try:
         doc = json.loads(p.read_text())
@@ -157,14 +161,17 @@ class PosesLedger:
     # ------------------------------------------------------------------ paths
     @property
     def poses_path(self) -> Path:
+        """poses.json in the output folder."""
         return self.out_dir / "poses.json"
 
     @property
     def csv_path(self) -> Path:
+        """poses.csv in the output folder."""
         return self.out_dir / "poses.csv"
 
     @property
     def part_path(self) -> Path:
+        """This shard's part, ``parts/shard-<i>-of-<n>.json``."""
         return self.out_dir / "parts" / f"shard-{self.shard:03d}-of-{self.num_shards:03d}.json"
 
     def _part_paths(self) -> List[Path]:
@@ -182,8 +189,10 @@ class PosesLedger:
         return own + (sorted(d.glob("shard-*.jsonl")) if d.is_dir() else [])
 
     def _read_journal(self, path: Path) -> List[Dict[str, Any]]:
-        """The rows of a journal; its first line names the run (checked), a broken line (a kill
-        in mid-write) is skipped."""
+        """The rows of a journal.
+
+        Its first line names the run (checked); a broken line (a kill in mid-write) is skipped.
+        """
         rows = []
         try:
             lines = path.read_text().splitlines()
@@ -242,8 +251,10 @@ class PosesLedger:
                 self.rows[name] = self._seen.pop(name)
 
     def finished(self, retry_failed: bool = False) -> Dict[str, Dict[str, Any]]:
-        """Rows recorded by earlier runs or other shards, by name (failed ones left out with
-        ``retry_failed``)."""
+        """Rows recorded by earlier runs or other shards, by name.
+
+        The failed ones are left out with ``retry_failed``.
+        """
         rows = {**self._seen, **self.rows}
         if retry_failed:
             rows = {k: r for k, r in rows.items() if r.get("status") != "failed"}
@@ -257,6 +268,7 @@ class PosesLedger:
 
     # ------------------------------------------------------------------ writing
     def all_rows(self) -> List[Dict[str, Any]]:
+        """Every row known, earlier runs' and this run's, in input order."""
         rows = {**self._seen, **self.rows}
         return sorted(rows.values(), key=lambda r: (r.get("index", 0), r["name"]))
 
@@ -322,8 +334,10 @@ class PosesLedger:
         self._last_write = time.monotonic()
 
     def record(self, row: Dict[str, Any]) -> None:
-        """Add one photo's row: to the journal at once, to poses.json / poses.csv when due
-        (module docstring)."""
+        """Add one photo's row.
+
+        To the journal at once, to poses.json / poses.csv when due (module docstring).
+        """
         if not isinstance(row.get("name"), str) or row.get("status") not in VERDICTS:
             raise ValueError(
                 f"a ledger row needs a name and a status in {VERDICTS}, got {row!r:.200}"
@@ -344,4 +358,5 @@ class PosesLedger:
         return read_poses_json(self.poses_path)
 
     def counts(self) -> Dict[str, int]:
+        """``{"ok": n, "uncertain": n, "failed": n}`` over every row known."""
         return counts_of(self.all_rows())

@@ -1,6 +1,8 @@
-"""What a localization writes for its user: ``result.json`` (pose, verdict, errors when the truth
-is known, timings), the trace (JSON / CSV), overlays of render and photo, the match lines, a
-convergence plot and, on request, the optimisation as an animation.
+"""What a localization writes for its user.
+
+``result.json`` (pose, verdict, errors when the truth is known, timings), the trace (JSON /
+CSV), overlays of render and photo, the match lines, a convergence plot and, on request, the
+optimisation as an animation.
 
 Everything is written atomically (``io/atomic.py``); a picture that cannot be drawn is logged and
 skipped, never fatal.
@@ -23,7 +25,14 @@ from .types import LocalizationResult, TraceRecord
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["OutputOptions", "result_document", "success_of", "trace_w2c", "write_outputs", "write_trace"]
+__all__ = [
+    "OutputOptions",
+    "result_document",
+    "success_of",
+    "trace_w2c",
+    "write_outputs",
+    "write_trace",
+]
 
 #: The tool's "success" on a known ground truth (the demo's acceptance: 0.5 deg, 1 % of the scene).
 SUCCESS_ROT_DEG = 0.5
@@ -44,6 +53,7 @@ class OutputOptions:
 
     @classmethod
     def from_dict(cls, d: Optional[Dict[str, Any]]) -> "OutputOptions":
+        """From the tool's ``output`` group (other keys are ignored)."""
         d = {k: v for k, v in (d or {}).items() if k in cls.__dataclass_fields__}
         return cls(**d)
 
@@ -53,11 +63,17 @@ def trace_w2c(rec: TraceRecord, init_w2c: Optional[np.ndarray]) -> Optional[np.n
     if rec.w2c is not None:
         return np.asarray(rec.w2c, np.float64)
     if rec.xi is not None and init_w2c is not None:
-        return (se3_exp(torch.tensor(rec.xi, dtype=torch.float64)) @ torch.as_tensor(init_w2c)).numpy()
+        return (
+            se3_exp(torch.tensor(rec.xi, dtype=torch.float64)) @ torch.as_tensor(init_w2c)
+        ).numpy()
     return None
 
 
 def success_of(result: LocalizationResult, scene_scale: Optional[float]) -> Optional[bool]:
+    """Whether the final pose is right (`SUCCESS_ROT_DEG`, `SUCCESS_TRANS_REL` x scene scale).
+
+    None without ground truth; without a scene scale only the rotation counts.
+    """
     if result.final_rotation_error_deg is None:
         return None
     ok_t = scene_scale is None or result.final_translation_error < SUCCESS_TRANS_REL * scene_scale
@@ -70,28 +86,46 @@ def result_document(problem: Problem, result: LocalizationResult, *, backend: st
     from ..io.cameras_json import CameraEntry
 
     intr = problem.query.intrinsics
-    entry = CameraEntry(id=0, img_name=problem.name, width=intr.width, height=intr.height, c2w=result.c2w,
-                        fx=float(intr.fx), fy=float(intr.fy))
+    entry = CameraEntry(
+        id=0,
+        img_name=problem.name,
+        width=intr.width,
+        height=intr.height,
+        c2w=result.c2w,
+        fx=float(intr.fx),
+        fy=float(intr.fy),
+    )
     scale = problem.scene_scale
     doc = result.to_json(include_trace=False)
-    doc.update({
-        "query": problem.name,
-        "verdict": None if result.verdict is None else result.verdict.to_json(),
-        "estimated_c2w": result.c2w.tolist(),
-        "camera_entry": entry.to_json(),
-        "initial_c2w": None if problem.init_c2w is None else problem.init_c2w.tolist(),
-        "ground_truth_c2w": None if problem.gt_c2w is None else problem.gt_c2w.tolist(),
-        "scene_scale": scale,
-        "final_translation_error_rel": (None if scale is None or result.final_translation_error is None
-                                        else result.final_translation_error / scale),
-        "success": success_of(result, scale),
-        "seconds_total": seconds_total,
-        "backend": backend,
-        "intrinsics": {"width": intr.width, "height": intr.height, "fx": intr.fx, "fy": intr.fy,
-                       "cx": intr.cx_px, "cy": intr.cy_px},
-        "info": problem.info,
-        "config": config,
-    })
+    doc.update(
+        {
+            "query": problem.name,
+            "verdict": None if result.verdict is None else result.verdict.to_json(),
+            "estimated_c2w": result.c2w.tolist(),
+            "camera_entry": entry.to_json(),
+            "initial_c2w": None if problem.init_c2w is None else problem.init_c2w.tolist(),
+            "ground_truth_c2w": None if problem.gt_c2w is None else problem.gt_c2w.tolist(),
+            "scene_scale": scale,
+            "final_translation_error_rel": (
+                None
+                if scale is None or result.final_translation_error is None
+                else result.final_translation_error / scale
+            ),
+            "success": success_of(result, scale),
+            "seconds_total": seconds_total,
+            "backend": backend,
+            "intrinsics": {
+                "width": intr.width,
+                "height": intr.height,
+                "fx": intr.fx,
+                "fy": intr.fy,
+                "cx": intr.cx_px,
+                "cy": intr.cy_px,
+            },
+            "info": problem.info,
+            "config": config,
+        }
+    )
     return doc
 
 
@@ -124,12 +158,22 @@ def _render_rgb(problem: Problem, c2w: np.ndarray, backend: str, intr=None) -> t
     intr = intr or problem.query.intrinsics
     w2c = torch.as_tensor(np.linalg.inv(c2w), dtype=problem.model.dtype)
     with torch.no_grad():
-        return render(problem.model, intr, w2c, problem.bg.to(problem.model.dtype), backend=backend).color.clamp(0, 1)
+        return render(
+            problem.model, intr, w2c, problem.bg.to(problem.model.dtype), backend=backend
+        ).color.clamp(0, 1)
 
 
-def write_outputs(out_dir: Path, problem: Problem, result: LocalizationResult, *, matcher=None,
-                  options: Optional[OutputOptions] = None, backend: str = "auto",
-                  config: Optional[Dict[str, Any]] = None, seconds_total: Optional[float] = None) -> Dict[str, Any]:
+def write_outputs(
+    out_dir: Path,
+    problem: Problem,
+    result: LocalizationResult,
+    *,
+    matcher=None,
+    options: Optional[OutputOptions] = None,
+    backend: str = "auto",
+    config: Optional[Dict[str, Any]] = None,
+    seconds_total: Optional[float] = None,
+) -> Dict[str, Any]:
     """Write every output of one localization into ``out_dir``; returns the result.json document."""
     from .. import visualize as viz
     from ..io.atomic import write_json_atomic
@@ -152,15 +196,22 @@ def write_outputs(out_dir: Path, problem: Problem, result: LocalizationResult, *
                     files.append("overlay_initial.png")
                 viz.save_overlay(out_dir / "overlay_final.png", final_img, q)
                 files.append("overlay_final.png")
-            if opt.match_lines and matcher is not None and getattr(matcher, "name", "none") != "none":
+            if (
+                opt.match_lines
+                and matcher is not None
+                and getattr(matcher, "name", "none") != "none"
+            ):
                 first = init_img if init_img is not None else final_img
                 m = matcher.match(first, q.to(first.dtype))
                 name = "matches_initial.png" if init_img is not None else "matches_final.png"
                 viz.save_match_lines(out_dir / name, first, q, m.kpts0, m.kpts1, m.confidence)
                 files.append(name)
         if opt.convergence_plot and result.trace:
-            title = f"{result.method} ({result.matcher or 'compare only'}): {result.stop_reason} after " \
-                    f"{result.iterations} steps; verdict {None if result.verdict is None else result.verdict.status}"
+            title = (
+                f"{result.method} ({result.matcher or 'compare only'}): {result.stop_reason} after "
+                f"{result.iterations} steps; verdict "
+                f"{None if result.verdict is None else result.verdict.status}"
+            )
             scale = problem.scene_scale
             viz.plot_convergence(out_dir / "convergence.png", [r.to_dict() for r in result.trace],
                                  result.switch_iteration, title, rot_target_deg=SUCCESS_ROT_DEG,

@@ -1,5 +1,6 @@
-"""Assemble a localization problem from a plain configuration mapping (the tools' ``data`` group):
-the model, the query photo with its intrinsics and masks, the start pose (or none), the ground
+"""Assemble a localization problem from a plain configuration mapping (the tools' ``data`` group).
+
+The model, the query photo with its intrinsics and masks, the start pose (or none), the ground
 truth when it is known, and the model's cameras (candidate views).
 
 Every bad input raises :class:`ProblemError` (a ValueError) whose message names the key of the
@@ -22,8 +23,15 @@ from .types import Query
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["INIT_PIVOTS", "Problem", "ProblemError", "load_c2w_file", "load_problem", "query_from_view",
-           "read_query_image"]
+__all__ = [
+    "INIT_PIVOTS",
+    "Problem",
+    "ProblemError",
+    "load_c2w_file",
+    "load_problem",
+    "query_from_view",
+    "read_query_image",
+]
 
 INIT_PIVOTS = ("scene_center", "camera", "origin")
 
@@ -53,6 +61,7 @@ class Problem:
 
     @property
     def name(self) -> str:
+        """The query's name."""
         return self.query.name
 
     def candidate_c2ws(self) -> List[np.ndarray]:
@@ -77,17 +86,23 @@ def load_c2w_file(path, what: str) -> np.ndarray:
     try:
         arr = np.load(p) if p.suffix == ".npy" else np.loadtxt(p, ndmin=2)
     except Exception as e:  # noqa: BLE001 - any parse error is a user error here
-        raise ProblemError(f"{what}: cannot read a 4x4 matrix from {p} ({type(e).__name__}: {e})") from None
+        raise ProblemError(
+            f"{what}: cannot read a 4x4 matrix from {p} ({type(e).__name__}: {e})"
+        ) from None
     arr = np.asarray(arr, np.float64)
     if arr.size == 16:
         arr = arr.reshape(4, 4)
     elif arr.size == 12:
         arr = np.vstack([arr.reshape(3, 4), [0, 0, 0, 1]])
     else:
-        raise ProblemError(f"{what}: {p} must hold a 4x4 (or 3x4) camera-to-world matrix, got {arr.size} numbers")
+        raise ProblemError(
+            f"{what}: {p} must hold a 4x4 (or 3x4) camera-to-world matrix, got {arr.size} numbers"
+        )
     if not _is_rigid(arr):
-        raise ProblemError(f"{what}: {p} is not a rigid camera-to-world matrix (rotation not orthonormal "
-                           "with det +1, or last row not 0 0 0 1)")
+        raise ProblemError(
+            f"{what}: {p} is not a rigid camera-to-world matrix (rotation not orthonormal "
+            "with det +1, or last row not 0 0 0 1)"
+        )
     return arr
 
 
@@ -124,10 +139,15 @@ def _demo(d: Dict[str, Any], backend: str) -> Problem:
     from ..io.cameras_json import read_cameras_json
 
     scene = build_demo_scene(
-        d.get("path"), seed=int(_get(d, "scene_seed", 0)), width=int(_get(d, "width", 200)),
-        height=int(_get(d, "height", 200)), fov_deg=float(_get(d, "fov_deg", 60.0)),
-        rot_range_deg=tuple(_get(d, "rot_range_deg", (20.0, 40.0))), trans=float(_get(d, "trans", 0.1)),
-        rebuild=bool(_get(d, "rebuild", False)), backend=backend,
+        d.get("path"),
+        seed=int(_get(d, "scene_seed", 0)),
+        width=int(_get(d, "width", 200)),
+        height=int(_get(d, "height", 200)),
+        fov_deg=float(_get(d, "fov_deg", 60.0)),
+        rot_range_deg=tuple(_get(d, "rot_range_deg", (20.0, 40.0))),
+        trans=float(_get(d, "trans", 0.1)),
+        rebuild=bool(_get(d, "rebuild", False)),
+        backend=backend,
     )
     model = scene.load_model()
     ini = _init_group(d.get("init"))
@@ -139,8 +159,13 @@ def _demo(d: Dict[str, Any], backend: str) -> Problem:
         init = scene.init_c2w  # the stored start pose of the demo
     cams = read_cameras_json(scene.path / "cameras.json")
     return Problem(
-        model=model, query=Query(scene.load_query(), scene.intrinsics, name="query"), init_c2w=init,
-        gt_c2w=scene.gt_c2w, bg=_bg(scene.white_background), scene_scale=scene.scene_scale, cameras=cams,
+        model=model,
+        query=Query(scene.load_query(), scene.intrinsics, name="query"),
+        init_c2w=init,
+        gt_c2w=scene.gt_c2w,
+        bg=_bg(scene.white_background),
+        scene_scale=scene.scene_scale,
+        cameras=cams,
         info={"demo_path": str(scene.path), "num_gaussians": model.num_gaussians},
     )
 
@@ -152,12 +177,16 @@ def _model_folder(d: Dict[str, Any]) -> Problem:
 
     mp_s = d.get("model_path")
     if not mp_s or mp_s == "???":
-        raise ProblemError("data.model_path is required with data=model_folder (a trained 3DGS output folder)")
+        raise ProblemError(
+            "data.model_path is required with data=model_folder (a trained 3DGS output folder)"
+        )
     mp = Path(str(mp_s)).expanduser()
     if not mp.is_dir():
         raise ProblemError(f"data.model_path: model folder not found: {mp}")
     mf = load_model_folder(mp, iteration=d.get("iteration"))
-    white = mf.white_background if d.get("white_background") is None else bool(d["white_background"])
+    white = (
+        mf.white_background if d.get("white_background") is None else bool(d["white_background"])
+    )
     bg = _bg(white)
     q = d.get("query") or {}
 
@@ -172,8 +201,10 @@ def _model_folder(d: Dict[str, Any]) -> Problem:
     def dataset(what):
         root = q.get("dataset") or mf.cfg.get("source_path")
         if not root or not Path(str(root)).expanduser().is_dir():
-            raise ProblemError(f"{what} needs the source images: set data.query.dataset (cfg_args source_path "
-                               f"{mf.cfg.get('source_path')!r} is not a folder here) or data.query.image")
+            raise ProblemError(
+                f"{what} needs the source images: set data.query.dataset (cfg_args source_path "
+                f"{mf.cfg.get('source_path')!r} is not a folder here) or data.query.image"
+            )
         try:
             return read_dataset(Path(str(root)).expanduser(), white_background=white)
         except ValueError as e:
@@ -183,8 +214,10 @@ def _model_folder(d: Dict[str, Any]) -> Problem:
 
     chosen = [k for k in ("image", "camera", "index") if q.get(k) is not None]
     if not chosen:
-        raise ProblemError("choose the query: set data.query.image (a file), data.query.camera (a cameras.json "
-                           "name/id) or data.query.index (a dataset view)")
+        raise ProblemError(
+            "choose the query: set data.query.image (a file), data.query.camera (a cameras.json "
+            "name/id) or data.query.index (a dataset view)"
+        )
     view = cam = None
     valid = None
     if q.get("camera") is not None:
@@ -197,7 +230,9 @@ def _model_folder(d: Dict[str, Any]) -> Problem:
         views = [v for v in scene.train + scene.test
                  if os.path.splitext(v.name)[0] == os.path.splitext(cam.img_name)[0]]
         if not views:
-            raise ProblemError(f"data.query.camera={q['camera']!r}: no view named {cam.img_name!r} in the dataset")
+            raise ProblemError(
+                f"data.query.camera={q['camera']!r}: no view named {cam.img_name!r} in the dataset"
+            )
         view = views[0]
     else:
         scene = dataset(f"data.query.index={q['index']}")
@@ -206,7 +241,10 @@ def _model_folder(d: Dict[str, Any]) -> Problem:
             raise ProblemError(f"data.query.split must be train or test, got {split!r}")
         views = getattr(scene, split)
         if not (0 <= int(q["index"]) < len(views)):
-            raise ProblemError(f"data.query.index={q['index']} out of range: split {split!r} has {len(views)} views")
+            raise ProblemError(
+                f"data.query.index={q['index']} out of range: split {split!r} has "
+                f"{len(views)} views"
+            )
         view = views[int(q["index"])]
     if view is not None:
         im = view.load_image(background=bg)
@@ -216,8 +254,14 @@ def _model_folder(d: Dict[str, Any]) -> Problem:
     it = d.get("intrinsics") or {}
     if it.get("fx") is not None:
         fy = it.get("fy") if it.get("fy") is not None else it["fx"]
-        intr = Intrinsics(W, H, float(it["fx"]), float(fy), None if it.get("cx") is None else float(it["cx"]),
-                          None if it.get("cy") is None else float(it["cy"]))
+        intr = Intrinsics(
+            W,
+            H,
+            float(it["fx"]),
+            float(fy),
+            None if it.get("cx") is None else float(it["cx"]),
+            None if it.get("cy") is None else float(it["cy"]),
+        )
     else:
         src = None
         if it.get("camera") is not None:
@@ -227,7 +271,9 @@ def _model_folder(d: Dict[str, Any]) -> Problem:
         elif cam is not None:
             src = entry_to_intrinsics(cam)
         if src is None:
-            raise ProblemError("query intrinsics unknown: set data.intrinsics.fx/fy or data.intrinsics.camera")
+            raise ProblemError(
+                "query intrinsics unknown: set data.intrinsics.fx/fy or data.intrinsics.camera"
+            )
         if (src.width, src.height) != (W, H):
             src = Intrinsics(W, H, src.fx * W / src.width, src.fy * H / src.height)
         intr = src
@@ -248,9 +294,19 @@ def _model_folder(d: Dict[str, Any]) -> Problem:
     query = Query(rgb.contiguous(), intr, alpha, valid, str(name))
     scale = cameras_extent([e.c2w for e in mf.cameras]) if mf.cameras else None
     return Problem(
-        model=mf.model, query=query, init_c2w=init, gt_c2w=gt, bg=bg, scene_scale=scale,
-        cameras=list(mf.cameras or []), model_side=mf.training_side(),
-        info={"model_path": str(mp), "iteration": mf.iteration, "num_gaussians": mf.model.num_gaussians},
+        model=mf.model,
+        query=query,
+        init_c2w=init,
+        gt_c2w=gt,
+        bg=bg,
+        scene_scale=scale,
+        cameras=list(mf.cameras or []),
+        model_side=mf.training_side(),
+        info={
+            "model_path": str(mp),
+            "iteration": mf.iteration,
+            "num_gaussians": mf.model.num_gaussians,
+        },
     )
 
 
@@ -261,7 +317,9 @@ def _init_group(ini) -> Optional[Dict[str, Any]]:
     if isinstance(ini, str):
         if ini.strip().lower() == "none":
             return None
-        raise ProblemError(f"data.init must be a group (camera / c2w_file / rot_deg ...) or none, got {ini!r}")
+        raise ProblemError(
+            f"data.init must be a group (camera / c2w_file / rot_deg ...) or none, got {ini!r}"
+        )
     if not isinstance(ini, dict):
         raise ProblemError(f"data.init must be a group or none, got {type(ini).__name__}")
     return ini
@@ -274,9 +332,15 @@ def _perturbed(gt: np.ndarray, ini: Dict[str, Any], scene_centre, mf) -> np.ndar
     if pivot not in INIT_PIVOTS:
         raise ProblemError(f"data.init.pivot must be one of {INIT_PIVOTS}, got {pivot!r}")
     if pivot == "scene_center":
-        pivot = scene_centre if scene_centre is not None else mf.model.means.double().median(0).values.numpy()
+        pivot = (
+            scene_centre
+            if scene_centre is not None
+            else mf.model.means.double().median(0).values.numpy()
+        )
     try:
-        return perturb_pose(gt, float(ini["rot_deg"]), float(ini.get("trans") or 0.0), rng, pivot=pivot)
+        return perturb_pose(
+            gt, float(ini["rot_deg"]), float(ini.get("trans") or 0.0), rng, pivot=pivot
+        )
     except ValueError as e:
         raise ProblemError(f"data.init: {e}") from None
 
@@ -290,11 +354,15 @@ def _initial_pose(ini, gt: Optional[np.ndarray], mf) -> Optional[np.ndarray]:
         return None
     chosen = [k for k in ("camera", "c2w_file", "rot_deg") if ini.get(k) is not None]
     if len(chosen) != 1:
-        raise ProblemError("choose exactly one initial pose: data.init.camera, data.init.c2w_file or "
-                           f"data.init.rot_deg, or none with data.init=none (got {chosen or 'none of them'})")
+        raise ProblemError(
+            "choose exactly one initial pose: data.init.camera, data.init.c2w_file or "
+            f"data.init.rot_deg, or none with data.init=none (got {chosen or 'none of them'})"
+        )
     if ini.get("camera") is not None:
         if not mf.cameras:
-            raise ProblemError(f"data.init.camera={ini['camera']!r}: the model folder has no cameras.json")
+            raise ProblemError(
+                f"data.init.camera={ini['camera']!r}: the model folder has no cameras.json"
+            )
         try:
             return np.asarray(find_entry(mf.cameras, ini["camera"]).c2w, np.float64)
         except ValueError as e:
@@ -302,8 +370,10 @@ def _initial_pose(ini, gt: Optional[np.ndarray], mf) -> Optional[np.ndarray]:
     if ini.get("c2w_file") is not None:
         return load_c2w_file(ini["c2w_file"], "data.init.c2w_file")
     if gt is None:
-        raise ProblemError("data.init.rot_deg perturbs the ground truth, but no ground-truth pose is known "
-                           "for this query (use data.query.camera / index, or data.gt.*)")
+        raise ProblemError(
+            "data.init.rot_deg perturbs the ground truth, but no ground-truth pose is known "
+            "for this query (use data.query.camera / index, or data.gt.*)"
+        )
     return _perturbed(gt, ini, None, mf)
 
 

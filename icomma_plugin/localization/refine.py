@@ -1,14 +1,16 @@
-"""Photometric refinement: minimise the paper's comparing loss (masked MSE between render and
-query) over the pose with Levenberg-Marquardt steps, at one or more scales (coarse to fine).
+"""Photometric refinement: Levenberg-Marquardt on the paper's comparing loss.
+
+It minimises the masked MSE between render and query over the pose, at one or more scales
+(coarse to fine).
 
 The gradient is the rasterizer's exact analytic pose gradient. The Hessian is a Gauss-Newton
 matrix ``2 J^T J / N`` of the render's Jacobian ``J = dI/dxi``, either
 
-- ``finite_difference`` (default): ``J`` by forward differences of the render (6 forward renders);
-  the steps are then close to Newton steps and a few of them reach the optimum; or
-- ``motion_field``: a model with no extra render: a small camera motion ``xi`` moves the pixel of a
-  surface point at depth ``z`` by ``du = (du/dxi) xi`` (the motion field of a pinhole camera), so
-  the render changes by ``-grad(I) . du``.
+- ``finite_difference`` (default): ``J`` by forward differences of the render (6 forward
+  renders); the steps are then close to Newton steps and a few of them reach the optimum; or
+- ``motion_field``: a model with no extra render: a small camera motion ``xi`` moves the pixel of
+  a surface point at depth ``z`` by ``du = (du/dxi) xi`` (the motion field of a pinhole camera),
+  so the render changes by ``-grad(I) . du``.
 
 A step ``-(H + lambda diag H)^-1 g`` is taken only when the loss goes down (Nielsen's damping
 update), so the loss never increases. The pose is ``w2c <- se3_exp(step) @ w2c`` (a camera-frame
@@ -38,7 +40,13 @@ logger = logging.getLogger(__name__)
 
 HESSIANS = ("finite_difference", "motion_field")
 
-__all__ = ["RefineConfig", "RefineOutcome", "gauss_newton_hessian", "gaussian_blur", "refine_photometric"]
+__all__ = [
+    "RefineConfig",
+    "RefineOutcome",
+    "gauss_newton_hessian",
+    "gaussian_blur",
+    "refine_photometric",
+]
 
 
 @dataclass
@@ -91,8 +99,10 @@ class RefineConfig:
         self.blur = tuple(float(b) for b in self.blur)
         self.iterations = tuple(int(i) for i in self.iterations)
         if not self.scales or not (len(self.scales) == len(self.iterations) == len(self.blur)):
-            raise ValueError(f"RefineConfig.scales, .blur and .iterations must be non-empty and of equal "
-                             f"length, got {self.scales}, {self.blur} and {self.iterations}")
+            raise ValueError(
+                f"RefineConfig.scales, .blur and .iterations must be non-empty and of equal "
+                f"length, got {self.scales}, {self.blur} and {self.iterations}"
+            )
         if any(not (0 < s <= 4) for s in self.scales):
             raise ValueError(f"RefineConfig.scales must lie in (0, 4], got {self.scales}")
         if any(not (0 <= b <= 32) for b in self.blur):
@@ -110,6 +120,8 @@ class RefineConfig:
 
 @dataclass
 class RefineOutcome:
+    """What the refinement ends with: the pose, its steps, the loss before and after."""
+
     w2c: np.ndarray
     iterations: int
     accepted: int
@@ -122,8 +134,10 @@ class RefineOutcome:
 
 
 def _filled_depth(depth: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
-    """Depth where the render is opaque, spread a few pixels into empty space (where the image
-    gradient of a silhouette lies), and the median depth elsewhere."""
+    """Depth where the render is opaque, spread a few pixels into empty space; the median elsewhere.
+
+    The spread covers where the image gradient of a silhouette lies.
+    """
     fg = (alpha > 0.5).to(depth.dtype)
     if not bool(fg.any()):
         return torch.ones_like(depth)
@@ -144,8 +158,11 @@ def _image_gradient(img: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
 
 def gauss_newton_hessian(color: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor,
                          mask: torch.Tensor, intrinsics: Intrinsics) -> torch.Tensor:
-    """6x6 Gauss-Newton Hessian (float64) of the masked MSE w.r.t. a camera-frame twist
-    ``(rho, phi)``, from the motion-field model of the render (module docstring)."""
+    """6x6 Gauss-Newton Hessian (float64) of the masked MSE w.r.t. a camera-frame twist.
+
+    The twist is ``(rho, phi)``; the Hessian comes from the motion-field model of the render
+    (module docstring).
+    """
     with torch.no_grad():
         c = color.detach().double()
         z = _filled_depth(depth.detach().double(), alpha.detach().double())[0]
@@ -185,7 +202,9 @@ def gaussian_blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
 
 def _hessian(state, cfg, w2c, scale, out, mask, intr, blur):
     if cfg.hessian == "motion_field":
-        return gauss_newton_hessian(gaussian_blur(out.color.detach(), blur), out.depth, out.alpha, mask, intr)
+        return gauss_newton_hessian(
+            gaussian_blur(out.color.detach(), blur), out.depth, out.alpha, mask, intr
+        )
     # finite differences of the render: J[:, k] = (I(exp(h e_k) w2c) - I(w2c)) / h
     base = gaussian_blur(out.color.detach().double(), blur)
     cols = []
@@ -194,7 +213,9 @@ def _hessian(state, cfg, w2c, scale, out, mask, intr, blur):
         for k in range(6):
             e = torch.zeros(6, dtype=torch.float64)
             e[k] = cfg.fd_step
-            img = gaussian_blur(state.render((se3_exp(e) @ w2c_t).numpy(), scale).color.double(), blur)
+            img = gaussian_blur(
+                state.render((se3_exp(e) @ w2c_t).numpy(), scale).color.double(), blur
+            )
             cols.append((img - base) / cfg.fd_step)
     J = torch.stack(cols, 1)  # [C, 6, H, W]
     m = mask.detach().double()[0]
@@ -203,8 +224,11 @@ def _hessian(state, cfg, w2c, scale, out, mask, intr, blur):
 
 
 def _bfgs_update(hess: torch.Tensor, s: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """BFGS update of ``hess`` so that ``hess @ s = y`` (the curvature along the step that the
-    exact gradients measured); skipped when ``y . s`` is not positive."""
+    """BFGS update of ``hess`` so that ``hess @ s = y``.
+
+    That is the curvature along the step that the exact gradients measured; skipped when
+    ``y . s`` is not positive.
+    """
     ys = float(y @ s)
     Hs = hess @ s
     sHs = float(s @ Hs)
@@ -215,9 +239,14 @@ def _bfgs_update(hess: torch.Tensor, s: torch.Tensor, y: torch.Tensor) -> torch.
 
 def _evaluate(state: LocalizationState, w2c: np.ndarray, scale: float, mask: Optional[torch.Tensor],
               best: Optional[float], blur: float = 0.0, query: Optional[torch.Tensor] = None):
-    """Loss at ``w2c``; if it beats ``best`` (or ``best`` is None), also its gradient w.r.t. the
-    camera-frame twist and the render. ``mask`` None: the coverage mask of this very render
-    (detached), set into ``state``'s level. Returns (loss, grad or None, render or None, mask)."""
+    """Loss at ``w2c``, and its gradient and render when it beats ``best``.
+
+    The gradient is w.r.t. the camera-frame twist; ``best`` None always counts as beaten.
+    ``mask`` None: the coverage mask of this very render (detached), set into ``state``'s level.
+
+    Returns:
+        (loss, grad or None, render or None, mask).
+    """
     xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
     w2c_t = se3_exp(xi) @ torch.as_tensor(w2c, dtype=torch.float64)
     out = state.render(w2c_t, scale)
@@ -269,13 +298,17 @@ def refine_photometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Ref
         last_rot = last_trans = None
         for _ in range(n_it):
             total += 1
-            damp = torch.diag(torch.diag(hess)).clamp_min(0) + 1e-12 * torch.eye(6, dtype=torch.float64)
+            damp = torch.diag(torch.diag(hess)).clamp_min(0) + 1e-12 * torch.eye(
+                6, dtype=torch.float64
+            )
             step = -torch.linalg.solve(hess + lam * damp, grad)
             if not bool(torch.isfinite(step).all()):
                 break
             predicted = -float(grad @ step + 0.5 * step @ hess @ step)
             w2c_try = (se3_exp(step) @ torch.as_tensor(w2c)).numpy()
-            loss_try, grad_try, out_try, _ = _evaluate(state, w2c_try, scale, mask, loss, blur, query)
+            loss_try, grad_try, out_try, _ = _evaluate(
+                state, w2c_try, scale, mask, loss, blur, query
+            )
             ok = grad_try is not None
             rec = state.new_record(Stage.REFINE, w2c_try, loss=loss_try, loss_compare=loss_try,
                                    accepted=ok, hypothesis=hypothesis, scale=scale, lr=lam)
@@ -290,7 +323,9 @@ def refine_photometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Ref
                 grad_prev = grad
                 w2c, loss, grad = w2c_try, loss_try, grad_try
                 last_out = out_try
-                if cfg.hessian == "motion_field" or (cfg.hessian_every and accepted % cfg.hessian_every == 0):
+                if cfg.hessian == "motion_field" or (
+                    cfg.hessian_every and accepted % cfg.hessian_every == 0
+                ):
                     hess = _hessian(state, cfg, w2c, scale, out_try, mask, intr, blur)
                 elif cfg.secant:
                     hess = _bfgs_update(hess, step, grad - grad_prev)
@@ -307,9 +342,17 @@ def refine_photometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Ref
                     level_converged = True  # no step lowers the loss: a (local) minimum
                     break
         converged = level_converged or (
-            last_rot is not None and last_rot < cfg.still_rot_deg and last_trans < cfg.still_trans_rel * scene_depth)
+            last_rot is not None
+            and last_rot < cfg.still_rot_deg
+            and last_trans < cfg.still_trans_rel * scene_depth
+        )
     final = None
     if last_out is not None:  # the render at the returned pose (the verification reuses it)
-        final = Observation(w2c, last_scale, last_out.color.detach().clamp(0.0, 1.0), last_out.depth.detach(),
-                            last_out.alpha.detach())
+        final = Observation(
+            w2c,
+            last_scale,
+            last_out.color.detach().clamp(0.0, 1.0),
+            last_out.depth.detach(),
+            last_out.alpha.detach(),
+        )
     return RefineOutcome(w2c, total, accepted, loss0, loss, converged, last_rot, last_trans, final)

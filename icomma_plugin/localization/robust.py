@@ -1,12 +1,14 @@
-"""The default localizer: geometric stage, several hypotheses when needed, photometric refinement
-with roll-back, and a verdict.
+"""The default localizer.
+
+A geometric stage, several hypotheses when needed, photometric refinement with roll-back, and a
+verdict.
 
 1. From the start pose (if any): render-match-PnP rounds (``geometric.py``).
 2. When the start gives too few PnP inliers (a large rotation, a camera that sees little of the
    scene), or when there is no start: rank candidate views (``candidates.py``) and run the
    geometric stage from the best few; keep the best hypothesis by its verified score.
-3. Photometric refinement of that pose (``refine.py``), checked by a render-and-match at the result:
-   a refinement that loses agreeing matches is rolled back.
+3. Photometric refinement of that pose (``refine.py``), checked by a render-and-match at the
+   result: a refinement that loses agreeing matches is rolled back.
 4. The verdict (``verify.py``) from the measured signals.
 """
 from __future__ import annotations
@@ -88,6 +90,7 @@ class RobustConfig:
         return _from_dict(cls, d, "RobustConfig")
 
     def to_dict(self) -> Dict[str, Any]:
+        """The config as a nested dict (as `from_dict` reads it)."""
         return dataclasses.asdict(self)
 
 
@@ -101,8 +104,11 @@ def _from_dict(cls, d: Dict[str, Any], where: str):
         raise ValueError(f"unknown {where} keys {unknown}; known keys: {sorted(fields)}")
     kw = {}
     for k, v in d.items():
-        default = fields[k].default_factory() if fields[k].default_factory is not dataclasses.MISSING \
+        default = (
+            fields[k].default_factory()
+            if fields[k].default_factory is not dataclasses.MISSING
             else None
+        )
         if dataclasses.is_dataclass(default) and isinstance(v, dict):
             kw[k] = _from_dict(type(default), v, f"{where}.{k}")
         elif isinstance(v, list):
@@ -114,6 +120,8 @@ def _from_dict(cls, d: Dict[str, Any], where: str):
 
 @dataclass
 class RobustOutcome:
+    """What the default method ends with: the pose, its verdict and score, the hypotheses tried."""
+
     w2c: np.ndarray
     verdict: Verdict
     score: Optional[PoseScore]
@@ -138,10 +146,17 @@ def _summary(name: str, g: GeometricOutcome, state: LocalizationState) -> Dict[s
             "start_coverage": g.start_coverage, "rot_err_deg": rot, "trans_err": trans}
 
 
-def _convincing(score: Optional[PoseScore], cfg: RobustConfig, min_inliers: Optional[int] = None) -> bool:
-    """A geometric result that needs no other hypothesis: the verdict would call it ok (but for
-    the convergence signal, which only the refinement gives) with at least ``min_inliers``."""
-    if score is None or score.inliers < (cfg.min_start_inliers if min_inliers is None else min_inliers):
+def _convincing(
+    score: Optional[PoseScore], cfg: RobustConfig, min_inliers: Optional[int] = None
+) -> bool:
+    """A geometric result that needs no other hypothesis.
+
+    The verdict would call it ok (but for the convergence signal, which only the refinement gives)
+    with at least ``min_inliers``.
+    """
+    if score is None or score.inliers < (
+        cfg.min_start_inliers if min_inliers is None else min_inliers
+    ):
         return False
     return decide(score, cfg.verdict, converged=True).status == "ok"
 
@@ -198,7 +213,9 @@ def localize_robust(
         for rank, idx in enumerate(order[: cfg.candidates.top_k]):
             if cs.features[idx] is None:
                 continue
-            g = run_geometric(state, np.linalg.inv(cs.c2w[idx]), cfg.geometric, scale, hypothesis=rank + 1)
+            g = run_geometric(
+                state, np.linalg.inv(cs.c2w[idx]), cfg.geometric, scale, hypothesis=rank + 1
+            )
             hyps.append((cs.source[idx], g))
             if _better(g, best):
                 best = g
@@ -215,7 +232,9 @@ def localize_robust(
         if empty_start and verdict.status == "failed":
             verdict.reason += ("; the render at the start pose was empty (it looks away from the "
                                "scene): give a start that sees the scene, or none (init=none)")
-        return RobustOutcome(np.asarray(w2c, np.float64), verdict, score, summaries, False, 0, False)
+        return RobustOutcome(
+            np.asarray(w2c, np.float64), verdict, score, summaries, False, 0, False
+        )
 
     # photometric refinement of the best hypothesis, checked by a render-and-match
     depth = float(np.median(best.observation.depth[best.observation.alpha > 0.5].cpu().numpy())) \
@@ -230,18 +249,35 @@ def localize_robust(
     geo = best.score
     keep = (sc.inliers >= cfg.rollback_inliers * geo.inliers
             and sc.median_px <= geo.median_px + cfg.rollback_median_px)
-    rec = state.new_record(Stage.VERIFY, ref.w2c, matches=sc.matches, inliers=sc.inliers, accepted=keep,
-                           scale=scale)
+    rec = state.new_record(
+        Stage.VERIFY, ref.w2c, matches=sc.matches, inliers=sc.inliers, accepted=keep, scale=scale
+    )
     state.record(rec)
     if keep:
         w2c, score = ref.w2c, sc
     else:
-        logger.info("photometric refinement rolled back: %d -> %d agreeing matches", geo.inliers, sc.inliers)
+        logger.info(
+            "photometric refinement rolled back: %d -> %d agreeing matches", geo.inliers, sc.inliers
+        )
         w2c, score = best.w2c, geo
-    extra = {"start_render_empty": empty_start, "hypotheses": len(hyps), "refine_rolled_back": not keep,
-             "refine_iterations": ref.iterations, "refine_loss": [ref.loss_start, ref.loss_end]}
+    extra = {
+        "start_render_empty": empty_start,
+        "hypotheses": len(hyps),
+        "refine_rolled_back": not keep,
+        "refine_iterations": ref.iterations,
+        "refine_loss": [ref.loss_start, ref.loss_end],
+    }
     verdict = decide(score, cfg.verdict, converged=ref.converged or not keep, extra=extra)
     if empty_start:
-        verdict.reason += "; note: the render at the start pose was empty (relocalized from candidate views)"
-    return RobustOutcome(np.asarray(w2c, np.float64), verdict, score, summaries, not keep, ref.iterations,
-                         ref.converged)
+        verdict.reason += (
+            "; note: the render at the start pose was empty (relocalized from candidate views)"
+        )
+    return RobustOutcome(
+        np.asarray(w2c, np.float64),
+        verdict,
+        score,
+        summaries,
+        not keep,
+        ref.iterations,
+        ref.converged,
+    )

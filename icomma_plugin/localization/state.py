@@ -1,8 +1,10 @@
-"""What the stages of a localization share: the scene, the query at each working scale, the
-matcher (with the query's features computed once), the trace and the time spent per kind of work.
+"""What the stages of a localization share.
 
-A stage reads and writes a :class:`LocalizationState`; the pose it works on is passed and returned
-explicitly (``w2c``, float64 numpy), so that a stage can be run and tested on its own.
+The scene, the query at each working scale, the matcher (with the query's features computed
+once), the trace and the time spent per kind of work.
+
+A stage reads and writes a :class:`LocalizationState`; the pose it works on is passed and
+returned explicitly (``w2c``, float64 numpy), so that a stage can be run and tested on its own.
 """
 from __future__ import annotations
 
@@ -80,7 +82,11 @@ class LocalizationState:
 
     def __post_init__(self):
         self.model = self.model.detach()
-        if self.sh_degree is None and self.model.sh_degree > 0 and not bool(self.model.sh_rest.any()):
+        if (
+            self.sh_degree is None
+            and self.model.sh_degree > 0
+            and not bool(self.model.sh_rest.any())
+        ):
             # Higher SH bands all zero: degree 0 renders the same image (and gradients), faster.
             self.model = self.model.with_sh_degree(0)
         dev, dt = self.model.device, self.model.dtype
@@ -92,8 +98,11 @@ class LocalizationState:
     # ------------------------------------------------------------------ time
     @contextlib.contextmanager
     def timed(self, kind: str):
-        """Add the time spent in the block to ``seconds[kind]``, less the time of timed blocks
-        nested in it (they count as their own kind), so the kinds add up to the total."""
+        """Add the time spent in the block to ``seconds[kind]``.
+
+        Less the time of timed blocks nested in it (they count as their own kind), so the kinds
+        add up to the total.
+        """
         t = time.perf_counter()
         self._nested.append(0.0)
         try:
@@ -106,6 +115,7 @@ class LocalizationState:
                 self._nested[-1] += spent
 
     def elapsed(self) -> float:
+        """Seconds since the state was made."""
         return time.perf_counter() - self._t0
 
     def stage_seconds(self) -> Dict[str, float]:
@@ -118,12 +128,16 @@ class LocalizationState:
 
     # ------------------------------------------------------------------ query
     def intrinsics_at(self, scale: float) -> Intrinsics:
+        """The query's intrinsics at working ``scale``."""
         intr = self.query.intrinsics
         return intr if scale == 1.0 else intr.scaled(scale)
 
     def query_at(self, scale: float) -> Query:
-        """The query resized to ``scale`` (masks kept conservative: a pixel of ``valid`` stays
-        valid only if all of its source was)."""
+        """The query resized to ``scale``.
+
+        The masks are kept conservative: a pixel of ``valid`` stays valid only if all of its
+        source was.
+        """
         q = self._queries.get(scale)
         if q is None:
             intr = self.intrinsics_at(scale)
@@ -140,8 +154,10 @@ class LocalizationState:
         return q
 
     def query_features(self, scale: float):
-        """The matcher's features of the query at ``scale`` (computed once), or None when the
-        matcher cannot extract features on their own."""
+        """The matcher's features of the query at ``scale`` (computed once).
+
+        None when the matcher cannot extract features on their own.
+        """
         if self.matcher is None or not getattr(self.matcher, "supports_features", False):
             return None
         f = self._features.get(scale)
@@ -153,8 +169,13 @@ class LocalizationState:
 
     # ------------------------------------------------------------------ render / match
     def render(self, w2c, scale: float = 1.0):
-        """Render at ``w2c`` (a [4, 4] float64 numpy pose, or a torch tensor that may require
-        grad) at working ``scale``; returns the rasterizer's ``RasterOutput``."""
+        """Render at ``w2c`` at working ``scale``.
+
+        ``w2c`` is a [4, 4] float64 numpy pose, or a torch tensor that may require grad.
+
+        Returns:
+            The rasterizer's ``RasterOutput``.
+        """
         from ..render import prepare_scene, render
 
         if isinstance(w2c, np.ndarray):
@@ -166,8 +187,14 @@ class LocalizationState:
             if cached is None or cached[0] is not self.model or cached[1] != self.sh_degree:
                 cached = self._prepared = (self.model, self.sh_degree,
                                            prepare_scene(self.model, self.sh_degree))
-            return render(cached[2], self.intrinsics_at(scale), w2c.to(device=dev, dtype=dt), self.bg,
-                          backend=self.backend, antialiasing=self.antialiasing)
+            return render(
+                cached[2],
+                self.intrinsics_at(scale),
+                w2c.to(device=dev, dtype=dt),
+                self.bg,
+                backend=self.backend,
+                antialiasing=self.antialiasing,
+            )
 
     def observe(self, w2c: np.ndarray, scale: float = 1.0, match: bool = True) -> Observation:
         """Render at ``w2c`` and (optionally) match the render against the query."""
@@ -184,7 +211,9 @@ class LocalizationState:
         q = self.query_at(scale)
         feats = None if differentiable else self.query_features(scale)
         with self.timed("matcher"):
-            return self.matcher.match(render_rgb, q.rgb, differentiable=differentiable, features1=feats)
+            return self.matcher.match(
+                render_rgb, q.rgb, differentiable=differentiable, features1=feats
+            )
 
     # ------------------------------------------------------------------ trace
     def errors(self, w2c: np.ndarray) -> Tuple[Optional[float], Optional[float]]:
@@ -192,11 +221,16 @@ class LocalizationState:
         if self.gt_c2w is None:
             return None, None
         c2w = np.linalg.inv(w2c)
-        return float(rotation_error_deg(c2w, self.gt_c2w)), float(translation_error(c2w, self.gt_c2w))
+        return float(rotation_error_deg(c2w, self.gt_c2w)), float(
+            translation_error(c2w, self.gt_c2w)
+        )
 
     def record(self, rec: TraceRecord) -> TraceRecord:
-        """Keep ``rec`` (and report it); a record without its own duration gets the time since the
-        previous one, so the durations of a trace add up to the run's time."""
+        """Keep ``rec`` (and report it).
+
+        A record without its own duration gets the time since the previous one, so the durations
+        of a trace add up to the run's time.
+        """
         now = time.perf_counter()
         if not rec.seconds:
             rec.seconds = now - self._last_record

@@ -47,8 +47,12 @@ _RANK = {"ok": 2, "uncertain": 1, "failed": 0}
 
 @dataclass
 class TrackingConfig:
-    """velocity: predict with constant velocity (else start from the previous pose).
-    relocalize: a failed frame is localized again from the candidate views."""
+    """How a sequence is tracked.
+
+    Attributes:
+        velocity: predict with constant velocity (else start from the previous pose).
+        relocalize: a failed frame is localized again from the candidate views.
+    """
 
     velocity: bool = True
     relocalize: bool = True
@@ -57,8 +61,11 @@ class TrackingConfig:
 def predict_w2c(
     history: Sequence[Tuple[int, np.ndarray]], index: int, velocity: bool = True
 ) -> Optional[np.ndarray]:
-    """Start pose (w2c) of frame ``index`` from the ``(frame index, w2c)`` of earlier frames that
-    did not fail, oldest first: constant velocity from the last two, the last one alone, or None."""
+    """Start pose (w2c) of frame ``index``, or None.
+
+    From the ``(frame index, w2c)`` of earlier frames that did not fail, oldest first: constant
+    velocity from the last two, or the last one alone.
+    """
     if not history:
         return None
     j, Tj = history[-1]
@@ -94,6 +101,13 @@ class FrameSource:
     def open(
         cls, spec, every: int = 1, limit: Optional[int] = None, what: str = "data.sequence"
     ) -> "FrameSource":
+        """The frames of ``spec``: a video file or a folder of images.
+
+        Every ``every``-th frame, at most ``limit``.
+
+        Raises:
+            ProblemError: ``spec`` is missing, unreadable or has no frames (naming ``what``).
+        """
         from ..io.video import VIDEO_SUFFIXES, VideoError, video_info
 
         if spec is None or not str(spec).strip():
@@ -114,6 +128,7 @@ class FrameSource:
 
     @property
     def is_video(self) -> bool:
+        """Whether the frames come from a video file (else from a folder)."""
         return self.paths is None
 
     def __iter__(self) -> Iterator[Tuple[int, str, np.ndarray]]:
@@ -148,6 +163,8 @@ class FrameSource:
 
 @dataclass
 class TrackingSummary:
+    """What a tracking call did: counts by verdict, frames done, skipped and relocalized."""
+
     counts: Dict[str, int]
     done_now: int
     skipped: int
@@ -157,6 +174,7 @@ class TrackingSummary:
 
     @property
     def frames_per_second(self) -> Optional[float]:
+        """Frames tracked per second of this call; None when it tracked none."""
         return None if self.done_now == 0 or self.seconds <= 0 else self.done_now / self.seconds
 
 
@@ -277,9 +295,14 @@ def write_tracking_video(
     intrinsics_of: Callable[[Tuple[int, int]], Intrinsics],
     fps: float = 10.0,
 ) -> Path:
-    """render | frame | blend | difference of every tracked frame (``visualize.overlay_panel``;
-    the render at the frame's estimate, a frame without one shows black) as an MP4 (a GIF when no
-    MP4 encoder works); returns the path written."""
+    """render | frame | blend | difference of every tracked frame, as an MP4.
+
+    Panels by ``visualize.overlay_panel``: the render at the frame's estimate (a frame without one
+    shows black). A GIF when no MP4 encoder works.
+
+    Returns:
+        The path written.
+    """
     from ..io.video import write_video
     from ..render import render
     from ..visualize import overlay_panel, VERDICT_COLOURS

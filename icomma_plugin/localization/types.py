@@ -49,7 +49,9 @@ class Query:
 
     def __post_init__(self):
         if not isinstance(self.intrinsics, Intrinsics):
-            raise ValueError(f"intrinsics must be an Intrinsics, got {type(self.intrinsics).__name__}")
+            raise ValueError(
+                f"intrinsics must be an Intrinsics, got {type(self.intrinsics).__name__}"
+            )
         rgb = self.rgb
         if not isinstance(rgb, torch.Tensor) or rgb.ndim != 3 or rgb.shape[0] != 3 \
                 or not rgb.is_floating_point():
@@ -71,6 +73,7 @@ class Query:
 
     @property
     def size(self):
+        """(W, H) of the query."""
         return self.intrinsics.width, self.intrinsics.height
 
 
@@ -97,7 +100,8 @@ class TraceRecord:
     scale: Optional[float] = None
     rot_err_deg: Optional[float] = None
     trans_err: Optional[float] = None
-    xi: Optional[List[float]] = None  # the paper's method: the twist rendered, w2c = exp(xi) @ w2c_0
+    # the paper's method: the twist rendered, w2c = exp(xi) @ w2c_0
+    xi: Optional[List[float]] = None
     w2c: Optional[List[List[float]]] = None  # the pose this step rendered (other stages)
 
     def __getitem__(self, key: str) -> Any:
@@ -108,12 +112,14 @@ class TraceRecord:
         return getattr(self, key)
 
     def get(self, key: str, default: Any = None) -> Any:
+        """A field (or ``stage_name``) by name, as a dict's ``get``."""
         try:
             return self[key]
         except KeyError:
             return default
 
     def keys(self) -> List[str]:
+        """The names of the fields, and ``stage_name``."""
         return list(self.to_dict())
 
     def __iter__(self) -> Iterator[str]:
@@ -123,6 +129,7 @@ class TraceRecord:
         return key in self.to_dict()
 
     def to_dict(self) -> Dict[str, Any]:
+        """The record as a dict (``stage`` as an int, plus ``stage_name``)."""
         d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         d["stage"] = int(self.stage)
         d["stage_name"] = self.stage.name.lower()
@@ -150,6 +157,7 @@ class Verdict:
             raise ValueError(f"Verdict.status must be one of {VERDICTS}, got {self.status!r}")
 
     def to_json(self) -> Dict[str, Any]:
+        """The verdict as JSON (the signals made JSON-friendly)."""
         return {"status": self.status, "reason": self.reason, "signals": _jsonable(self.signals)}
 
 

@@ -1,5 +1,7 @@
-"""Check a pose without ground truth: render there, match the render against the query, and
-measure how well the two agree; turn the measurements into a verdict.
+"""Check a pose without ground truth.
+
+Render there, match the render against the query, and measure how well the two agree; turn the
+measurements into a verdict.
 
 The central signal needs no 3D reasoning: at the right pose the render and the photo show the
 same thing at the same place, so a match between them has (almost) no displacement. A match is an
@@ -52,11 +54,15 @@ class PoseScore:
 
     @property
     def inlier_ratio(self) -> float:
+        """Inliers / matches (0 without matches)."""
         return self.inliers / self.matches if self.matches else 0.0
 
     def better_than(self, other: Optional["PoseScore"], tie: float = 0.02) -> bool:
-        """The stated score: more inliers than ``other`` by more than a share ``tie``, or about as
-        many (within that share) with a smaller mean displacement."""
+        """Whether this score beats ``other`` (None is beaten by any score).
+
+        More inliers than ``other`` by more than a share ``tie``, or about as many (within that
+        share) with a smaller mean displacement.
+        """
         if other is None:
             return True
         if self.inliers > other.inliers * (1.0 + tie):
@@ -65,14 +71,19 @@ class PoseScore:
             and self.mean_px < other.mean_px
 
     def to_json(self) -> Dict[str, Any]:
+        """The score as JSON, with ``inlier_ratio``."""
         d = asdict(self)
         d["inlier_ratio"] = self.inlier_ratio
-        return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.items()}
+        return {
+            k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.items()
+        }
 
 
 def coverage_mask(obs: Observation, state: LocalizationState) -> torch.Tensor:
-    """``[1, H, W]`` float mask of the pixels the comparing loss uses at this observation: valid
-    query pixels where the render or the query (its alpha, when given) shows the scene."""
+    """``[1, H, W]`` float mask of the pixels the comparing loss uses at this observation.
+
+    Valid query pixels where the render or the query (its alpha, when given) shows the scene.
+    """
     q = state.query_at(obs.scale)
     cover = obs.alpha > 0.5
     if q.alpha is not None:
@@ -162,21 +173,35 @@ def decide(score: Optional[PoseScore], cfg: VerdictConfig, converged: Optional[b
     signals: Dict[str, Any] = dict(extra or {})
     signals["converged"] = converged
     if score is None:
-        return Verdict("uncertain", "the pose could not be checked (no matcher to compare the render "
-                       "with the photo); pass a matcher to get a verdict", signals)
+        return Verdict(
+            "uncertain",
+            "the pose could not be checked (no matcher to compare the render "
+            "with the photo); pass a matcher to get a verdict",
+            signals,
+        )
     signals.update(score.to_json())
     if score.coverage < cfg.fail_coverage:
-        return Verdict("failed", f"the render at the estimated pose covers {100 * score.coverage:.1f}% "
-                       "of the photo: the pose sees almost none of the scene; start from another pose "
-                       "or without one (init=none)", signals)
+        return Verdict(
+            "failed",
+            f"the render at the estimated pose covers {100 * score.coverage:.1f}% "
+            "of the photo: the pose sees almost none of the scene; start from another pose "
+            "or without one (init=none)",
+            signals,
+        )
     if score.inliers < cfg.fail_inliers:
-        return Verdict("failed", f"only {score.inliers} of {score.matches} matches agree with the "
-                       "estimated pose: it is wrong, or the photo does not show this scene", signals)
+        return Verdict(
+            "failed",
+            f"only {score.inliers} of {score.matches} matches agree with the "
+            "estimated pose: it is wrong, or the photo does not show this scene",
+            signals,
+        )
     problems = []
     if score.inliers < cfg.ok_inliers:
         problems.append(f"{score.inliers} agreeing matches (< {cfg.ok_inliers})")
     if score.inlier_ratio < cfg.ok_ratio:
-        problems.append(f"{100 * score.inlier_ratio:.0f}% of the matches agree (< {100 * cfg.ok_ratio:.0f}%)")
+        problems.append(
+            f"{100 * score.inlier_ratio:.0f}% of the matches agree (< {100 * cfg.ok_ratio:.0f}%)"
+        )
     if not score.median_px <= cfg.ok_median_px:
         problems.append(f"median displacement {score.median_px:.2f} px (> {cfg.ok_median_px:g})")
     if not score.mean_px <= cfg.ok_mean_px:
@@ -191,6 +216,10 @@ def decide(score: Optional[PoseScore], cfg: VerdictConfig, converged: Optional[b
         problems.append("the optimisation had not stopped moving")
     if problems:
         return Verdict("uncertain", "check this pose: " + "; ".join(problems), signals)
-    return Verdict("ok", f"{score.inliers} of {score.matches} matches agree within "
-                   f"{score.median_px:.2f} px (median), render covers {100 * score.coverage:.0f}% of "
-                   "the photo", signals)
+    return Verdict(
+        "ok",
+        f"{score.inliers} of {score.matches} matches agree within "
+        f"{score.median_px:.2f} px (median), render covers {100 * score.coverage:.0f}% of "
+        "the photo",
+        signals,
+    )
