@@ -30,13 +30,20 @@ __all__ = ["PreparedScene", "prepare_scene", "render"]
 
 @dataclass(frozen=True)
 class PreparedScene:
-    """The rasterizer inputs of a fixed :class:`GaussianModel`, computed once
-    (:func:`prepare_scene`).
+    """The rasterizer inputs of a fixed :class:`GaussianModel`, computed once.
 
-    means: ``[P, 3]``; opacities: ``[P, 1]`` (sigmoid); scales: ``[P, 3]`` (exp); rotations:
-    ``[P, 4]`` (normalised); shs: ``[P, (D+1)^2, 3]`` at ``sh_degree`` D >= 1, else None;
-    colors: ``[P, 3]`` at D = 0 (``max(SH_C0 f_dc + 0.5, 0)``, the rasterizer's own clamp), else
-    None. All contiguous, detached, finite, on the model's dtype and device.
+    Made by :func:`prepare_scene`; all contiguous, detached, finite, on the model's dtype and
+    device.
+
+    Attributes:
+        means: ``[P, 3]``.
+        opacities: ``[P, 1]`` (sigmoid).
+        scales: ``[P, 3]`` (exp).
+        rotations: ``[P, 4]`` (normalised).
+        shs: ``[P, (D+1)^2, 3]`` at ``sh_degree`` D >= 1, else None.
+        colors: ``[P, 3]`` at D = 0 (``max(SH_C0 f_dc + 0.5, 0)``, the rasterizer's own clamp),
+            else None.
+        sh_degree: D.
     """
 
     means: torch.Tensor
@@ -49,14 +56,17 @@ class PreparedScene:
 
     @property
     def num_gaussians(self) -> int:
+        """The number of Gaussians P."""
         return int(self.means.shape[0])
 
     @property
     def device(self) -> torch.device:
+        """The device of the tensors."""
         return self.means.device
 
     @property
     def dtype(self) -> torch.dtype:
+        """The dtype of the tensors."""
         return self.means.dtype
 
 
