@@ -1,6 +1,6 @@
 """Fit a 3DGS model to a dataset folder and write the upstream model-folder layout.
 
-    result = fit_scene("../shared/data/nerf_synthetic/lego_400", "/tmp/icomma_scenes/lego_200",
+    result = fit_scene("../shared/data/nerf_synthetic/lego_400", "out/lego_200",
                        FitConfig.scaled_schedule(5000), resolution=2)
 
 Writes (icomma_plugin.io.model_folder.write_model_folder): cfg_args, cameras.json (test then
