@@ -54,8 +54,9 @@ def _now() -> str:
     return _dt.datetime.now().isoformat(timespec="seconds")
 
 
-def load_done(path) -> Dict[str, Dict[str, Any]]:
-    """Records of a previous results.json keyed by their key (to resume a run)."""
+def load_done(path, retry_errors: bool = True) -> Dict[str, Dict[str, Any]]:
+    """Records of a previous results.json keyed by their key (to resume a run). Runs that raised
+    are left out when ``retry_errors`` (the default), so a resumed benchmark runs them again."""
     p = Path(str(path)).expanduser()
     if not p.is_file():
         raise FileNotFoundError(f"resume: no results.json at {p}")
@@ -64,7 +65,8 @@ def load_done(path) -> Dict[str, Dict[str, Any]]:
         raise ValueError(
             f"resume: {p} is not a benchmark results.json (schema {data.get('schema')!r})"
         )
-    return {r["key"]: r for r in data.get("records", []) if "key" in r}
+    return {r["key"]: r for r in data.get("records", [])
+            if "key" in r and not (retry_errors and r.get("error"))}
 
 
 class ResultsWriter:

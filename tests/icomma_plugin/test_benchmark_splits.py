@@ -7,8 +7,10 @@ from icomma_plugin.benchmark import load_model_folder_scene
 
 
 def test_val_split_queries_and_candidates_from_the_fitted_cameras(lego_root, tmp_path):
-    """Lego's val views as queries (held out from the benchmark's test views); the candidate
-    views are the train cameras only, never a camera of a held-out split."""
+    """Lego's val views as queries (held out from the benchmark's test views).
+
+    The candidate views are the train cameras only, never a camera of a held-out split.
+    """
     from icomma_plugin.demo_scene import blob_model
     from icomma_plugin.io.cameras_json import CameraEntry
     from icomma_plugin.io.datasets import read_dataset
@@ -28,3 +30,15 @@ def test_val_split_queries_and_candidates_from_the_fitted_cameras(lego_root, tmp
     assert len(test_scene.cameras_c2w) == 100 and test_scene.model_side == 50
     with pytest.raises(ValueError, match="split must be"):
         load_model_folder_scene(folder, num_queries=3, split="holdout")
+
+
+def test_resume_reuses_finished_runs_and_retries_the_ones_that_raised(tmp_path):
+    import json
+
+    from icomma_plugin.benchmark.results import SCHEMA, load_done
+
+    p = tmp_path / "results.json"
+    p.write_text(json.dumps({"schema": SCHEMA, "records": [
+        {"key": "a", "final_rot_deg": 0.1}, {"key": "b", "error": {"type": "ValueError", "message": "x"}}]}))
+    assert set(load_done(p)) == {"a"}
+    assert set(load_done(p, retry_errors=False)) == {"a", "b"}
