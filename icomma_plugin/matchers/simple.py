@@ -79,6 +79,7 @@ class FakeMatcher(Matcher):
         confidence: float = 1.0,
         **kwargs,
     ):
+        kwargs.setdefault("min_detect_side", 0)  # its correspondences are in the images' own pixels
         super().__init__(**kwargs)
         given = [
             kpts0 is not None or kpts1 is not None,

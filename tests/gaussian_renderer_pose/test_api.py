@@ -1,4 +1,7 @@
-"""Drop-in API of gaussian_renderer_pose vs graphdeco diff-gaussian-rasterization (late-2024 main)."""
+"""Drop-in API of gaussian_renderer_pose vs graphdeco diff-gaussian-rasterization.
+
+Upstream: its late-2024 main.
+"""
 from __future__ import annotations
 
 import math
@@ -27,8 +30,14 @@ UPSTREAM_FIELDS = (
 
 def test_public_names():
     assert set(grp.__all__) == {
-        "GaussianRasterizationSettings", "GaussianRasterizer", "rasterize_gaussians", "RasterOutput",
-        "camera_matrices", "CameraMatrices", "projection_matrix", "available_backends",
+        "GaussianRasterizationSettings",
+        "GaussianRasterizer",
+        "rasterize_gaussians",
+        "RasterOutput",
+        "camera_matrices",
+        "CameraMatrices",
+        "projection_matrix",
+        "available_backends",
     }
     for name in grp.__all__:
         assert hasattr(grp, name)
@@ -36,7 +45,10 @@ def test_public_names():
 
 def test_settings_fields_and_defaults():
     assert GaussianRasterizationSettings._fields == UPSTREAM_FIELDS + ("antialiasing", "backend")
-    assert GaussianRasterizationSettings._field_defaults == {"antialiasing": False, "backend": "auto"}
+    assert GaussianRasterizationSettings._field_defaults == {
+        "antialiasing": False,
+        "backend": "auto",
+    }
     # positional construction exactly as upstream (12 and 13 fields)
     s = make_scene(3)
     st = s.settings()
@@ -78,14 +90,33 @@ def test_depth_and_alpha_outputs():
     from gaussian_renderer_pose.camera import camera_matrices  # noqa: F401
 
     _, _, _, depth_acc, _ = rasterize_gaussians_reference(
-        s.means3D, s.means2D, s.opacities, s.shs, None, s.scales, s.rotations, None, s.bg, st.viewmatrix,
-        st.projmatrix, st.campos, image_height=48, image_width=64, tanfovx=st.tanfovx, tanfovy=st.tanfovy,
-        scale_modifier=1.0, sh_degree=3, prefiltered=False, antialiasing=False,
+        s.means3D,
+        s.means2D,
+        s.opacities,
+        s.shs,
+        None,
+        s.scales,
+        s.rotations,
+        None,
+        s.bg,
+        st.viewmatrix,
+        st.projmatrix,
+        st.campos,
+        image_height=48,
+        image_width=64,
+        tanfovx=st.tanfovx,
+        tanfovy=st.tanfovy,
+        scale_modifier=1.0,
+        sh_degree=3,
+        prefiltered=False,
+        antialiasing=False,
     )
     torch.testing.assert_close(out.depth[covered], (depth_acc / out.alpha)[covered])
     assert float(out.depth[~covered].abs().max()) == 0.0
     # background shows where nothing is drawn
-    torch.testing.assert_close(out.color[:, ~covered[0]], s.bg[:, None].expand(3, int((~covered).sum())))
+    torch.testing.assert_close(
+        out.color[:, ~covered[0]], s.bg[:, None].expand(3, int((~covered).sum()))
+    )
 
 
 def test_xor_rules():
@@ -93,7 +124,15 @@ def test_xor_rules():
     r = GaussianRasterizer(s.settings("reference"))
     cols = torch.rand(5, 3)
     with pytest.raises(ValueError, match="exactly one of either SHs"):
-        r(s.means3D, s.means2D, s.opacities, shs=s.shs, colors_precomp=cols, scales=s.scales, rotations=s.rotations)
+        r(
+            s.means3D,
+            s.means2D,
+            s.opacities,
+            shs=s.shs,
+            colors_precomp=cols,
+            scales=s.scales,
+            rotations=s.rotations,
+        )
     with pytest.raises(ValueError, match="exactly one of either SHs"):
         r(s.means3D, s.means2D, s.opacities, scales=s.scales, rotations=s.rotations)
     with pytest.raises(ValueError, match="scale/rotation pair"):
@@ -104,9 +143,15 @@ def test_xor_rules():
     with pytest.raises(ValueError, match="scale/rotation pair"):
         r(s.means3D, s.means2D, s.opacities, shs=s.shs)
     # the functional API enforces the same rules
-    with pytest.raises(ValueError, match="exactly one of shs / colors_precomp must be given, got both"):
-        rasterize_gaussians(settings=s.settings("reference"), **{**s.inputs(), "colors_precomp": cols})
-    with pytest.raises(ValueError, match="scales and rotations must be given together, got rotations=None"):
+    with pytest.raises(
+        ValueError, match="exactly one of shs / colors_precomp must be given, got both"
+    ):
+        rasterize_gaussians(
+            settings=s.settings("reference"), **{**s.inputs(), "colors_precomp": cols}
+        )
+    with pytest.raises(
+        ValueError, match="scales and rotations must be given together, got rotations=None"
+    ):
         rasterize_gaussians(settings=s.settings("reference"), **{**s.inputs(), "rotations": None})
 
 
@@ -114,12 +159,32 @@ def test_empty_tensors_mean_absent():
     s = make_scene(8, colors="precomp", covariance="precomp")
     r = GaussianRasterizer(s.settings("reference"))
     empty = torch.Tensor([])
-    a = r(s.means3D, s.means2D, s.opacities, shs=empty, colors_precomp=s.colors_precomp, scales=empty,
-          rotations=empty, cov3D_precomp=s.cov3D_precomp)
-    b = r(s.means3D, s.means2D, s.opacities, colors_precomp=s.colors_precomp, cov3D_precomp=s.cov3D_precomp)
+    a = r(
+        s.means3D,
+        s.means2D,
+        s.opacities,
+        shs=empty,
+        colors_precomp=s.colors_precomp,
+        scales=empty,
+        rotations=empty,
+        cov3D_precomp=s.cov3D_precomp,
+    )
+    b = r(
+        s.means3D,
+        s.means2D,
+        s.opacities,
+        colors_precomp=s.colors_precomp,
+        cov3D_precomp=s.cov3D_precomp,
+    )
     torch.testing.assert_close(a[0], b[0], rtol=0, atol=0)
     # means2D may be empty / None too
-    c = r(s.means3D, empty, s.opacities, colors_precomp=s.colors_precomp, cov3D_precomp=s.cov3D_precomp)
+    c = r(
+        s.means3D,
+        empty,
+        s.opacities,
+        colors_precomp=s.colors_precomp,
+        cov3D_precomp=s.cov3D_precomp,
+    )
     torch.testing.assert_close(a[0], c[0], rtol=0, atol=0)
 
 
@@ -137,7 +202,9 @@ def test_mark_visible():
 def test_opacities_flat_accepted():
     s = make_scene(10)
     a = rasterize_gaussians(settings=s.settings("reference"), **s.inputs())
-    b = rasterize_gaussians(settings=s.settings("reference"), **{**s.inputs(), "opacities": s.opacities[:, 0]})
+    b = rasterize_gaussians(
+        settings=s.settings("reference"), **{**s.inputs(), "opacities": s.opacities[:, 0]}
+    )
     torch.testing.assert_close(a.color, b.color, rtol=0, atol=0)
 
 
@@ -148,10 +215,14 @@ def test_zero_gaussians(backend):
     bg = s.bg.clone().requires_grad_(True)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        out = rasterize_gaussians(settings=s.settings(backend)._replace(bg=bg), **{**s.inputs(), "means3D": leaf})
+        out = rasterize_gaussians(
+            settings=s.settings(backend)._replace(bg=bg), **{**s.inputs(), "means3D": leaf}
+        )
     assert out.radii.shape == (0,) and out.radii.dtype == torch.int32
     torch.testing.assert_close(out.color, s.bg[:, None, None].expand(3, 48, 64))
-    assert float(out.alpha.detach().abs().max()) == 0 and float(out.invdepth.detach().abs().max()) == 0
+    assert (
+        float(out.alpha.detach().abs().max()) == 0 and float(out.invdepth.detach().abs().max()) == 0
+    )
     out.color.sum().backward()
     torch.testing.assert_close(bg.grad, torch.full((3,), 48.0 * 64.0))
 
@@ -193,11 +264,16 @@ class MockCamera:
 
 
 def render_like_3dgs(viewpoint_camera, pc, bg_color, scaling_modifier=1.0, antialiasing=False):
-    """Structure of graphdeco gaussian_renderer.render (late 2024), shs evaluated by the rasterizer."""
+    """Structure of graphdeco gaussian_renderer.render (late 2024).
+
+    The shs are evaluated by the rasterizer.
+    """
     # from diff_gaussian_rasterization import ... -> the only change:
     from gaussian_renderer_pose import GaussianRasterizationSettings, GaussianRasterizer
 
-    screenspace_points = torch.zeros_like(pc.get_xyz, dtype=pc.get_xyz.dtype, requires_grad=True) + 0
+    screenspace_points = (
+        torch.zeros_like(pc.get_xyz, dtype=pc.get_xyz.dtype, requires_grad=True) + 0
+    )
     screenspace_points.retain_grad()
     tanfovx = math.tan(viewpoint_camera.FoVx * 0.5)
     tanfovy = math.tan(viewpoint_camera.FoVy * 0.5)
@@ -237,11 +313,14 @@ def render_like_3dgs(viewpoint_camera, pc, bg_color, scaling_modifier=1.0, antia
     }
 
 
-@pytest.mark.parametrize("antialiasing,backend", [(False, "reference"), (True, "reference"), (True, "auto")])
+@pytest.mark.parametrize(
+    "antialiasing,backend", [(False, "reference"), (True, "reference"), (True, "auto")]
+)
 def test_3dgs_render_training_step(antialiasing, backend, monkeypatch):
     """The 3DGS render() (import changed only) runs forward + backward with training inputs.
 
-    backend 'auto' exercises the native kernel where it is built (else the reference)."""
+    backend 'auto' exercises the native kernel where it is built (else the reference).
+    """
     if backend == "reference":
         monkeypatch.setenv(_dispatch.ENV_VAR, "reference")
     else:
@@ -249,7 +328,9 @@ def test_3dgs_render_training_step(antialiasing, backend, monkeypatch):
         warnings.simplefilter("ignore", _dispatch.BackendFallbackWarning)
     s = make_scene(60, height=32, width=40, seed=4)
     pc = MockGaussianModel(s)
-    out = render_like_3dgs(MockCamera(s), pc, torch.tensor([0.0, 0.0, 0.0]), antialiasing=antialiasing)
+    out = render_like_3dgs(
+        MockCamera(s), pc, torch.tensor([0.0, 0.0, 0.0]), antialiasing=antialiasing
+    )
     gt = torch.rand(3, 32, 40, generator=torch.Generator().manual_seed(0))
     loss = (out["render"] - gt).abs().mean() + 0.1 * out["depth"].mean()
     loss.backward()
@@ -289,16 +370,22 @@ def native_missing(monkeypatch):
 
 def test_explicit_unavailable_backend_raises(native_missing):
     s = make_scene(4)
-    with pytest.raises(RuntimeError, match="backend 'cpu' requested but unavailable: pretend cpu is not built"):
+    with pytest.raises(
+        RuntimeError, match="backend 'cpu' requested but unavailable: pretend cpu is not built"
+    ):
         rasterize_gaussians(settings=s.settings("cpu"), **s.inputs())
-    with pytest.raises(RuntimeError, match="backend 'cuda' requested but the inputs are on device 'cpu'"):
+    with pytest.raises(
+        RuntimeError, match="backend 'cuda' requested but the inputs are on device 'cpu'"
+    ):
         rasterize_gaussians(settings=s.settings("cuda"), **s.inputs())
     assert available_backends()["cpu"] == "pretend cpu is not built"
 
 
 def test_auto_warns_once_and_falls_back(native_missing):
     s = make_scene(6)
-    with pytest.warns(_dispatch.BackendFallbackWarning, match="reference backend because .*native cpu backend") as rec:
+    with pytest.warns(
+        _dispatch.BackendFallbackWarning, match="reference backend because .*native cpu backend"
+    ) as rec:
         a = rasterize_gaussians(settings=s.settings("auto"), **s.inputs())
         rasterize_gaussians(settings=s.settings("auto"), **s.inputs())
     assert len([w for w in rec if issubclass(w.category, _dispatch.BackendFallbackWarning)]) == 1
@@ -311,7 +398,10 @@ def test_auto_uses_native_when_available(monkeypatch, native_backend):
     monkeypatch.delenv(_dispatch.ENV_VAR, raising=False)
     from gaussian_renderer_pose._native import rasterize_gaussians_native
 
-    assert _dispatch.select_backend("auto", torch.device("cpu"), torch.float32) is rasterize_gaussians_native
+    assert (
+        _dispatch.select_backend("auto", torch.device("cpu"), torch.float32)
+        is rasterize_gaussians_native
+    )
     s = make_scene(50)
     with warnings.catch_warnings():
         warnings.simplefilter("error")

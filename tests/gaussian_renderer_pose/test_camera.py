@@ -38,7 +38,8 @@ def test_matches_3dgs_camera():
     W, H, fx, fy = 64, 48, 55.0, 60.0
     cam = camera_matrices(w2c, fx, fy, W, H)
     fovx, fovy = 2 * math.atan(W / (2 * fx)), 2 * math.atan(H / (2 * fy))
-    # 3DGS Camera: world_view_transform = W2C^T, full_proj = wvt @ P^T, camera_center = inv(wvt)[3, :3]
+    # 3DGS Camera: world_view_transform = W2C^T, full_proj = wvt @ P^T,
+    # camera_center = inv(wvt)[3, :3]
     wvt = w2c.T
     proj = graphdeco_projection(0.01, 100.0, fovx, fovy).T
     torch.testing.assert_close(cam.viewmatrix, wvt)
@@ -69,8 +70,11 @@ def test_principal_point_lands_at_fx_x_over_z_plus_cx(cx, cy):
         antialiasing=False,
     )
     assert proj.ids.tolist() == [0, 1, 2]
-    expected = torch.stack([fx * x_cam[:, 0] / x_cam[:, 2] + ecx, fy * x_cam[:, 1] / x_cam[:, 2] + ecy], -1)
-    torch.testing.assert_close(proj.xy, expected, rtol=1e-9, atol=1e-5)  # the 1e-7 in p_w moves pixels by ~1e-6
+    expected = torch.stack(
+        [fx * x_cam[:, 0] / x_cam[:, 2] + ecx, fy * x_cam[:, 1] / x_cam[:, 2] + ecy], -1
+    )
+    # the 1e-7 in p_w moves pixels by ~1e-6
+    torch.testing.assert_close(proj.xy, expected, rtol=1e-9, atol=1e-5)
     torch.testing.assert_close(proj.depth, x_cam[:, 2])
 
 

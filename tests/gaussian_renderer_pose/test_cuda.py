@@ -43,7 +43,10 @@ def _loss_weights(scene: Scene, device, dtype):
     g = torch.Generator().manual_seed(1234)
     H, W = scene.height, scene.width
     shapes = ((3, H, W), (1, H, W), (1, H, W), (1, H, W))
-    return [torch.randn(*s, generator=g, dtype=torch.float64).to(device=device, dtype=dtype) for s in shapes]
+    return [
+        torch.randn(*s, generator=g, dtype=torch.float64).to(device=device, dtype=dtype)
+        for s in shapes
+    ]
 
 
 def _loss(out, w):
@@ -53,7 +56,10 @@ def _loss(out, w):
 
 def run(scene: Scene, backend: str, device, dtype=torch.float32, camera_grad: bool = True,
         twist: bool = True) -> Dict[str, torch.Tensor]:
-    """Forward + backward of a fixed random loss; returns images, radii and every gradient (on CPU)."""
+    """Forward + backward of a fixed random loss.
+
+    Returns images, radii and every gradient (on CPU).
+    """
     w = _loss_weights(scene, device, dtype)
     s = scene.to(device=device, dtype=dtype)
     leaves = scene_tensors_requiring_grad(s)
@@ -72,7 +78,9 @@ def run(scene: Scene, backend: str, device, dtype=torch.float32, camera_grad: bo
     if twist:
         s2 = scene.to(device=device, dtype=dtype)
         xi = torch.zeros(6, dtype=dtype, device=device, requires_grad=True)
-        out2 = rasterize_gaussians(settings=s2.settings(backend, w2c=se3_exp(xi) @ s2.w2c), **s2.inputs())
+        out2 = rasterize_gaussians(
+            settings=s2.settings(backend, w2c=se3_exp(xi) @ s2.w2c), **s2.inputs()
+        )
         _loss(out2, w).backward()
         res["d_xi"] = xi.grad.detach().cpu()
     return res
@@ -111,7 +119,9 @@ def compare(got: Dict[str, torch.Tensor], want: Dict[str, torch.Tensor], what: s
     assert r_got.dtype == torch.int32 and r_got.shape == r_want.shape
     mism = (r_got != r_want.to(r_got.dtype))
     # radius = ceil(3 sqrt(lambda)): a last-bit difference may move it across an integer, rarely
-    assert int(mism.sum()) <= max(1, r_got.numel() // 200), f"radii ({what}): {int(mism.sum())} differ"
+    assert int(mism.sum()) <= max(1, r_got.numel() // 200), (
+        f"radii ({what}): {int(mism.sum())} differ"
+    )
     assert _absmax(r_got.long() - r_want.long()) <= 1, f"radii ({what})"
     assert bool(((r_got > 0) == (r_want > 0)).all()), f"radii ({what}): visibility differs"
     for k in got:
@@ -158,7 +168,10 @@ def test_cuda_matches_cpu_on_a_larger_scene(native_backend):
 
 
 def test_cuda_backward_is_deterministic():
-    """Fixed reduction orders, no atomics: repeated runs are bitwise equal (pose gradient included)."""
+    """Fixed reduction orders, no atomics: repeated runs are bitwise equal.
+
+    The pose gradient included.
+    """
     scene = _scene("dense")
     first = run(scene, "cuda", CUDA)
     for _ in range(2):

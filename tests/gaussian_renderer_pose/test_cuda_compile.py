@@ -36,7 +36,9 @@ pytestmark = pytest.mark.skipif(NVCC is None, reason="nvcc not on PATH: CUDA com
 
 
 def _build_params():
-    spec = importlib.util.spec_from_file_location("_grp_build", REPO / "gaussian_renderer_pose" / "_build.py")
+    spec = importlib.util.spec_from_file_location(
+        "_grp_build", REPO / "gaussian_renderer_pose" / "_build.py"
+    )
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -53,7 +55,9 @@ def _nvcc_flags() -> list[str]:
 
 
 def _start(cmd: list[str]) -> subprocess.Popen:
-    return subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    return subprocess.Popen(
+        cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
 
 
 def _finish(proc: subprocess.Popen, cmd: list[str]) -> str:
@@ -63,7 +67,9 @@ def _finish(proc: subprocess.Popen, cmd: list[str]) -> str:
         proc.kill()
         out, _ = proc.communicate()
         pytest.fail(f"compilation timed out after {TIMEOUT_S} s: {' '.join(cmd)}\n{out}")
-    assert proc.returncode == 0, f"compilation failed (exit {proc.returncode}): {' '.join(cmd)}\n{out}"
+    assert proc.returncode == 0, (
+        f"compilation failed (exit {proc.returncode}): {' '.join(cmd)}\n{out}"
+    )
     return out
 
 
@@ -75,7 +81,10 @@ def _our_warnings(output: str) -> list[str]:
 
 
 def _wrapper_cmd(tmp_path: Path) -> list[str] | None:
-    """nvcc command compiling rasterize_cuda.cpp (host code), or None if torch headers are absent."""
+    """The nvcc command compiling rasterize_cuda.cpp (host code).
+
+    None if the torch headers are absent.
+    """
     try:
         from torch.utils.cpp_extension import include_paths
     except Exception:  # pragma: no cover - torch is a hard requirement of the package
@@ -126,6 +135,8 @@ def test_cuda_sources_compile(tmp_path):
     outputs = [(cmd, _finish(proc, cmd)) for cmd, proc in jobs]
     for cmd, out in outputs:
         warnings = _our_warnings(out)
-        assert not warnings, f"nvcc warnings in our sources: {' '.join(cmd)}\n" + "\n".join(warnings)
+        assert not warnings, f"nvcc warnings in our sources: {' '.join(cmd)}\n" + "\n".join(
+            warnings
+        )
     for arch in _archs():
         assert (tmp_path / f"kernels_sm{arch}.o").stat().st_size > 0

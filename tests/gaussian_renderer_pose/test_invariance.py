@@ -1,5 +1,6 @@
-"""Rendering at pose T equals rendering the Gaussians moved by T at the identity pose: the image
-and the gradient w.r.t. a left pose twist (w2c = se3_exp(xi) @ w2c0) alike.
+"""Rendering at pose T equals rendering the Gaussians moved by T at the identity pose.
+
+The image and the gradient w.r.t. a left pose twist (w2c = se3_exp(xi) @ w2c0) alike.
 
 Moving by T = [R t]: means -> R m + t; rotations -> q_R (x) q (quaternion product; exact for unit
 quaternions, since the upstream formula is not homogeneous in q); cov3D -> R Sigma R^T (exact for
@@ -21,16 +22,36 @@ def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
     k = int(torch.argmax(cands))
     if k == 0:
         w = torch.sqrt(1 + tr) / 2
-        q = [w, (m[2, 1] - m[1, 2]) / (4 * w), (m[0, 2] - m[2, 0]) / (4 * w), (m[1, 0] - m[0, 1]) / (4 * w)]
+        q = [
+            w,
+            (m[2, 1] - m[1, 2]) / (4 * w),
+            (m[0, 2] - m[2, 0]) / (4 * w),
+            (m[1, 0] - m[0, 1]) / (4 * w),
+        ]
     elif k == 1:
         x = torch.sqrt(1 + m[0, 0] - m[1, 1] - m[2, 2]) / 2
-        q = [(m[2, 1] - m[1, 2]) / (4 * x), x, (m[0, 1] + m[1, 0]) / (4 * x), (m[0, 2] + m[2, 0]) / (4 * x)]
+        q = [
+            (m[2, 1] - m[1, 2]) / (4 * x),
+            x,
+            (m[0, 1] + m[1, 0]) / (4 * x),
+            (m[0, 2] + m[2, 0]) / (4 * x),
+        ]
     elif k == 2:
         y = torch.sqrt(1 - m[0, 0] + m[1, 1] - m[2, 2]) / 2
-        q = [(m[0, 2] - m[2, 0]) / (4 * y), (m[0, 1] + m[1, 0]) / (4 * y), y, (m[1, 2] + m[2, 1]) / (4 * y)]
+        q = [
+            (m[0, 2] - m[2, 0]) / (4 * y),
+            (m[0, 1] + m[1, 0]) / (4 * y),
+            y,
+            (m[1, 2] + m[2, 1]) / (4 * y),
+        ]
     else:
         z = torch.sqrt(1 - m[0, 0] - m[1, 1] + m[2, 2]) / 2
-        q = [(m[1, 0] - m[0, 1]) / (4 * z), (m[0, 2] + m[2, 0]) / (4 * z), (m[1, 2] + m[2, 1]) / (4 * z), z]
+        q = [
+            (m[1, 0] - m[0, 1]) / (4 * z),
+            (m[0, 2] + m[2, 0]) / (4 * z),
+            (m[1, 2] + m[2, 1]) / (4 * z),
+            z,
+        ]
     return torch.stack(q)
 
 
@@ -57,11 +78,14 @@ def moved_scene(scene: Scene) -> Scene:
         c = scene.cov3D_precomp
         S = torch.stack([c[:, [0, 1, 2]], c[:, [1, 3, 4]], c[:, [2, 4, 5]]], -2)
         S2 = R @ S @ R.T
-        s.cov3D_precomp = torch.stack([S2[:, 0, 0], S2[:, 0, 1], S2[:, 0, 2], S2[:, 1, 1], S2[:, 1, 2], S2[:, 2, 2]], -1)
+        s.cov3D_precomp = torch.stack(
+            [S2[:, 0, 0], S2[:, 0, 1], S2[:, 0, 2], S2[:, 1, 1], S2[:, 1, 2], S2[:, 2, 2]], -1
+        )
     if scene.shs is not None:
         assert scene.sh_degree <= 1
         shs = scene.shs.clone()
-        u = torch.stack([-scene.shs[:, 3], -scene.shs[:, 1], scene.shs[:, 2]], 1)  # [P, 3(xyz), 3(rgb)]
+        # [P, 3(xyz), 3(rgb)]
+        u = torch.stack([-scene.shs[:, 3], -scene.shs[:, 1], scene.shs[:, 2]], 1)
         u2 = torch.einsum("ij,pjc->pic", R, u)
         shs[:, 1], shs[:, 2], shs[:, 3] = -u2[:, 1], u2[:, 2], -u2[:, 0]
         s.shs = shs
@@ -79,10 +103,16 @@ def render_with_twist(scene: Scene, backend: str, weights):
 
 
 CASES = [
-    pytest.param(dict(colors="precomp", covariance="scale_rot", sh_degree=0), id="precomp-colors-quat"),
-    pytest.param(dict(colors="precomp", covariance="precomp", sh_degree=0, antialiasing=True), id="cov3d-aa"),
+    pytest.param(
+        dict(colors="precomp", covariance="scale_rot", sh_degree=0), id="precomp-colors-quat"
+    ),
+    pytest.param(
+        dict(colors="precomp", covariance="precomp", sh_degree=0, antialiasing=True), id="cov3d-aa"
+    ),
     pytest.param(dict(colors="sh", covariance="precomp", sh_degree=0), id="sh0"),
-    pytest.param(dict(colors="sh", covariance="scale_rot", sh_degree=1, cx=25.0, cy=30.0), id="sh1-pp"),
+    pytest.param(
+        dict(colors="sh", covariance="scale_rot", sh_degree=1, cx=25.0, cy=30.0), id="sh1-pp"
+    ),
 ]
 
 
@@ -104,5 +134,11 @@ def test_pose_equals_moved_gaussians(backend, backend_dtype, kw):
     for k in ("color", "invdepth", "depth", "alpha"):
         torch.testing.assert_close(getattr(out_a, k), getattr(out_b, k), **tol)
     assert float(out_a.alpha.detach().max()) > 0.5  # the scene is not empty
-    torch.testing.assert_close(grad_a, grad_b, rtol=1e-6 if dtype == torch.float64 else 2e-2,
-                               atol=1e-6 * float(grad_a.abs().max()) if dtype == torch.float64 else 1e-2 * float(grad_a.abs().max()))
+    torch.testing.assert_close(
+        grad_a,
+        grad_b,
+        rtol=1e-6 if dtype == torch.float64 else 2e-2,
+        atol=1e-6 * float(grad_a.abs().max())
+        if dtype == torch.float64
+        else 1e-2 * float(grad_a.abs().max()),
+    )

@@ -1,5 +1,8 @@
-"""Native CPU backend: determinism, pose gradient vs finite differences, no camera work when not
-requested, TORCH_CHECK errors, P = 0 and empty image regions, mark_visible."""
+"""Native CPU backend: determinism, pose gradient, errors, empty input, mark_visible.
+
+Pose gradient vs finite differences, no camera work when not requested, TORCH_CHECK errors,
+P = 0 and empty image regions.
+"""
 from __future__ import annotations
 
 import pytest
@@ -25,8 +28,10 @@ def _ops():
 
 
 def _direct_args(scene):
-    """Leading args of the grp ops for a scene (float32, contiguous): the tensors, and the settings
-    up to sh_degree (prefiltered and antialiasing follow)."""
+    """Leading args of the grp ops for a scene (float32, contiguous).
+
+    The tensors, and the settings up to sh_degree (prefiltered and antialiasing follow).
+    """
     cam = camera_matrices(scene.w2c, scene.fx, scene.fy, scene.width, scene.height)
     tensors = [scene.means3D, scene.opacities, scene.shs, scene.colors_precomp, scene.scales,
                scene.rotations, scene.cov3D_precomp, scene.bg, cam.viewmatrix.contiguous(),
@@ -162,7 +167,11 @@ def _bad_calls(scene):
         return t
 
     yield "float64 means", with_(i_means, tensors[i_means].double()), settings
-    yield "non-contiguous means", with_(i_means, torch.cat([tensors[i_means]] * 2, 1)[:, ::2]), settings
+    yield (
+        "non-contiguous means",
+        with_(i_means, torch.cat([tensors[i_means]] * 2, 1)[:, ::2]),
+        settings,
+    )
     yield "means [P, 4]", with_(i_means, torch.zeros(tensors[i_means].shape[0], 4)), settings
     yield "opacities [P]", with_(i_opac, tensors[i_opac].view(-1)), settings
     yield "bg [4]", with_(i_bg, torch.zeros(4)), settings
@@ -217,7 +226,11 @@ def test_all_gaussians_culled_and_empty_region():
     keep = scene.means3D @ cam.viewmatrix[:3, 2] + cam.viewmatrix[3, 2] <= 0.2
     assert int(keep.sum()) > 10
     scene.means3D, scene.opacities = scene.means3D[keep], scene.opacities[keep]
-    scene.shs, scene.scales, scene.rotations = scene.shs[keep], scene.scales[keep], scene.rotations[keep]
+    scene.shs, scene.scales, scene.rotations = (
+        scene.shs[keep],
+        scene.scales[keep],
+        scene.rotations[keep],
+    )
     scene.means2D = scene.means2D[keep]
     out, grads = run_backend(_native(), scene, pose=True)
     assert int(out[1].max()) == 0
@@ -232,7 +245,11 @@ def test_all_gaussians_culled_and_empty_region():
     px = scene.fx * t[:, 0] / t[:, 2] + (scene.width - 1) / 2
     keep = px < 40
     scene.means3D, scene.opacities = scene.means3D[keep], scene.opacities[keep]
-    scene.shs, scene.scales, scene.rotations = scene.shs[keep], scene.scales[keep], scene.rotations[keep]
+    scene.shs, scene.scales, scene.rotations = (
+        scene.shs[keep],
+        scene.scales[keep],
+        scene.rotations[keep],
+    )
     scene.means2D = scene.means2D[keep]
     out, grads = run_backend(_native(), scene, pose=True)
     right = slice(112, None)  # tiles 7..9: no Gaussian reaches them

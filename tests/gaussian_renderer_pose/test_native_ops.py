@@ -1,7 +1,10 @@
-"""The native ops torch.ops.grp.*: their schemas follow the backend contract that _native.py relies
-on, `torch.library.opcheck` passes on each (schema, autograd registration, fake kernel against the
-real kernel, AOT dispatch with dynamic shapes), and the forward's saved state is a function of its
-inputs (no uninitialised memory)."""
+"""The native ops torch.ops.grp.*: schemas, opcheck, deterministic saved state.
+
+Their schemas follow the backend contract that _native.py relies on, `torch.library.opcheck`
+passes on each (schema, autograd registration, fake kernel against the real kernel, AOT dispatch
+with dynamic shapes), and the forward's saved state is a function of its inputs (no
+uninitialised memory).
+"""
 from __future__ import annotations
 
 import inspect

@@ -18,8 +18,17 @@ from tests.helpers.scenes import make_scene, se3_exp
 
 pytestmark = pytest.mark.usefixtures("native_backend")
 
-GAUSSIAN_INPUTS = ("means3D", "means2D", "opacities", "shs", "colors_precomp", "scales", "rotations",
-                   "cov3D_precomp", "bg")
+GAUSSIAN_INPUTS = (
+    "means3D",
+    "means2D",
+    "opacities",
+    "shs",
+    "colors_precomp",
+    "scales",
+    "rotations",
+    "cov3D_precomp",
+    "bg",
+)
 CAMERA_INPUTS = ("viewmatrix", "projmatrix", "campos")
 
 
@@ -30,7 +39,11 @@ def _native():
 
 
 def run_backend(fn, scene, *, pose: bool = True, cot_seed: int = 1):
-    """Forward + backward of sum(out * cot). Returns (outputs, grads by name incl. 'xi' when pose)."""
+    """Forward + backward of sum(out * cot).
+
+    Returns:
+        (outputs, grads by name, with 'xi' when pose).
+    """
     leaves = {}
     for name in GAUSSIAN_INPUTS:
         t = getattr(scene, name)
@@ -85,7 +98,9 @@ def assert_grad_close(name, ref, nat, *, rel=2e-3, cos=0.9999, elem=2e-2):
     assert torch.isfinite(nat).all(), f"{name}: non-finite native gradient"
     scale = float(ref.abs().max()) if ref.numel() else 0.0
     if scale == 0.0:
-        assert float(nat.abs().max() if nat.numel() else 0.0) <= 1e-6, f"{name}: expected zero gradient"
+        assert float(nat.abs().max() if nat.numel() else 0.0) <= 1e-6, (
+            f"{name}: expected zero gradient"
+        )
         return
     r, c = rel_l2(ref, nat), cosine(ref, nat)
     assert r < rel, f"{name}: relative L2 {r:.3e} >= {rel}"
@@ -108,7 +123,9 @@ def compare(scene, *, pose=True, strict_forward=True):
                 assert torch.equal(a.to(torch.int32), b), "radii differ"
             else:  # ceil(3 sqrt(lambda)) may round the other way for a rare Gaussian
                 diff = (a.to(torch.int32) - b).abs()
-                assert int(diff.max()) <= 1 and float((diff > 0).float().mean()) < 1e-3, "radii differ"
+                assert int(diff.max()) <= 1 and float((diff > 0).float().mean()) < 1e-3, (
+                    "radii differ"
+                )
             continue
         atol = 1e-4 if name == "depth_acc" else 2e-5
         if strict_forward:
@@ -131,11 +148,16 @@ CASES = [
     ("sh3", dict(num_gaussians=100)),
     ("sh0", dict(num_gaussians=100, sh_degree=0)),
     ("sh1_bg_black", dict(num_gaussians=100, sh_degree=1, bg=(0.0, 0.0, 0.0), seed=3)),
-    ("sh2_aa_odd", dict(num_gaussians=100, sh_degree=2, antialiasing=True, height=97, width=131, seed=5)),
+    (
+        "sh2_aa_odd",
+        dict(num_gaussians=100, sh_degree=2, antialiasing=True, height=97, width=131, seed=5),
+    ),
     ("precomp_colors", dict(num_gaussians=100, colors="precomp", bg=(1.0, 1.0, 1.0), seed=7)),
     ("precomp_cov", dict(num_gaussians=100, covariance="precomp", scale_modifier=0.7, seed=9)),
-    ("precomp_both_aa", dict(num_gaussians=100, colors="precomp", covariance="precomp", antialiasing=True,
-                             seed=11)),
+    (
+        "precomp_both_aa",
+        dict(num_gaussians=100, colors="precomp", covariance="precomp", antialiasing=True, seed=11),
+    ),
     ("scale_mod_1.5", dict(num_gaussians=100, scale_modifier=1.5, sh_degree=3, seed=13)),
     ("single", dict(num_gaussians=1, frac_behind=0.0, frac_offscreen=0.0, seed=2)),
     ("off_centre_pp", dict(num_gaussians=80, cx=30.0, cy=20.0, antialiasing=True, seed=17)),

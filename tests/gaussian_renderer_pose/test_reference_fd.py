@@ -1,6 +1,7 @@
-"""Reference backend: autograd gradients vs central finite differences (float64), for every input,
-the three camera matrices, and the 6 dof of a left pose twist on w2c; plus a literal
-scalar transcription of the upstream CUDA forward as an independent check of the numerics.
+"""Reference backend: autograd gradients vs central finite differences (float64).
+
+For every input, the three camera matrices, and the 6 dof of a left pose twist on w2c; plus a
+literal scalar transcription of the upstream CUDA forward as an independent check of the numerics.
 
 FD scenes avoid the discontinuities of the forward (1/255 skip, tile-rect edges, 3-sigma radius,
 near plane, T stop, SH clamp): a 24x20 image (2x2 tiles), few large Gaussians whose rects cover
@@ -15,7 +16,11 @@ import math
 import pytest
 import torch
 
-from gaussian_renderer_pose import GaussianRasterizationSettings, camera_matrices, rasterize_gaussians
+from gaussian_renderer_pose import (
+    GaussianRasterizationSettings,
+    camera_matrices,
+    rasterize_gaussians,
+)
 from gaussian_renderer_pose.reference import projection as ref_projection
 from gaussian_renderer_pose.reference import rasterize_gaussians_reference
 from gaussian_renderer_pose.reference.sh import eval_sh
@@ -25,7 +30,9 @@ F64 = torch.float64
 EPS = 1e-6
 
 
-def fd_scene(colors: str, covariance: str, antialiasing: bool, seed: int = 0, cx=None, cy=None) -> Scene:
+def fd_scene(
+    colors: str, covariance: str, antialiasing: bool, seed: int = 0, cx=None, cy=None
+) -> Scene:
     g = torch.Generator().manual_seed(seed)
     H, W = 20, 24
     fx, fy = 0.9 * W, 0.95 * W
@@ -52,7 +59,9 @@ def fd_scene(colors: str, covariance: str, antialiasing: bool, seed: int = 0, cx
     # world scales ~1.5..3.5 at depth ~3: sigma 10..25 px, anisotropic
     scales = 1.5 + 2.0 * torch.rand(P, 3, generator=g, dtype=F64)
     quats = torch.randn(P, 4, generator=g, dtype=F64)
-    quats = quats / quats.norm(dim=-1, keepdim=True) * (0.6 + torch.rand(P, 1, generator=g, dtype=F64))
+    quats = (
+        quats / quats.norm(dim=-1, keepdim=True) * (0.6 + torch.rand(P, 1, generator=g, dtype=F64))
+    )
     opac = 0.2 + 0.35 * torch.rand(P, 1, generator=g, dtype=F64)
     shs = 0.05 * torch.randn(P, 16, 3, generator=g, dtype=F64)
     shs[:, 0] = 0.6 + 0.5 * torch.rand(P, 3, generator=g, dtype=F64)  # colour ~0.67..0.81: no clamp
@@ -119,7 +128,9 @@ def means2D_as_offset(monkeypatch):
 def _check(name, analytic, numeric):
     scale = max(1.0, float(numeric.abs().max()))
     err = float((analytic - numeric).abs().max())
-    assert err <= 1e-5 * scale, f"{name}: max |autograd - FD| = {err:.3e} (scale {scale:.3e})\n{analytic}\n{numeric}"
+    assert err <= 1e-5 * scale, (
+        f"{name}: max |autograd - FD| = {err:.3e} (scale {scale:.3e})\n{analytic}\n{numeric}"
+    )
 
 
 def _fd_tensor(f, t: torch.Tensor, directions: int, gen: torch.Generator):
@@ -147,8 +158,16 @@ CASES = [
 
 @pytest.mark.parametrize("colors,covariance,aa", CASES)
 def test_gradients_match_finite_differences(colors, covariance, aa, means2D_as_offset):
-    scene = fd_scene(colors, covariance, aa, cx=None if colors == "sh" else 10.7, cy=None if colors == "sh" else 9.9)
-    cam = camera_matrices(scene.w2c, scene.fx, scene.fy, scene.width, scene.height, scene.cx, scene.cy)
+    scene = fd_scene(
+        colors,
+        covariance,
+        aa,
+        cx=None if colors == "sh" else 10.7,
+        cy=None if colors == "sh" else 9.9,
+    )
+    cam = camera_matrices(
+        scene.w2c, scene.fx, scene.fy, scene.width, scene.height, scene.cx, scene.cy
+    )
     tensors = {k: v for k, v in scene.inputs().items() if v is not None}
     tensors["bg"] = scene.bg
     mats = {"viewmatrix": cam.viewmatrix, "projmatrix": cam.projmatrix, "campos": cam.campos,
@@ -163,7 +182,11 @@ def test_gradients_match_finite_differences(colors, covariance, aa, means2D_as_o
     assert radii[:6].min() > 0 and radii[6:].max() == 0  # 6 visible, behind/near culled
 
     leaves = {k: v.detach().clone().requires_grad_(True) for k, v in tensors.items()}
-    mleaves = {k: v.detach().clone().requires_grad_(True) for k, v in mats.items() if isinstance(v, torch.Tensor)}
+    mleaves = {
+        k: v.detach().clone().requires_grad_(True)
+        for k, v in mats.items()
+        if isinstance(v, torch.Tensor)
+    }
     loss = weighted_loss(render(scene, leaves, {**mats, **mleaves}), weights)
     loss.backward()
 
@@ -180,7 +203,8 @@ def test_gradients_match_finite_differences(colors, covariance, aa, means2D_as_o
                 return weighted_loss(render(scene, t2, m2), weights)
 
         grad = holder[name].grad
-        if grad is None:  # only legitimate when the output does not depend on it (campos without SH)
+        # only legitimate when the output does not depend on it (campos without SH)
+        if grad is None:
             assert name == "campos" and scene.shs is None, f"no gradient reached {name}"
             grad = torch.zeros_like(x0)
         directions = 6 if x0.numel() > 24 else 0
@@ -203,7 +227,9 @@ def test_pose_twist_gradient_matches_finite_differences(colors, covariance, aa):
 
     def loss_at(xi):
         w2c = se3_exp(xi) @ scene.w2c
-        return weighted_loss(rasterize_gaussians(settings=scene.settings("reference", w2c=w2c), **inputs), weights)
+        return weighted_loss(
+            rasterize_gaussians(settings=scene.settings("reference", w2c=w2c), **inputs), weights
+        )
 
     xi = torch.zeros(6, dtype=F64, requires_grad=True)
     loss_at(xi).backward()
@@ -220,18 +246,24 @@ def test_pose_twist_gradient_matches_finite_differences(colors, covariance, aa):
 def test_means2D_gradient_is_value_neutral_and_equal_to_offset_gradient(monkeypatch):
     scene = fd_scene("sh", "scale_rot", False)
     m2a = scene.means2D.clone().requires_grad_(True)
-    out_a = rasterize_gaussians(settings=scene.settings("reference"), **{**scene.inputs(), "means2D": m2a})
+    out_a = rasterize_gaussians(
+        settings=scene.settings("reference"), **{**scene.inputs(), "means2D": m2a}
+    )
     weights = output_weights(scene.height, scene.width)
     weighted_loss(out_a, weights).backward()
     monkeypatch.setattr(ref_projection, "inject_means2D", lambda ndc_xy, m2: ndc_xy + m2)
     m2b = scene.means2D.clone().requires_grad_(True)
-    out_b = rasterize_gaussians(settings=scene.settings("reference"), **{**scene.inputs(), "means2D": m2b})
+    out_b = rasterize_gaussians(
+        settings=scene.settings("reference"), **{**scene.inputs(), "means2D": m2b}
+    )
     weighted_loss(out_b, weights).backward()
     torch.testing.assert_close(out_a.color, out_b.color, rtol=0, atol=0)
     torch.testing.assert_close(m2a.grad, m2b.grad, rtol=1e-12, atol=1e-12)
     assert float(m2a.grad[:, 2].abs().max()) == 0.0  # the z component is unused
     # without means2D the render is identical
-    out_c = rasterize_gaussians(settings=scene.settings("reference"), **{**scene.inputs(), "means2D": None})
+    out_c = rasterize_gaussians(
+        settings=scene.settings("reference"), **{**scene.inputs(), "means2D": None}
+    )
     torch.testing.assert_close(out_a.color, out_c.color, rtol=0, atol=0)
 
 
@@ -242,14 +274,39 @@ def test_gradcheck_small_scene():
 
     def fn(means3D, opacities, colors, cov3D, viewmatrix):
         out = rasterize_gaussians_reference(
-            means3D, None, opacities, None, colors, None, None, cov3D, scene.bg, viewmatrix, cam.projmatrix,
-            cam.campos, image_height=scene.height, image_width=scene.width, tanfovx=cam.tanfovx,
-            tanfovy=cam.tanfovy, scale_modifier=1.0, sh_degree=0, prefiltered=False, antialiasing=True,
+            means3D,
+            None,
+            opacities,
+            None,
+            colors,
+            None,
+            None,
+            cov3D,
+            scene.bg,
+            viewmatrix,
+            cam.projmatrix,
+            cam.campos,
+            image_height=scene.height,
+            image_width=scene.width,
+            tanfovx=cam.tanfovx,
+            tanfovy=cam.tanfovy,
+            scale_modifier=1.0,
+            sh_degree=0,
+            prefiltered=False,
+            antialiasing=True,
         )
         return out[0], out[2], out[3], out[4]
 
-    args = [t.detach().clone().requires_grad_(True) for t in
-            (scene.means3D, scene.opacities, scene.colors_precomp, scene.cov3D_precomp, cam.viewmatrix)]
+    args = [
+        t.detach().clone().requires_grad_(True)
+        for t in (
+            scene.means3D,
+            scene.opacities,
+            scene.colors_precomp,
+            scene.cov3D_precomp,
+            cam.viewmatrix,
+        )
+    ]
     assert torch.autograd.gradcheck(fn, args, eps=1e-6, atol=1e-6, rtol=1e-4, fast_mode=True)
 
 
@@ -270,7 +327,9 @@ def _literal_upstream(scene: Scene):
     P = scene.num_gaussians
     if scene.shs is not None:
         d = scene.means3D - campos
-        rgb_all = torch.clamp_min(eval_sh(scene.sh_degree, scene.shs, d / d.norm(dim=-1, keepdim=True)) + 0.5, 0).tolist()
+        rgb_all = torch.clamp_min(
+            eval_sh(scene.sh_degree, scene.shs, d / d.norm(dim=-1, keepdim=True)) + 0.5, 0
+        ).tolist()
     else:
         rgb_all = scene.colors_precomp.tolist()
     if scene.cov3D_precomp is not None:
@@ -282,7 +341,10 @@ def _literal_upstream(scene: Scene):
             R = [[1 - 2 * (y * y + z * z), 2 * (x * y - r * z), 2 * (x * z + r * y)],
                  [2 * (x * y + r * z), 1 - 2 * (x * x + z * z), 2 * (y * z - r * x)],
                  [2 * (x * z - r * y), 2 * (y * z + r * x), 1 - 2 * (x * x + y * y)]]
-            Sg = [[sum(R[i][k] * s[k] ** 2 * R[j][k] for k in range(3)) for j in range(3)] for i in range(3)]
+            Sg = [
+                [sum(R[i][k] * s[k] ** 2 * R[j][k] for k in range(3)) for j in range(3)]
+                for i in range(3)
+            ]
             cov3.append([Sg[0][0], Sg[0][1], Sg[0][2], Sg[1][1], Sg[1][2], Sg[2][2]])
     gs = []
     radii = [0] * P
@@ -302,7 +364,13 @@ def _literal_upstream(scene: Scene):
         J = [[fxx / t[2], 0.0, -fxx * tx / t[2] ** 2], [0.0, fyy / t[2], -fyy * ty / t[2] ** 2]]
         Rw = [[V[j][k] for j in range(3)] for k in range(3)]  # viewmatrix[:3,:3].T
         T = [[sum(J[a][k] * Rw[k][b] for k in range(3)) for b in range(3)] for a in range(2)]
-        cv = [[sum(T[a][k] * Sg[k][l] * T[b][l] for k in range(3) for l in range(3)) for b in range(2)] for a in range(2)]
+        cv = [
+            [
+                sum(T[a][k] * Sg[k][m] * T[b][m] for k in range(3) for m in range(3))
+                for b in range(2)
+            ]
+            for a in range(2)
+        ]
         det0 = cv[0][0] * cv[1][1] - cv[0][1] ** 2
         a_, b_, c_ = cv[0][0] + 0.3, cv[0][1], cv[1][1] + 0.3
         det = a_ * c_ - b_ * b_
@@ -369,12 +437,31 @@ def test_reference_matches_literal_upstream_loop(kw):
     scene = make_scene(60, height=20, width=40, dtype=F64, **kw)
     with torch.no_grad():
         color, radii, invdepth, depth_acc, alpha = rasterize_gaussians_reference(
-            *[getattr(scene, k) for k in ("means3D", "means2D", "opacities", "shs", "colors_precomp", "scales",
-                                         "rotations", "cov3D_precomp", "bg")],
-            *camera_matrices(scene.w2c, scene.fx, scene.fy, scene.width, scene.height, scene.cx, scene.cy)[:3],
-            image_height=scene.height, image_width=scene.width, tanfovx=scene.width / (2 * scene.fx),
-            tanfovy=scene.height / (2 * scene.fy), scale_modifier=scene.scale_modifier, sh_degree=scene.sh_degree,
-            prefiltered=False, antialiasing=scene.antialiasing,
+            *[
+                getattr(scene, k)
+                for k in (
+                    "means3D",
+                    "means2D",
+                    "opacities",
+                    "shs",
+                    "colors_precomp",
+                    "scales",
+                    "rotations",
+                    "cov3D_precomp",
+                    "bg",
+                )
+            ],
+            *camera_matrices(
+                scene.w2c, scene.fx, scene.fy, scene.width, scene.height, scene.cx, scene.cy
+            )[:3],
+            image_height=scene.height,
+            image_width=scene.width,
+            tanfovx=scene.width / (2 * scene.fx),
+            tanfovy=scene.height / (2 * scene.fy),
+            scale_modifier=scene.scale_modifier,
+            sh_degree=scene.sh_degree,
+            prefiltered=False,
+            antialiasing=scene.antialiasing,
         )
     img, radii_lit = _literal_upstream(scene)
     assert torch.equal(radii, radii_lit)

@@ -1,4 +1,7 @@
-"""Bad input raises ValueError (RasterizerInputError) naming the argument, expected and actual value."""
+"""Bad input raises ValueError (RasterizerInputError).
+
+The message names the argument, the expected and the actual value.
+"""
 from __future__ import annotations
 
 import pytest
@@ -31,7 +34,11 @@ def test_valid_scene_renders(scene):
         ("opacities", torch.zeros(11, 1), r"opacities must have shape \[12, 1\], got \[11, 1\]"),
         ("means2D", torch.zeros(12, 3, 1), r"means2D must have shape \[12, 3\]"),
         ("shs", torch.zeros(12, 16), r"shs must have shape \[12, \*, 3\]"),
-        ("shs", torch.zeros(12, 9, 3), r"shs must have at least .* 16 coefficients .* got shape \[12, 9, 3\]"),
+        (
+            "shs",
+            torch.zeros(12, 9, 3),
+            r"shs must have at least .* 16 coefficients .* got shape \[12, 9, 3\]",
+        ),
         ("scales", torch.zeros(12, 4), r"scales must have shape \[12, 3\]"),
         ("rotations", torch.zeros(12, 3), r"rotations must have shape \[12, 4\]"),
         ("means3D", "not a tensor", r"means3D must be a torch.Tensor, got str"),
@@ -46,7 +53,9 @@ def test_wrong_shape_precomp():
     s = make_scene(5, height=16, width=20, colors="precomp", covariance="precomp")
     with pytest.raises(ValueError, match=r"colors_precomp must have shape \[5, 3\], got \[5, 4\]"):
         call(s, colors_precomp=torch.zeros(5, 4))
-    with pytest.raises(ValueError, match=r"cov3D_precomp must have shape \[5, 6\], got \[5, 3, 3\]"):
+    with pytest.raises(
+        ValueError, match=r"cov3D_precomp must have shape \[5, 6\], got \[5, 3, 3\]"
+    ):
         call(s, cov3D_precomp=torch.zeros(5, 3, 3))
 
 
@@ -63,9 +72,14 @@ def test_settings_tensor_shapes(scene):
 
 
 def test_dtype(scene):
-    with pytest.raises(ValueError, match=r"means3D must have dtype float32 or float64, got torch.int64"):
+    with pytest.raises(
+        ValueError, match=r"means3D must have dtype float32 or float64, got torch.int64"
+    ):
         call(scene, means3D=torch.zeros(12, 3, dtype=torch.long))
-    with pytest.raises(ValueError, match=r"opacities must have the same dtype as means3D \(torch.float32\), got torch.float64"):
+    with pytest.raises(
+        ValueError,
+        match=r"opacities must have the same dtype as means3D \(torch.float32\), got torch.float64",
+    ):
         call(scene, opacities=scene.opacities.double())
     with pytest.raises(ValueError, match=r"bg must have the same dtype"):
         call(scene, scene.settings("reference")._replace(bg=scene.bg.double()))
@@ -78,7 +92,9 @@ def test_native_backend_requires_float32(native_backend):
 
 
 def test_device_mismatch(scene):
-    with pytest.raises(ValueError, match=r"opacities must be on the same device as means3D \(cpu\), got meta"):
+    with pytest.raises(
+        ValueError, match=r"opacities must be on the same device as means3D \(cpu\), got meta"
+    ):
         call(scene, opacities=scene.opacities.to("meta"))
     with pytest.raises(ValueError, match=r"viewmatrix must be on the same device"):
         call(scene, scene.settings("reference")._replace(viewmatrix=torch.eye(4, device="meta")))
@@ -92,7 +108,9 @@ TENSOR_INPUTS = ["means3D", "means2D", "opacities", "shs", "scales", "rotations"
 def test_non_finite_inputs(scene, name, value):
     bad = getattr(scene, name).clone()
     bad.view(-1)[3] = value
-    with pytest.raises(ValueError, match=rf"{name} must contain only finite values, got 1 NaN/Inf entry"):
+    with pytest.raises(
+        ValueError, match=rf"{name} must contain only finite values, got 1 NaN/Inf entry"
+    ):
         call(scene, **{name: bad})
 
 

@@ -90,9 +90,11 @@ def _gl_look_at(centre):
 
 
 def transforms(variant: int) -> dict:
-    """A 3-frame ``transforms.json`` object (images ``images/f_<k>.png``, 8x6):
+    """A 3-frame ``transforms.json`` object (images ``images/f_<k>.png``, 8x6).
+
     0: nerfstudio, pinhole + OpenCV lens, points from ``points.ply``; 1: instant-ngp, field of
-    view, one frame with its own fisheye camera; 2: one focal length only."""
+    view, one frame with its own fisheye camera; 2: one focal length only.
+    """
     frames = [{"file_path": f"images/f_{k}" + (".png" if k % 2 else ""),
                "transform_matrix": _gl_look_at([4 * math.cos(k), 4 * math.sin(k), 1.0]).tolist()}
               for k in range(3)]

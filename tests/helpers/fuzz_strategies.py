@@ -1,5 +1,7 @@
-"""Shared pieces of the reader fuzz tests: a bounded hypothesis profile, file corruptors and
-the "clean outcome" check (valid seed files are in fuzz_seeds.py).
+"""Shared pieces of the reader fuzz tests.
+
+A bounded hypothesis profile, file corruptors and the "clean outcome" check (valid seed files
+are in fuzz_seeds.py).
 
 Every fuzz test writes a valid file, corrupts it with one to three random edits and reads it
 back. The outcome must be clean (:func:`read_clean`): either a ValueError (or
@@ -40,8 +42,10 @@ def fuzz_settings(max_examples: int) -> settings:
 
 
 class Hang(BaseException):
-    """A reader ran past :data:`HANG_S` on a few-KiB file (a BaseException, so that a reader's
-    ``except Exception`` cannot swallow it)."""
+    """A reader ran past :data:`HANG_S` on a few-KiB file.
+
+    A BaseException, so that a reader's ``except Exception`` cannot swallow it.
+    """
 
 
 @contextlib.contextmanager
@@ -101,8 +105,10 @@ JSON_RAW = ["[" * 100_000, "1" + "0" * 5000, "1e999", "-Infinity", "NaN", "\"\\u
 
 
 def pack(fmt: str, v) -> bytes:
-    """``v`` packed little-endian as ``fmt``; an int out of range wraps, a float too large
-    for ``f`` becomes Inf."""
+    """``v`` packed little-endian as ``fmt``.
+
+    An int out of range wraps, a float too large for ``f`` becomes Inf.
+    """
     if fmt in "df":
         try:
             return struct.pack("<" + fmt, v)
@@ -154,9 +160,12 @@ def _byte_edit(draw, data: bytes, slots: Sequence[Tuple[int, str]]) -> bytes:
 
 @st.composite
 def corrupt_bytes(draw, data: bytes, slots: Sequence[Tuple[int, str]] = ()) -> bytes:
-    """``data`` after 1..3 random edits: truncation, bit flips, junk, cut/duplicated runs, or an
-    interesting value (huge count, NaN, ...) packed into a known field ``(offset, struct fmt)``.
-    Slot offsets refer to the original bytes; later edits may shift them, which is fine."""
+    """``data`` after 1..3 random edits.
+
+    Truncation, bit flips, junk, cut/duplicated runs, or an interesting value (huge count, NaN, ...)
+    packed into a known field ``(offset, struct fmt)``. Slot offsets refer to the original bytes;
+    later edits may shift them, which is fine.
+    """
     for _ in range(draw(st.integers(1, 3))):
         data = draw(_byte_edit(data, slots))
     return data
@@ -167,8 +176,11 @@ _TOKEN_RE = re.compile(r"\S+")
 
 @st.composite
 def corrupt_text(draw, text: str) -> bytes:
-    """``text`` after 1..3 token- or line-level edits (NaN, huge numbers, junk tokens, deleted,
-    duplicated or swapped lines, truncation), encoded; sometimes byte-corrupted on top."""
+    """``text`` after 1..3 token- or line-level edits, encoded.
+
+    NaN, huge numbers, junk tokens, deleted, duplicated or swapped lines, truncation; sometimes
+    byte-corrupted on top.
+    """
     for _ in range(draw(st.integers(1, 3))):
         kind = draw(st.sampled_from(["token", "token", "token", "drop_line", "dup_line",
                                      "swap_lines", "truncate", "junk"]))
@@ -215,8 +227,11 @@ def json_paths(obj, prefix=()) -> List[tuple]:
 
 @st.composite
 def corrupt_json(draw, obj) -> bytes:
-    """A JSON document after 1..3 structural edits (a node replaced by NaN, a huge number, a
-    wrong type, deep nesting; a key or element deleted or duplicated) or raw-text edits."""
+    """A JSON document after 1..3 structural or raw-text edits.
+
+    Structural: a node replaced by NaN, a huge number, a wrong type, deep nesting; a key or element
+    deleted or duplicated.
+    """
     obj = json.loads(json.dumps(obj))
     raw_inject = None
     for _ in range(draw(st.integers(1, 3))):
@@ -258,9 +273,11 @@ PLY_TYPES = ["float", "double", "uchar", "char", "int", "uint", "short", "float3
 
 @st.composite
 def corrupt_ply(draw, data: bytes) -> bytes:
-    """A PLY file after 1..3 edits of its header (element counts, property types and names,
-    format, extra elements), its body (byte edits; NaN/Inf in float32 slots) or both (byte
-    edits anywhere)."""
+    """A PLY file after 1..3 edits of its header, its body or both.
+
+    Header: element counts, property types and names, format, extra elements; body: byte edits,
+    NaN/Inf in float32 slots; both: byte edits anywhere.
+    """
     end = data.index(b"end_header\n") + len(b"end_header\n")
     header, body = data[:end].decode("ascii"), data[end:]
     anywhere = False

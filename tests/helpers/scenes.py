@@ -47,7 +47,9 @@ def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
     return torch.stack(rows, -2)
 
 
-def cov3d_from_scale_rot(scales: torch.Tensor, rotations: torch.Tensor, modifier: float = 1.0) -> torch.Tensor:
+def cov3d_from_scale_rot(
+    scales: torch.Tensor, rotations: torch.Tensor, modifier: float = 1.0
+) -> torch.Tensor:
     """[P, 6] (xx, xy, xz, yy, yz, zz) of R S^2 R^T with R from the normalised quaternion."""
     R = quat_to_rotmat(rotations)
     M = R * (scales * modifier)[..., None, :]
@@ -71,7 +73,11 @@ def hat(v: torch.Tensor) -> torch.Tensor:
     """[3] -> skew-symmetric [3, 3] (differentiable)."""
     z = torch.zeros((), dtype=v.dtype, device=v.device)
     return torch.stack(
-        [torch.stack([z, -v[2], v[1]]), torch.stack([v[2], z, -v[0]]), torch.stack([-v[1], v[0], z])]
+        [
+            torch.stack([z, -v[2], v[1]]),
+            torch.stack([v[2], z, -v[0]]),
+            torch.stack([-v[1], v[0], z]),
+        ]
     )
 
 
@@ -83,7 +89,9 @@ def se3_exp(xi: torch.Tensor) -> torch.Tensor:
     return torch.linalg.matrix_exp(X)
 
 
-def random_w2c(generator: torch.Generator, dtype=torch.float64, rot: float = 0.3, trans: float = 0.3) -> torch.Tensor:
+def random_w2c(
+    generator: torch.Generator, dtype=torch.float64, rot: float = 0.3, trans: float = 0.3
+) -> torch.Tensor:
     phi = (torch.rand(3, generator=generator, dtype=torch.float64) * 2 - 1) * rot
     t = (torch.rand(3, generator=generator, dtype=torch.float64) * 2 - 1) * trans
     w2c = torch.eye(4, dtype=torch.float64)
@@ -119,10 +127,21 @@ class Scene:
     def num_gaussians(self) -> int:
         return int(self.means3D.shape[0])
 
-    def settings(self, backend: str = "auto", w2c: Optional[torch.Tensor] = None) -> GaussianRasterizationSettings:
-        """Settings for this scene, matrices via `camera_matrices` (pass a grad-requiring w2c for pose grads)."""
+    def settings(
+        self, backend: str = "auto", w2c: Optional[torch.Tensor] = None
+    ) -> GaussianRasterizationSettings:
+        """Settings for this scene, matrices via `camera_matrices`.
+
+        Pass a grad-requiring w2c for pose gradients.
+        """
         cam = camera_matrices(
-            self.w2c if w2c is None else w2c, self.fx, self.fy, self.width, self.height, self.cx, self.cy
+            self.w2c if w2c is None else w2c,
+            self.fx,
+            self.fy,
+            self.width,
+            self.height,
+            self.cx,
+            self.cy,
         )
         return GaussianRasterizationSettings(
             image_height=self.height,
@@ -142,7 +161,10 @@ class Scene:
         )
 
     def inputs(self) -> Dict[str, Optional[torch.Tensor]]:
-        """kwargs for `rasterize_gaussians(settings=..., **scene.inputs())` (absent ones are None)."""
+        """kwargs for `rasterize_gaussians(settings=..., **scene.inputs())`.
+
+        Absent tensors are None.
+        """
         return {
             "means3D": self.means3D,
             "opacities": self.opacities,
@@ -160,15 +182,29 @@ class Scene:
         for name in TENSOR_NAMES + ("w2c",):
             t = getattr(self, name)
             kw[name] = None if t is None else t.detach().to(device=device, dtype=dtype).clone()
-        rest = {k: getattr(self, k) for k in ("fx", "fy", "height", "width", "sh_degree", "scale_modifier",
-                                                 "antialiasing", "cx", "cy")}
+        rest = {
+            k: getattr(self, k)
+            for k in (
+                "fx",
+                "fy",
+                "height",
+                "width",
+                "sh_degree",
+                "scale_modifier",
+                "antialiasing",
+                "cx",
+                "cy",
+            )
+        }
         return Scene(**kw, **rest, extras=dict(self.extras))
 
 
-def scene_tensors_requiring_grad(scene: Scene, names: Optional[Iterable[str]] = None) -> Dict[str, torch.Tensor]:
-    """Make the scene's present tensors (all of TENSOR_NAMES, or `names`) fresh leaves requiring grad.
+def scene_tensors_requiring_grad(
+    scene: Scene, names: Optional[Iterable[str]] = None
+) -> Dict[str, torch.Tensor]:
+    """Make the scene's present tensors fresh leaves requiring grad.
 
-    Mutates `scene` in place and returns {name: leaf tensor}.
+    All of TENSOR_NAMES, or `names`. Mutates `scene` in place and returns {name: leaf tensor}.
     """
     out = {}
     for name in TENSOR_NAMES if names is None else names:
@@ -208,7 +244,10 @@ def make_scene(
     cy: Optional[float] = None,
     device: Optional[torch.device] = None,
 ) -> Scene:
-    """A deterministic random scene (torch.Generator seeded with `seed`); see the module docstring."""
+    """A deterministic random scene (torch.Generator seeded with `seed`).
+
+    See the module docstring.
+    """
     if colors not in ("sh", "precomp"):
         raise ValueError(f"colors must be 'sh' or 'precomp', got {colors!r}")
     if covariance not in ("scale_rot", "precomp"):
@@ -275,7 +314,9 @@ def make_scene(
         colors_precomp=cast(cols) if colors == "precomp" else None,
         scales=cast(scales) if covariance == "scale_rot" else None,
         rotations=cast(quats) if covariance == "scale_rot" else None,
-        cov3D_precomp=cast(cov3d_from_scale_rot(scales, quats, scale_modifier)) if covariance == "precomp" else None,
+        cov3D_precomp=cast(cov3d_from_scale_rot(scales, quats, scale_modifier))
+        if covariance == "precomp"
+        else None,
         bg=torch.tensor(list(bg), dtype=dtype, device=device),
         w2c=cast(w2c),
         fx=fx,

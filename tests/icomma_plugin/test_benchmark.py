@@ -1,5 +1,7 @@
-"""Tests of icomma_plugin.benchmark and tools/benchmark.py (fast; no shared data needed except the
-one skip-if-absent lego check)."""
+"""Tests of icomma_plugin.benchmark and tools/benchmark.py.
+
+Fast; no shared data needed except the one skip-if-absent lego check.
+"""
 from __future__ import annotations
 
 import json
@@ -15,7 +17,11 @@ from icomma_plugin.benchmark import (
     sample_initial_pose, success_curve, summarize, synthetic_scene, table_rows, time_to_success,
 )
 from icomma_plugin.benchmark import paper as paper_mod
-from icomma_plugin.benchmark.baselines import estimate_relative_pose, relative_pose_gt, rotation_angle_deg
+from icomma_plugin.benchmark.baselines import (
+    estimate_relative_pose,
+    relative_pose_gt,
+    rotation_angle_deg,
+)
 from icomma_plugin.benchmark.protocols import method_config
 from icomma_plugin.benchmark.sampling import rotation_matrix
 from icomma_plugin.localize import LocalizerConfig
@@ -55,8 +61,9 @@ def test_sampling_angles_and_translations_within_intervals(rot, trans):
 def test_sampling_norm_mode_and_camera_pivot():
     gt = _gt()
     for k in range(20):
-        p = sample_initial_pose(gt, (10, 20), (0.1, 0.2), pose_seed(0, 0, 0, k), translation_mode="norm",
-                                pivot="camera")
+        p = sample_initial_pose(
+            gt, (10, 20), (0.1, 0.2), pose_seed(0, 0, 0, k), translation_mode="norm", pivot="camera"
+        )
         assert 0.1 - 1e-12 <= np.linalg.norm(p.offset) <= 0.2 + 1e-12
         np.testing.assert_allclose(p.c2w[:3, 3], gt[:3, 3] + p.offset_world, atol=1e-12)
 
@@ -179,8 +186,11 @@ def test_protocol_intervals_match_the_brief():
     from omegaconf import OmegaConf
 
     def spec(n):
-        return ProtocolSpec.from_dict(OmegaConf.to_container(_compose([f"benchmark_protocol={n}"]).benchmark_protocol,
-                                                             resolve=True))
+        return ProtocolSpec.from_dict(
+            OmegaConf.to_container(
+                _compose([f"benchmark_protocol={n}"]).benchmark_protocol, resolve=True
+            )
+        )
 
     assert [iv.rot_deg for iv in spec("curves_rotation").intervals] == [(0, 20), (20, 40), (40, 60)]
     tt = spec("time_table")
@@ -197,7 +207,9 @@ def test_protocol_intervals_match_the_brief():
     assert spec("relative_pose").methods == ["robust", "icomma", "essential"]
 
 
-@pytest.mark.parametrize("launcher,target", [("joblib_local", "JoblibLauncher"), ("slurm_cluster", "SlurmLauncher")])
+@pytest.mark.parametrize(
+    "launcher,target", [("joblib_local", "JoblibLauncher"), ("slurm_cluster", "SlurmLauncher")]
+)
 def test_launcher_configs_compose(launcher, target):
     # Composing checks the options against the launcher plugin's schema; the class it names
     # must be importable (the plugin installed) and be that plugin's Hydra launcher.
@@ -218,7 +230,9 @@ def test_method_configs():
     with pytest.raises(ValueError):
         method_config("essential", base)
     with pytest.raises(ValueError, match="methods"):
-        ProtocolSpec(name="x", kind="time", intervals=[Interval("a", (0, 1), (0, 0))], methods=["nope"])
+        ProtocolSpec(
+            name="x", kind="time", intervals=[Interval("a", (0, 1), (0, 0))], methods=["nope"]
+        )
 
 
 # ------------------------------------------------------------------------------------- report
@@ -230,34 +244,65 @@ def _fake_records(spec):
         for k in range(2):
             for m in spec.methods:
                 ok = k == 0
-                recs.append({"key": f"{iv.label}|{k}|{m}", "interval": iv.label, "method": m, "query_index": 0,
-                             "pose_index": k, "init_rot_deg": 15.0, "init_trans": 0.1,
-                             "final_rot_deg": 0.5 if ok else 30.0, "final_trans": 0.005 if ok else 0.5,
-                             "seconds": 2.0, "iterations": 3, "time_to_success": {"5deg_0.05": 1.0 if ok else None},
-                             "curve_rot_deg": [15.0, 4.0, 0.5] if ok else [15.0, 20.0, 30.0],
-                             "curve_trans": [0.1, 0.02, 0.005] if ok else [0.1, 0.3, 0.5],
-                             "curve_seconds": [0.0, 0.5, 1.0]})
+                recs.append(
+                    {
+                        "key": f"{iv.label}|{k}|{m}",
+                        "interval": iv.label,
+                        "method": m,
+                        "query_index": 0,
+                        "pose_index": k,
+                        "init_rot_deg": 15.0,
+                        "init_trans": 0.1,
+                        "final_rot_deg": 0.5 if ok else 30.0,
+                        "final_trans": 0.005 if ok else 0.5,
+                        "seconds": 2.0,
+                        "iterations": 3,
+                        "time_to_success": {"5deg_0.05": 1.0 if ok else None},
+                        "curve_rot_deg": [15.0, 4.0, 0.5] if ok else [15.0, 20.0, 30.0],
+                        "curve_trans": [0.1, 0.02, 0.005] if ok else [0.1, 0.3, 0.5],
+                        "curve_seconds": [0.0, 0.5, 1.0],
+                    }
+                )
     return recs
 
 
 def test_report_markdown_has_paper_columns_and_delta(monkeypatch, tmp_path):
-    spec = ProtocolSpec(name="time_table", kind="time", methods=["icomma", "compare_only"], max_iterations=2,
-                        intervals=ProtocolSpec.from_dict({"name": "t", "kind": "time", "methods": ["icomma"],
-                                                          "intervals": [{"label": "r10-20", "rot_deg": [10, 20],
-                                                                         "trans": [0, 0.2]}]}).intervals)
+    spec = ProtocolSpec(
+        name="time_table",
+        kind="time",
+        methods=["icomma", "compare_only"],
+        max_iterations=2,
+        intervals=ProtocolSpec.from_dict(
+            {
+                "name": "t",
+                "kind": "time",
+                "methods": ["icomma"],
+                "intervals": [{"label": "r10-20", "rot_deg": [10, 20], "trans": [0, 0.2]}],
+            }
+        ).intervals,
+    )
     summary = summarize(spec, _fake_records(spec))
     cell = summary["cells"][0]
-    assert cell["success_rate"] == pytest.approx(0.5) and cell["seconds_to_success"] == pytest.approx(1.0)
+    assert cell["success_rate"] == pytest.approx(0.5) and cell[
+        "seconds_to_success"
+    ] == pytest.approx(1.0)
     assert cell["curves"]["5deg_0.05"] == pytest.approx([0.0, 0.5, 0.5])
     md = markdown(spec, summary, "xfeat")
-    assert "| interval | method | metric | n | ours | paper | Δ (ours − paper) | paper source |" in md
+    assert (
+        "| interval | method | metric | n | ours | paper | Δ (ours − paper) | paper source |" in md
+    )
     assert paper_mod.NOT_FOUND in md and "50.0%" in md
     # a known paper value gets a delta
-    monkeypatch.setitem(paper_mod.PAPER_NUMBERS, ("synthetic", "time_table", "r10-20", "icomma", "success_rate"),
-                        paper_mod.PaperValue(0.8, "Tab. X (test)"))
+    monkeypatch.setitem(
+        paper_mod.PAPER_NUMBERS,
+        ("synthetic", "time_table", "r10-20", "icomma", "success_rate"),
+        paper_mod.PaperValue(0.8, "Tab. X (test)"),
+    )
     rows = table_rows(spec, summary, "xfeat")
     r = next(r for r in rows if r["method"] == "icomma" and r["metric"] == "success_rate")
-    assert r["paper"] == 0.8 and r["delta"] == pytest.approx(-0.3) and r["source"] == "Tab. X (test)"
+    assert (
+        r["paper"] == 0.8 and r["delta"] == pytest.approx(-0.3) and r["source"] == "Tab. X (test)"
+    )
     assert "-30.0%" in markdown(spec, summary, "xfeat")
     from icomma_plugin.benchmark import save_plots
 
@@ -291,17 +336,25 @@ def test_paper_numbers_are_the_transcription():
     # Table 1: rows success (%) and time (s); columns iNeRF, iComMa, iComMa_c for each interval
     succ = [float(x) for x in t1[1][1:]]
     secs = [float(x) for x in t1[2][1:]]
-    for j, (iv, m) in enumerate([(iv, m) for iv in ("r10-20", "r20-40") for m in ("inerf", "icomma", "compare_only")]):
+    for j, (iv, m) in enumerate(
+        [(iv, m) for iv in ("r10-20", "r20-40") for m in ("inerf", "icomma", "compare_only")]
+    ):
         assert pv("time_table", iv, m, "success_rate").value == pytest.approx(succ[j] / 100)
         assert pv("time_table", iv, m, "seconds_to_success").value == pytest.approx(secs[j])
     # Tables 2 / 3: per method "a / b / c" per bin
-    names = {"MatchFormer": "matchformer", "LightGlue": "essential_lightglue", "LoFTR": "essential_loftr",
-             "iComMa": "icomma"}
+    names = {
+        "MatchFormer": "matchformer",
+        "LightGlue": "essential_lightglue",
+        "LoFTR": "essential_loftr",
+        "iComMa": "icomma",
+    }
     for table, ds in ((t2, "synthetic"), (t3, "360")):
         for row in table[1:]:
             for iv, cell in zip(("r0-20", "r20-40", "r40-60"), row[1:]):
                 for k, x in zip(("auc5", "auc10", "auc20"), cell.split("/")):
-                    assert pv("relative_pose", iv, names[row[0]], k, ds).value == pytest.approx(float(x) / 100)
+                    assert pv("relative_pose", iv, names[row[0]], k, ds).value == pytest.approx(
+                        float(x) / 100
+                    )
     # Table 4
     variants = {"iComMa": "icomma", "w/o comparing": "match_only", "w/o matching": "compare_only"}
     for row in t4[1:]:
@@ -317,9 +370,17 @@ def test_paper_numbers_are_the_transcription():
 
 def test_run_protocol_in_process_with_essential_baseline():
     scene = synthetic_scene(num_gaussians=120, width=48, height=48, num_queries=1)
-    spec = ProtocolSpec.from_dict({"name": "relative_pose", "kind": "relative_pose", "methods": ["compare_only", "essential"],
-                                   "num_queries": 1, "poses_per_query": 1, "max_iterations": 3,
-                                   "intervals": [{"label": "r0-20", "rot_deg": [5, 10], "trans": [0, 0]}]})
+    spec = ProtocolSpec.from_dict(
+        {
+            "name": "relative_pose",
+            "kind": "relative_pose",
+            "methods": ["compare_only", "essential"],
+            "num_queries": 1,
+            "poses_per_query": 1,
+            "max_iterations": 3,
+            "intervals": [{"label": "r0-20", "rot_deg": [5, 10], "trans": [0, 0]}],
+        }
+    )
     from icomma_plugin.matchers import make_matcher
 
     seen = []
@@ -332,19 +393,36 @@ def test_run_protocol_in_process_with_essential_baseline():
     s = summarize(spec, recs)
     assert {c["method"] for c in s["cells"]} == {"compare_only", "essential"}
     # resuming reuses finished runs
-    again = run_protocol(scene, spec, LocalizerConfig(), make_matcher("sift"), done={r["key"]: r for r in recs},
-                         on_record=lambda r: pytest.fail("recomputed a finished run"))
+    again = run_protocol(
+        scene,
+        spec,
+        LocalizerConfig(),
+        make_matcher("sift"),
+        done={r["key"]: r for r in recs},
+        on_record=lambda r: pytest.fail("recomputed a finished run"),
+    )
     assert [r["key"] for r in again] == [r["key"] for r in recs]
 
 
 def test_tool_smoke_run_on_synthetic_scene(tmp_path):
     out = tmp_path / "run"
-    cmd = [sys.executable, str(REPO / "tools" / "benchmark.py"), "scene.kind=synthetic",
-           "scene.synthetic.num_gaussians=100", "scene.synthetic.width=40", "scene.synthetic.height=40",
-           "benchmark_protocol=ablation", "benchmark_protocol.methods=[icomma,compare_only]", "quick=true",
-           "benchmark_protocol.quick.num_queries=1", "benchmark_protocol.quick.poses_per_query=1",
-           "benchmark_protocol.quick.max_iterations=2", "matcher=sift", "output.progress=false",
-           f"hydra.run.dir={out}"]
+    cmd = [
+        sys.executable,
+        str(REPO / "tools" / "benchmark.py"),
+        "scene.kind=synthetic",
+        "scene.synthetic.num_gaussians=100",
+        "scene.synthetic.width=40",
+        "scene.synthetic.height=40",
+        "benchmark_protocol=ablation",
+        "benchmark_protocol.methods=[icomma,compare_only]",
+        "quick=true",
+        "benchmark_protocol.quick.num_queries=1",
+        "benchmark_protocol.quick.poses_per_query=1",
+        "benchmark_protocol.quick.max_iterations=2",
+        "matcher=sift",
+        "output.progress=false",
+        f"hydra.run.dir={out}",
+    ]
     env = dict(os.environ, PYTHONPATH=str(REPO))
     p = subprocess.run(cmd, cwd=str(tmp_path), env=env, capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr[-3000:]
@@ -377,12 +455,30 @@ def test_lego_scene_radius_and_origin_pivot(lego_root):
 def test_results_writer_writes_after_each_run(tmp_path):
     from icomma_plugin.benchmark import ResultsWriter, load_done
 
-    spec = ProtocolSpec.from_dict({"name": "ablation", "kind": "ablation", "methods": ["icomma", "compare_only"],
-                                   "max_iterations": 2,
-                                   "intervals": [{"label": "r30-50", "rot_deg": [30, 50], "trans": [0, 0.6]}]})
-    w = ResultsWriter(tmp_path, spec, config={"a": 1}, scene={"kind": "synthetic", "translation_unit": "world",
-                                                              "translation_scale": 1.0, "queries": []},
-                      matcher="sift", localizer_config={}, seed=3, plots=False)
+    spec = ProtocolSpec.from_dict(
+        {
+            "name": "ablation",
+            "kind": "ablation",
+            "methods": ["icomma", "compare_only"],
+            "max_iterations": 2,
+            "intervals": [{"label": "r30-50", "rot_deg": [30, 50], "trans": [0, 0.6]}],
+        }
+    )
+    w = ResultsWriter(
+        tmp_path,
+        spec,
+        config={"a": 1},
+        scene={
+            "kind": "synthetic",
+            "translation_unit": "world",
+            "translation_scale": 1.0,
+            "queries": [],
+        },
+        matcher="sift",
+        localizer_config={},
+        seed=3,
+        plots=False,
+    )
     rec = _fake_records(spec)[0]
     w.add(rec)
     doc = json.loads((tmp_path / "results.json").read_text())
@@ -406,14 +502,24 @@ def test_training_scale_from_cfg_args():
 
 
 def test_a_run_that_raises_is_recorded_and_the_benchmark_goes_on(monkeypatch):
-    """One failing run is kept with its error (type, message), counted as a failure, and the
-    protocol finishes the others."""
+    """One failing run is kept with its error (type, message), counted as a failure.
+
+    The protocol finishes the others.
+    """
     from icomma_plugin.benchmark import runner as runner_mod
 
     scene = synthetic_scene(num_gaussians=120, width=48, height=48, num_queries=1)
-    spec = ProtocolSpec.from_dict({"name": "time_table", "kind": "time", "methods": ["compare_only"],
-                                   "num_queries": 1, "poses_per_query": 3, "max_iterations": 2,
-                                   "intervals": [{"label": "r10-20", "rot_deg": [10, 20], "trans": [0, 0.1]}]})
+    spec = ProtocolSpec.from_dict(
+        {
+            "name": "time_table",
+            "kind": "time",
+            "methods": ["compare_only"],
+            "num_queries": 1,
+            "poses_per_query": 3,
+            "max_iterations": 2,
+            "intervals": [{"label": "r10-20", "rot_deg": [10, 20], "trans": [0, 0.1]}],
+        }
+    )
     real = runner_mod.localize
     calls = []
 
@@ -427,7 +533,11 @@ def test_a_run_that_raises_is_recorded_and_the_benchmark_goes_on(monkeypatch):
     recs = run_protocol(scene, spec, LocalizerConfig(), None)
     assert len(recs) == 3 and len(calls) == 3
     bad = [r for r in recs if r.get("error")]
-    assert len(bad) == 1 and bad[0]["error"]["type"] == "ValueError" and "values in [0, 1]" in bad[0]["error"]["message"]
+    assert (
+        len(bad) == 1
+        and bad[0]["error"]["type"] == "ValueError"
+        and "values in [0, 1]" in bad[0]["error"]["message"]
+    )
     cell = summarize(spec, recs)["cells"][0]
     assert cell["num_errors"] == 1 and cell["n"] == 3
     assert cell["success_rate"] <= 2 / 3
@@ -435,9 +545,17 @@ def test_a_run_that_raises_is_recorded_and_the_benchmark_goes_on(monkeypatch):
 
 def test_no_start_interval_runs_only_the_default_method():
     scene = synthetic_scene(num_gaussians=200, width=64, height=64, num_queries=1)
-    spec = ProtocolSpec.from_dict({"name": "time_table", "kind": "time", "methods": ["robust", "icomma"],
-                                   "num_queries": 1, "poses_per_query": 1, "max_iterations": 2,
-                                   "intervals": [{"label": "no_start", "init": "none"}]})
+    spec = ProtocolSpec.from_dict(
+        {
+            "name": "time_table",
+            "kind": "time",
+            "methods": ["robust", "icomma"],
+            "num_queries": 1,
+            "poses_per_query": 1,
+            "max_iterations": 2,
+            "intervals": [{"label": "no_start", "init": "none"}],
+        }
+    )
     from icomma_plugin.matchers import make_matcher
 
     recs = run_protocol(scene, spec, LocalizerConfig(), make_matcher("xfeat"))

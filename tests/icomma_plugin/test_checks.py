@@ -6,7 +6,14 @@ import math
 import numpy as np
 import pytest
 
-from icomma_plugin.checks import check_bool, check_choice, check_int, check_pair, check_real, is_real
+from icomma_plugin.checks import (
+    check_bool,
+    check_choice,
+    check_int,
+    check_pair,
+    check_real,
+    is_real,
+)
 
 
 def test_numbers_are_converted_and_bools_nan_inf_refused():

@@ -80,8 +80,13 @@ def _look_at_w2c(campos, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> np.ndarr
 
 def _ring_poses(n, radius=3.0, height=1.0):
     return [
-        _look_at_w2c((radius * math.cos(2 * math.pi * k / n), radius * math.sin(2 * math.pi * k / n),
-                      height * (1 if k % 2 else -0.5)))
+        _look_at_w2c(
+            (
+                radius * math.cos(2 * math.pi * k / n),
+                radius * math.sin(2 * math.pi * k / n),
+                height * (1 if k % 2 else -0.5),
+            )
+        )
         for k in range(n)
     ]
 
@@ -113,14 +118,19 @@ def _render_views(model, poses, size=32, bg=(0.0, 0.0, 0.0)):
     views = []
     with torch.no_grad():
         for k, w2c in enumerate(poses):
-            v = FitView(f"v{k}", torch.zeros(3, size, size), intr, torch.as_tensor(w2c, dtype=torch.float32))
+            v = FitView(
+                f"v{k}", torch.zeros(3, size, size), intr, torch.as_tensor(w2c, dtype=torch.float32)
+            )
             out = render_state(st, v, torch.tensor(bg))
             views.append((v.name, out.color.clamp(0, 1), out.alpha.clamp(0, 1), intr, w2c))
     return views
 
 
 def _fit_views(rendered):
-    return [FitView(n, img, intr, torch.as_tensor(w2c, dtype=torch.float32)) for n, img, _, intr, w2c in rendered]
+    return [
+        FitView(n, img, intr, torch.as_tensor(w2c, dtype=torch.float32))
+        for n, img, _, intr, w2c in rendered
+    ]
 
 
 # ------------------------------------------------------------------------------ small functions
@@ -171,7 +181,8 @@ def test_densification_stats_only_visible():
 
 def test_clone_small_gaussians():
     model = _tiny_model(4, scale=0.001)
-    st = _state_with_moments(model, extent=1.0)  # percent_dense * extent = 0.01 > 0.001: all "small"
+    # percent_dense * extent = 0.01 > 0.001: all "small"
+    st = _state_with_moments(model, extent=1.0)
     before = {n: st.get(n).detach().clone() for n in PARAM_NAMES}
     grads = torch.tensor([1e-3, 0.0, 5e-4, 1e-5])
     n = st.densify_and_clone(grads, 2e-4, 1.0)
@@ -182,7 +193,9 @@ def test_clone_small_gaussians():
         assert torch.equal(p[:4], before[name])
         assert torch.equal(p[4:], before[name][[0, 2]])  # identical copies
         s = st.optimizer.state[st.get(name)]
-        assert torch.count_nonzero(s["exp_avg"][4:]) == 0 and torch.count_nonzero(s["exp_avg"][:4]) > 0
+        assert (
+            torch.count_nonzero(s["exp_avg"][4:]) == 0 and torch.count_nonzero(s["exp_avg"][:4]) > 0
+        )
     # large Gaussians are not cloned
     st2 = _state_with_moments(_tiny_model(4, scale=0.5), extent=1.0)
     assert st2.densify_and_clone(grads, 2e-4, 1.0) == 0 and st2.num_gaussians == 4
@@ -249,7 +262,9 @@ def test_reset_opacity():
     op0 = st.opacities().detach().squeeze(1).clone()
     st.reset_opacity()
     op = st.opacities().detach().squeeze(1)
-    assert torch.allclose(op, torch.stack([torch.tensor(0.01), op0[1], torch.tensor(0.01)]), atol=1e-6)
+    assert torch.allclose(
+        op, torch.stack([torch.tensor(0.01), op0[1], torch.tensor(0.01)]), atol=1e-6
+    )
     assert op0[1] < 0.01
     s = st.optimizer.state[st.get("opacity_logit")]
     assert torch.count_nonzero(s["exp_avg"]) == 0 and torch.count_nonzero(s["exp_avg_sq"]) == 0
@@ -264,8 +279,9 @@ def test_tiny_end_to_end_fit():
     train, test = views[:7], views[7:]
     xyz, rgb = random_cube_points(300, 0.8, seed=0)
     init = model_from_points(xyz, rgb, sh_degree=1)
-    cfg = FitConfig.scaled_schedule(300, sh_degree=1, num_random_points=300, densify_grad_threshold=1e-4,
-                                    max_gaussians=2000)
+    cfg = FitConfig.scaled_schedule(
+        300, sh_degree=1, num_random_points=300, densify_grad_threshold=1e-4, max_gaussians=2000
+    )
     trainer = Trainer(init, train, scene_extent=3.3, config=cfg, background=(0, 0, 0), test=test)
     p0 = trainer.evaluate(train)
     seen = []
@@ -294,12 +310,16 @@ def _write_blender_dataset(root: Path, rendered_train, rendered_test):
             # straight (un-premultiplied) colour so that compositing over black reproduces `img`
             a = np.clip(rgba[..., 3:], 1e-6, 1)
             rgba[..., :3] = np.clip(rgba[..., :3] / a, 0, 1) * (rgba[..., 3:] > 0)
-            Image.fromarray((rgba * 255 + 0.5).astype(np.uint8), "RGBA").save(root / split / f"{name}.png")
+            Image.fromarray((rgba * 255 + 0.5).astype(np.uint8), "RGBA").save(
+                root / split / f"{name}.png"
+            )
             c2w = np.linalg.inv(w2c)
             c2w[:3, 1:3] *= -1  # OpenCV -> Blender axes
             frames.append({"file_path": f"./{split}/{name}", "transform_matrix": c2w.tolist()})
         fov = 2 * math.atan(intr.width / (2 * intr.fx))
-        (root / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": fov, "frames": frames}))
+        (root / f"transforms_{split}.json").write_text(
+            json.dumps({"camera_angle_x": fov, "frames": frames})
+        )
 
 
 @pytest.fixture(scope="module")
@@ -318,10 +338,18 @@ def test_fit_scene_writes_loadable_model_folder(tiny_dataset, tmp_path):
     out = tmp_path / "model"
     cfg = FitConfig.scaled_schedule(60, sh_degree=1, num_random_points=200, save_iterations=(30,))
     calls = []
-    res = fit_scene(tiny_dataset, out, cfg, white_background=False, progress=lambda *a: calls.append(a))
+    res = fit_scene(
+        tiny_dataset, out, cfg, white_background=False, progress=lambda *a: calls.append(a)
+    )
     assert res.model_path == out.resolve() and calls
-    for f in ("cfg_args", "cameras.json", "input.ply", "metrics.json",
-              "point_cloud/iteration_30/point_cloud.ply", "point_cloud/iteration_60/point_cloud.ply"):
+    for f in (
+        "cfg_args",
+        "cameras.json",
+        "input.ply",
+        "metrics.json",
+        "point_cloud/iteration_30/point_cloud.ply",
+        "point_cloud/iteration_60/point_cloud.ply",
+    ):
         assert (out / f).is_file(), f
     assert not any(p.name.startswith(".model") for p in tmp_path.iterdir())  # no staging left
     metrics = json.loads((out / "metrics.json").read_text())
@@ -363,7 +391,9 @@ def test_bad_inputs(tmp_path, tiny_dataset):
     with pytest.raises(ValueError, match="resolution"):
         fit_scene(tiny_dataset, tmp_path / "m", FitConfig(iterations=1), resolution=0)
     with pytest.raises(ValueError, match="downscale"):
-        fit_scene(tiny_dataset, tmp_path / "m", FitConfig(iterations=1), resolution=-1, downscale=-2.0)
+        fit_scene(
+            tiny_dataset, tmp_path / "m", FitConfig(iterations=1), resolution=-1, downscale=-2.0
+        )
     assert not (tmp_path / "m").exists()
     with pytest.raises(ValueError, match="iterations"):
         FitConfig(iterations=0)
@@ -422,7 +452,9 @@ def test_masked_loss_gradient_matches_autograd_and_finite_differences():
     # content outside the mask does not matter, and an all-ones mask is no mask
     junk = gt.clone()
     junk[:, :3] = torch.rand(3, 3, W, generator=g, dtype=torch.float64)
-    assert photometric_loss_and_grad(render, junk, 0.2, mask)[0].item() == pytest.approx(loss.item())
+    assert photometric_loss_and_grad(render, junk, 0.2, mask)[0].item() == pytest.approx(
+        loss.item()
+    )
     ones = torch.ones(1, H, W, dtype=torch.float64)
     assert photometric_loss_and_grad(render, gt, 0.2, ones)[0].item() == pytest.approx(
         photometric_loss_and_grad(render, gt, 0.2)[0].item(), rel=1e-12)
@@ -446,8 +478,11 @@ def test_psnr_on_valid_pixels_only():
 
 
 def test_fit_ignores_invalid_pixels():
-    """Training on images whose invalid border is junk moves the Gaussians exactly as training
-    on clean images with the same mask; the evaluation counts the valid pixels only."""
+    """A junk invalid border changes nothing: the fit and its evaluation use the valid pixels.
+
+    Training on images whose invalid border is junk moves the Gaussians exactly as training on
+    clean images with the same mask; the evaluation counts the valid pixels only.
+    """
     rendered = _render_views(_gt_model(), _ring_poses(4), size=32)
     mask = _border_mask(32, 32, b=5).float()
 
@@ -482,8 +517,10 @@ def test_fit_ignores_invalid_pixels():
 
 # ------------------------------------------------------------------ initialisation from views
 def _plane_views(n=6, size=(48, 40)):
-    """Pinhole views (OpenCV axes) of the textured plane z = 0 from about 3 units above it,
-    rendered analytically (ray-plane intersection)."""
+    """Pinhole views (OpenCV axes) of the textured plane z = 0 from about 3 units above it.
+
+    Rendered analytically (ray-plane intersection).
+    """
     W, H = size
     intr = Intrinsics(W, H, 40.0, 40.0)
     views = []
@@ -531,8 +568,10 @@ def test_plane_sweep_points_lie_on_the_photographed_surface():
 
 
 def test_fit_scene_on_transforms_json_capture(tmp_path):
-    """A single-file transforms.json capture with lens distortion: masks reach the fit, the
-    points come from the plane sweep, and train / test PSNR are reported."""
+    """A single-file transforms.json capture with lens distortion fits.
+
+    Masks reach the fit, the points come from the plane sweep, and train / test PSNR are reported.
+    """
     from PIL import Image
 
     from icomma_plugin.fit import fit_scene

@@ -1,5 +1,7 @@
-"""icomma_plugin.localize: losses wiring, both gradient modes, the stage switch and its lr schedule,
-compare-alone steps, the convergence stop, config validation.
+"""icomma_plugin.localize, the paper's method: losses, gradient modes, schedule, stops, config.
+
+Losses wiring, both gradient modes, the stage switch and its lr schedule, compare-alone steps,
+the convergence stop, config validation.
 
 A small textured plane (z = 0) seen by a 64x64 camera keeps every render cheap on the reference
 backend. The `fake` matcher gets the exact plane-induced mapping query pixel -> render pixel.
@@ -127,7 +129,9 @@ def test_losses_wiring_and_switch_schedule(plane):
     init_c2w = perturb_pose(gt_c2w, 2.0, 0.0, generator=np.random.default_rng(2), pivot="origin")
     # Identity correspondences: in depth mode L_match is 0 at the current pose, below any threshold.
     matcher = make_matcher("fake", grid_step=8)
-    cfg = LocalizerConfig(max_iterations=6, switch_threshold=1.0, converge_patience=0, gradient_mode="depth")
+    cfg = LocalizerConfig(
+        max_iterations=6, switch_threshold=1.0, converge_patience=0, gradient_mode="depth"
+    )
     res = localize(model, query, intr, np.linalg.inv(init_c2w), matcher, cfg)
     t0 = res.trace[0]
     # L = (1 - lambda) L_compare + lambda L_match in stage 1.
@@ -147,7 +151,9 @@ def test_no_switch_above_threshold(plane):
     model, intr, gt_c2w, query = plane
     init_c2w = perturb_pose(gt_c2w, 8.0, 0.0, generator=np.random.default_rng(2), pivot="origin")
     matcher = make_matcher("fake", grid_step=8, noise=2.0)  # never exact: L_match > 0
-    cfg = LocalizerConfig(max_iterations=3, switch_threshold=1e-9, converge_patience=0, gradient_mode="depth")
+    cfg = LocalizerConfig(
+        max_iterations=3, switch_threshold=1e-9, converge_patience=0, gradient_mode="depth"
+    )
     res = localize(model, query, intr, np.linalg.inv(init_c2w), matcher, cfg)
     assert res.switch_iteration is None
     assert all(r["stage"] == 1 and r["lr"] == 0.05 for r in res.trace)
@@ -182,8 +188,16 @@ def test_convergence_stop(plane):
     cfg = LocalizerConfig(use_matching=False, max_iterations=60, converge_patience=5,
                           converge_rot_deg=0.5, converge_trans_rel=0.05, lr=1e-4)
     calls = []
-    res = localize(model, query, intr, np.linalg.inv(gt_c2w), None, cfg, gt_w2c=np.linalg.inv(gt_c2w),
-                   progress=calls.append)
+    res = localize(
+        model,
+        query,
+        intr,
+        np.linalg.inv(gt_c2w),
+        None,
+        cfg,
+        gt_w2c=np.linalg.inv(gt_c2w),
+        progress=calls.append,
+    )
     assert res.stop_reason == "converged"
     assert res.iterations == 5 and len(calls) == 5 and len(res.trace) == 5
     assert res.switch_iteration == 0  # compare-only: stage 2 from the start, lr decaying
@@ -263,6 +277,8 @@ def test_lift_keypoints_roundtrip(plane):
 
 def test_image_scale(plane):
     model, intr, gt_c2w, query = plane
-    cfg = LocalizerConfig(use_matching=False, max_iterations=1, image_scale=0.5, converge_patience=0)
+    cfg = LocalizerConfig(
+        use_matching=False, max_iterations=1, image_scale=0.5, converge_patience=0
+    )
     res = localize(model, query, intr, np.linalg.inv(gt_c2w), None, cfg)
     assert res.iterations == 1 and res.trace[0]["loss_compare"] < 0.05

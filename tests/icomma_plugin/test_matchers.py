@@ -1,5 +1,8 @@
-"""Tests of icomma_plugin.matchers: offline weight loading, real-pair matching, the differentiable
-refinement, LoFTR from a user checkpoint, the `fake` and `none` matchers and input validation."""
+"""Tests of icomma_plugin.matchers.
+
+Offline weight loading, real-pair matching, the differentiable refinement, LoFTR from a user
+checkpoint, the `fake` and `none` matchers and input validation.
+"""
 from __future__ import annotations
 
 import json
@@ -91,15 +94,21 @@ def epipolar_error(fmat, k0, k1) -> np.ndarray:
 def ransac_inlier_ratio(k0, k1) -> float:
     import cv2
 
-    _, mask = cv2.findFundamentalMat(k0.astype(np.float64), k1.astype(np.float64), cv2.FM_RANSAC, 1.5, 0.999)
+    _, mask = cv2.findFundamentalMat(
+        k0.astype(np.float64), k1.astype(np.float64), cv2.FM_RANSAC, 1.5, 0.999
+    )
     return 0.0 if mask is None else float(mask.mean())
 
 
 def texture(h, w, shift=(0.0, 0.0), n=24, seed=1) -> torch.Tensor:
-    """Smooth analytic RGB texture f(x - shift) in [0, 1]; `shift` may be a tensor requiring grad."""
+    """Smooth analytic RGB texture f(x - shift) in [0, 1].
+
+    `shift` may be a tensor requiring grad.
+    """
     g = torch.Generator().manual_seed(seed)
-    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64),
-                            indexing="ij")
+    ys, xs = torch.meshgrid(
+        torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij"
+    )
     xs = xs - shift[0]
     ys = ys - shift[1]
     img = torch.zeros(3, h, w, dtype=torch.float64)
@@ -108,7 +117,9 @@ def texture(h, w, shift=(0.0, 0.0), n=24, seed=1) -> torch.Tensor:
         th = 2 * math.pi * torch.rand(1, generator=g).item()
         ph = 2 * math.pi * torch.rand(1, generator=g).item()
         col = torch.rand(3, generator=g, dtype=torch.float64)
-        img = img + col.view(3, 1, 1) * torch.cos(2 * math.pi / lam * (xs * math.cos(th) + ys * math.sin(th)) + ph)
+        img = img + col.view(3, 1, 1) * torch.cos(
+            2 * math.pi / lam * (xs * math.cos(th) + ys * math.sin(th)) + ph
+        )
     return (0.5 + img / (2 * n)).float()
 
 
@@ -118,8 +129,17 @@ def texture(h, w, shift=(0.0, 0.0), n=24, seed=1) -> torch.Tensor:
 
 def test_registry_lists_every_matcher():
     status = available_matchers()
-    for name in ("xfeat", "xfeat_mnn", "aliked_lightglue", "disk_lightglue", "sift", "orb", "loftr", "none",
-                 "fake"):
+    for name in (
+        "xfeat",
+        "xfeat_mnn",
+        "aliked_lightglue",
+        "disk_lightglue",
+        "sift",
+        "orb",
+        "loftr",
+        "none",
+        "fake",
+    ):
         assert name in status
     assert status["none"] is None and status["fake"] is None
     assert "checkpoint" in status["loftr"]
@@ -213,6 +233,30 @@ def test_matcher_on_lego_pair_offline(name, lego_pair, no_kornia_download):
 
 
 @pytest.mark.shared_data
+def test_small_images_are_enlarged_for_detection(lego_pair, no_kornia_download):
+    """A 100 px pair is matched on a 2x copy; keypoints come back in the small image's pixels."""
+    im0, im1, fmat = lego_pair
+    s = 0.25
+    small = [torch.nn.functional.interpolate(im[None], scale_factor=s, mode="area")[0]
+             for im in (im0, im1)]
+    plain = make_matcher("xfeat", min_detect_side=0).match(*small)
+    enlarged = make_matcher("xfeat").match(*small)  # default 128: 100 px is enlarged 2x
+    assert len(enlarged) > len(plain)
+    h, w = small[0].shape[1:]
+    for k in (enlarged.kpts0, enlarged.kpts1):
+        assert bool(((k >= -0.5) & (k <= torch.tensor([w - 0.5, h - 0.5]))).all())
+    # back in full-resolution pixels the matches agree with the true poses (2 full px = 0.5 small)
+    k0, k1 = ((m.numpy() + 0.5) / s - 0.5 for m in (enlarged.kpts0, enlarged.kpts1))
+    share = float((epipolar_error(fmat, k0, k1) < 2.0 / s).mean())
+    assert share > 0.7, f"only {share:.2f} of the enlarged matches agree with the true poses"
+
+
+def test_min_detect_side_must_be_a_non_negative_int():
+    with pytest.raises(ValueError, match="min_detect_side"):
+        make_matcher("xfeat", min_detect_side=-1)
+
+
+@pytest.mark.shared_data
 def test_differentiable_matching_on_lego_pair(lego_pair):
     im0, im1, fmat = lego_pair
     matcher = make_matcher("sift")
@@ -243,7 +287,8 @@ def test_refine_is_exact_on_a_shifted_copy(shift):
     render = texture(112, 112, shift)
     kq = _grid_points(120, 20, 92)
     g = torch.Generator().manual_seed(3)
-    start = kq + torch.tensor(shift) + 3.0 * (torch.rand(kq.shape, generator=g) - 0.5)  # up to 1.5 px off
+    # up to 1.5 px off
+    start = kq + torch.tensor(shift) + 3.0 * (torch.rand(kq.shape, generator=g) - 0.5)
     out = refine_render_keypoints(render, query, start, kq)
     err = (out - (kq + torch.tensor(shift))).abs()
     assert float(err.max()) < 0.1, float(err.max())
@@ -258,7 +303,9 @@ def test_refine_gradient_reaches_render_and_follows_translation():
     out = refine_render_keypoints(render, query, kq + shift.detach().float(), kq)
     assert out.requires_grad
     # d(keypoint)/d(translation of the render) is the identity (implicit-function gradient)
-    jac = torch.stack([torch.autograd.grad(out[:, i].sum(), shift, retain_graph=True)[0] for i in range(2)])
+    jac = torch.stack(
+        [torch.autograd.grad(out[:, i].sum(), shift, retain_graph=True)[0] for i in range(2)]
+    )
     jac = jac / len(kq)
     assert torch.allclose(jac, torch.eye(2, dtype=jac.dtype), atol=0.05), jac
     # and the gradient lands on render pixels
@@ -267,7 +314,9 @@ def test_refine_gradient_reaches_render_and_follows_translation():
     assert leaf.grad is not None and float(leaf.grad.abs().sum()) > 0
     assert bool(torch.isfinite(leaf.grad).all())
     # the plain LoFTR-style gradient points the same way, damped
-    out_plain = refine_render_keypoints(render, query, kq + shift.detach().float(), kq, implicit=False)
+    out_plain = refine_render_keypoints(
+        render, query, kq + shift.detach().float(), kq, implicit=False
+    )
     gx = torch.autograd.grad(out_plain[:, 0].sum(), shift)[0] / len(kq)
     assert 0.2 < float(gx[0]) < 1.0
 
@@ -322,7 +371,10 @@ def test_loftr_loads_a_user_checkpoint_offline(tmp_path, no_kornia_download):
     path = tmp_path / "outdoor_ds.ckpt"
     torch.save({"state_dict": {"matcher." + k: v for k, v in state.items()}}, path)
     # threshold 0: random weights give low dual-softmax scores; this exercises the whole path
-    matcher = make_matcher("loftr", checkpoint=str(path), coarse_threshold=0.0)
+    # min_detect_side 0: the grid check below is in the image's own pixels, not an enlarged copy
+    matcher = make_matcher(
+        "loftr", checkpoint=str(path), coarse_threshold=0.0, min_detect_side=0
+    )
     assert matcher.supports_image_gradient
     render = texture(64, 80, (1.0, 2.0)).requires_grad_(True)
     query = texture(64, 80)
@@ -359,9 +411,13 @@ def test_fake_matcher_mappings():
     assert torch.equal(fixed.kpts0, k0) and torch.equal(fixed.kpts1, k0 + 1)
     state = {"t": 1.0}
     moving = make_matcher("fake", mapping=lambda q: q + state["t"])
-    assert torch.allclose(moving.match(img0, img1).kpts0 - moving.match(img0, img1).kpts1, torch.tensor(1.0))
+    assert torch.allclose(
+        moving.match(img0, img1).kpts0 - moving.match(img0, img1).kpts1, torch.tensor(1.0)
+    )
     state["t"] = 2.0
-    assert torch.allclose(moving.match(img0, img1).kpts0 - moving.match(img0, img1).kpts1, torch.tensor(2.0))
+    assert torch.allclose(
+        moving.match(img0, img1).kpts0 - moving.match(img0, img1).kpts1, torch.tensor(2.0)
+    )
     noisy = make_matcher("fake", noise=0.5, outlier_fraction=0.25, seed=7)
     a, b = noisy.match(img0, img1), noisy.match(img0, img1)
     assert torch.equal(a.kpts0, b.kpts0)  # deterministic
@@ -376,8 +432,12 @@ def test_fake_matcher_differentiable_recovers_the_true_shift():
     query = texture(96, 96)
     render = texture(96, 96, (2.4, -1.3)).requires_grad_(True)
     # the fake matcher knows the correspondence only to the pixel
-    m = make_matcher("fake", mapping=lambda q: q + torch.tensor([2.0, -1.0], dtype=q.dtype), grid_step=12,
-                     border=16).match(render, query, differentiable=True)
+    m = make_matcher(
+        "fake",
+        mapping=lambda q: q + torch.tensor([2.0, -1.0], dtype=q.dtype),
+        grid_step=12,
+        border=16,
+    ).match(render, query, differentiable=True)
     assert len(m) > 10
     err = (m.kpts0.detach() - m.kpts1 - torch.tensor([2.4, -1.3])).abs()
     assert float(err.max()) < 0.1

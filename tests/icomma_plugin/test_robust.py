@@ -1,5 +1,8 @@
-"""The default localizer's stages, each on its own (PnP, geometric rounds, photometric refinement,
-candidates, verdict), and end to end on the demo scene from a 90 degree start and from no start."""
+"""The default localizer's stages, each on its own, and end to end on the demo scene.
+
+The stages: PnP, geometric rounds, photometric refinement, candidates, verdict; end to end from a
+90 degree start and from no start.
+"""
 from __future__ import annotations
 
 import numpy as np
@@ -22,7 +25,9 @@ def demo(tmp_path_factory):
     from icomma_plugin.demo_scene import build_demo_scene
     from icomma_plugin.io.cameras_json import read_cameras_json
 
-    scene = build_demo_scene(tmp_path_factory.mktemp("demo") / "scene", seed=0, width=100, height=100)
+    scene = build_demo_scene(
+        tmp_path_factory.mktemp("demo") / "scene", seed=0, width=100, height=100
+    )
     cams = [e.c2w for e in read_cameras_json(scene.path / "cameras.json")]
     return scene, scene.load_model(), scene.load_query(), cams
 
@@ -34,8 +39,13 @@ def xfeat():
 
 def _state(demo, matcher=None, query=None):
     scene, model, q, _ = demo
-    return LocalizationState(model, Query(q if query is None else query, scene.intrinsics), torch.zeros(3),
-                             matcher=matcher, gt_c2w=scene.gt_c2w)
+    return LocalizationState(
+        model,
+        Query(q if query is None else query, scene.intrinsics),
+        torch.zeros(3),
+        matcher=matcher,
+        gt_c2w=scene.gt_c2w,
+    )
 
 
 # ------------------------------------------------------------------------------------------- PnP
@@ -75,8 +85,14 @@ def test_lift_keypoints_inverts_the_projection(demo):
     out = st.render(w2c)
     ys, xs = torch.nonzero(out.alpha[0] > 0.99, as_tuple=True)
     k = torch.stack([xs, ys], -1)[::37].double()
-    pts, keep = lift_keypoints(k, out.depth, out.alpha, scene.intrinsics, torch.as_tensor(scene.gt_c2w),
-                               max_depth_jump=0.05)
+    pts, keep = lift_keypoints(
+        k,
+        out.depth,
+        out.alpha,
+        scene.intrinsics,
+        torch.as_tensor(scene.gt_c2w),
+        max_depth_jump=0.05,
+    )
     uv, _ = project(pts.numpy(), w2c, scene.intrinsics)
     assert keep.sum() > 10 and np.abs(uv - k[keep].numpy()).max() < 1e-6
 
@@ -121,8 +137,9 @@ def test_refinement_never_increases_the_loss_and_a_rejected_step_keeps_the_pose(
     # is rejected and the pose is returned exactly as given.
     gt_w2c = np.linalg.inv(scene.gt_c2w)
     st2 = _state(demo, query=st.render(gt_w2c).color.detach().clamp(0, 1))
-    out2 = refine_photometric(st2, gt_w2c, RefineConfig(scales=(1.0,), blur=(0.0,), iterations=(3,)),
-                              scene_depth=4.0)
+    out2 = refine_photometric(
+        st2, gt_w2c, RefineConfig(scales=(1.0,), blur=(0.0,), iterations=(3,)), scene_depth=4.0
+    )
     assert [r.accepted for r in st2.trace] == [False] * len(st2.trace) and len(st2.trace) == 3
     assert np.array_equal(out2.w2c, gt_w2c)
 
@@ -138,8 +155,12 @@ def test_finite_difference_hessian_agrees_with_the_motion_field_model(demo):
     w2c = np.linalg.inv(scene.gt_c2w)
     out = st.render(w2c)
     mask = coverage_mask(Observation(w2c, 1.0, out.color, out.depth, out.alpha), st)
-    h_fd = _hessian(st, RefineConfig(hessian="finite_difference"), w2c, 1.0, out, mask, scene.intrinsics, 0.0)
-    h_mf = _hessian(st, RefineConfig(hessian="motion_field"), w2c, 1.0, out, mask, scene.intrinsics, 0.0)
+    h_fd = _hessian(
+        st, RefineConfig(hessian="finite_difference"), w2c, 1.0, out, mask, scene.intrinsics, 0.0
+    )
+    h_mf = _hessian(
+        st, RefineConfig(hessian="motion_field"), w2c, 1.0, out, mask, scene.intrinsics, 0.0
+    )
     cos = float((h_fd * h_mf).sum() / (h_fd.norm() * h_mf.norm()))
     assert cos > 0.9
     assert 0.3 < float(torch.trace(h_mf) / torch.trace(h_fd)) < 1.2
@@ -149,7 +170,9 @@ def test_candidates_rank_the_nearest_camera_first(demo, xfeat):
     from icomma_plugin.localization.candidates import CandidateConfig, CandidateSet
 
     scene, model, q, cams = demo
-    cs = CandidateSet.for_model(model, scene.intrinsics, xfeat, torch.zeros(3), cams, CandidateConfig())
+    cs = CandidateSet.for_model(
+        model, scene.intrinsics, xfeat, torch.zeros(3), cams, CandidateConfig()
+    )
     st = _state(demo, xfeat)
     order = cs.rank(st, CandidateConfig())
     angles = [float(rotation_error_deg(c, scene.gt_c2w)) for c in cs.c2w]
@@ -171,7 +194,8 @@ def test_verdict_is_failed_for_an_empty_render(demo, xfeat):
     scene, _, _, _ = demo
     st = _state(demo, xfeat)
     away = scene.gt_c2w.copy()
-    away[:3, :3] = away[:3, :3] @ np.diag([-1.0, 1.0, -1.0])  # turned around: looks away from the scene
+    # turned around: looks away from the scene
+    away[:3, :3] = away[:3, :3] @ np.diag([-1.0, 1.0, -1.0])
     obs = st.observe(np.linalg.inv(away))
     v = decide(score_observation(obs, st, 2.0), VerdictConfig())
     assert v.status == "failed" and "sees almost none of the scene" in v.reason
@@ -182,8 +206,11 @@ def test_verdict_is_failed_or_uncertain_for_a_wrong_pose_and_ok_for_the_truth(de
     st = _state(demo, xfeat)
     wrong = perturb_pose(scene.gt_c2w, 25.0, 0.3, 5, pivot=scene.scene_centre)
     v_wrong = decide(score_observation(st.observe(np.linalg.inv(wrong)), st, 2.0), VerdictConfig())
-    v_right = decide(score_observation(st.observe(np.linalg.inv(scene.gt_c2w)), st, 2.0), VerdictConfig(),
-                     converged=True)
+    v_right = decide(
+        score_observation(st.observe(np.linalg.inv(scene.gt_c2w)), st, 2.0),
+        VerdictConfig(),
+        converged=True,
+    )
     assert v_wrong.status in ("failed", "uncertain"), v_wrong
     assert v_right.status == "ok", v_right
     assert v_right.signals["inliers"] >= 30 and "inlier_ratio" in v_right.signals
@@ -196,8 +223,15 @@ def test_empty_start_is_reported_with_what_to_do(demo, xfeat):
     scene, model, q, cams = demo
     away = scene.gt_c2w.copy()
     away[:3, :3] = away[:3, :3] @ np.diag([-1.0, 1.0, -1.0])
-    res = localize(model, q, scene.intrinsics, np.linalg.inv(away), xfeat, gt_w2c=np.linalg.inv(scene.gt_c2w),
-                   cameras_c2w=cams)
+    res = localize(
+        model,
+        q,
+        scene.intrinsics,
+        np.linalg.inv(away),
+        xfeat,
+        gt_w2c=np.linalg.inv(scene.gt_c2w),
+        cameras_c2w=cams,
+    )
     assert res.verdict.signals["start_render_empty"] is True
     assert "start pose was empty" in res.verdict.reason
     assert res.final_rotation_error_deg < 1.0 and res.verdict.status in ("ok", "uncertain")
@@ -264,8 +298,11 @@ def test_stage_seconds_are_exclusive_and_add_up(demo, monkeypatch):
 
 
 def test_renders_above_one_reach_the_matcher_clamped(demo, xfeat):
-    """A model whose render overshoots [0, 1] (bright SH colours) stopped the paper's method with
-    "image0 must hold values in [0, 1]"; both methods now clamp before matching."""
+    """Both methods run to the end on a model whose render overshoots [0, 1] (bright SH colours).
+
+    It stopped the paper's method with "image0 must hold values in [0, 1]"; both methods now clamp
+    before matching.
+    """
     from icomma_plugin.localize import LocalizerConfig, localize
 
     scene, model, q, cams = demo

@@ -1,8 +1,11 @@
-"""Batches (data.queries): inputs (photo lists, poses files), poses.json / poses.csv content,
-per-photo failures that do not stop the batch, one-line errors, exports read back, resume after
-a kill, worker processes, and shards through submitit's local executor (the SLURM code path).
+"""Batches (data.queries), end to end through the tool.
 
-Photos are rendered from a 100x100 demo scene at known poses, so the truth is known."""
+Inputs (photo lists, poses files), poses.json / poses.csv content, per-photo failures that do not
+stop the batch, one-line errors, exports read back, resume after a kill, worker processes, and
+shards through submitit's local executor (the SLURM code path).
+
+Photos are rendered from a 100x100 demo scene at known poses, so the truth is known.
+"""
 
 from __future__ import annotations
 
@@ -161,8 +164,10 @@ def test_ledger_refuses_another_runs_folder(tmp_path):
 
 
 def test_batch_poses_json_csv_exports_and_bad_photos(scene, tmp_path):
-    """No start pose; a photo of another size and an unreadable one fail alone, the others
-    localize."""
+    """No start pose; a photo of another size and an unreadable one fail alone.
+
+    The others localize.
+    """
     photos = tmp_path / "photos"
     photos.mkdir()
     for i in (0, 1):
@@ -381,8 +386,10 @@ def test_submitit_local_shards_merge_into_one_poses_json(scene, tmp_path):
 
 
 def test_journal_keeps_every_row_between_rewrites(tmp_path):
-    """Past rewrite_rows, poses.json is rewritten only now and then; the journal has every row,
-    a line cut short by a kill is ignored, and the next run reads it all."""
+    """Past rewrite_rows, poses.json is rewritten only now and then; a kill loses no row.
+
+    The journal has every row, a line cut short by a kill is ignored, and the next run reads it all.
+    """
     run = {"kind": "batch", "model_path": "/m", "queries": "/q"}
     led = PosesLedger(tmp_path, run, total=5, rewrite_rows=1, rewrite_seconds=3600)
     for i in range(4):

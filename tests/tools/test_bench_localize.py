@@ -1,5 +1,8 @@
-"""tools/bench_localize.py on a small demo scene: it runs both methods and both render paths,
-writes its JSON and markdown, the two render paths end on the same poses, bad input is one line."""
+"""tools/bench_localize.py on a small demo scene.
+
+It runs both methods and both render paths, writes its JSON and markdown, the two render paths
+end on the same poses, bad input is one line.
+"""
 
 from __future__ import annotations
 
@@ -122,7 +125,7 @@ def test_markdown_rows_match_the_header():
                    "load_after": None, "rows": [row], "blocks": {}, "ratios": [],
                    "render_timings": {}})
     lines = md.splitlines()
-    i = next(k for k, l in enumerate(lines) if l.startswith("| scene | method"))
+    i = next(k for k, line in enumerate(lines) if line.startswith("| scene | method"))
     header = [c.strip() for c in lines[i].strip("|").split("|")]
     cells = [c.strip() for c in lines[i + 2].strip("|").split("|")]
     assert len(header) == len(cells)

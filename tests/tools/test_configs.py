@@ -1,6 +1,8 @@
-"""Hydra configs (conf/): every group option composes and builds the object it describes
-(matchers and optimizers through ``_target_``), overrides reach the built objects, the YAML
-defaults do not drift from the code's, and only tools/ imports Hydra."""
+"""Hydra configs (conf/): every group option composes and builds the object it describes.
+
+Matchers and optimizers are built through ``_target_``; overrides reach the built objects, the
+YAML defaults do not drift from the code's, and only tools/ imports Hydra.
+"""
 from __future__ import annotations
 
 import dataclasses
@@ -61,7 +63,9 @@ def test_every_matcher_builds_or_says_why_not(option):
 def test_every_renderer_names_a_backend(option):
     import gaussian_renderer_pose as grp
 
-    assert compose([f"renderer={option}"]).renderer.backend in set(grp.available_backends()) | {"auto"}
+    assert compose([f"renderer={option}"]).renderer.backend in set(grp.available_backends()) | {
+        "auto"
+    }
 
 
 def test_yaml_defaults_are_the_code_defaults():
@@ -76,11 +80,26 @@ def test_overrides_reach_the_built_configs():
     lc = common.build_optimizer(compose([
         "optimizer=icomma", "optimizer.lambda_match=0.5", "optimizer.switch_threshold=1e-2",
         "optimizer.lr=0.02", "optimizer.gradient_mode=depth"]).optimizer)
-    assert (lc.lambda_match, lc.switch_threshold, lc.lr, lc.gradient_mode) == (0.5, 1e-2, 0.02, "depth")
-    rc = common.build_optimizer(compose([
-        "optimizer.geometric.max_rounds=2", "optimizer.refine.iterations=[5]", "optimizer.refine.blur=[0]",
-        "optimizer.refine.scales=[1]", "optimizer.verdict.ok_inliers=7"]).optimizer)
-    assert rc.geometric.max_rounds == 2 and rc.refine.iterations == (5,) and rc.verdict.ok_inliers == 7
+    assert (lc.lambda_match, lc.switch_threshold, lc.lr, lc.gradient_mode) == (
+        0.5,
+        1e-2,
+        0.02,
+        "depth",
+    )
+    rc = common.build_optimizer(
+        compose(
+            [
+                "optimizer.geometric.max_rounds=2",
+                "optimizer.refine.iterations=[5]",
+                "optimizer.refine.blur=[0]",
+                "optimizer.refine.scales=[1]",
+                "optimizer.verdict.ok_inliers=7",
+            ]
+        ).optimizer
+    )
+    assert (
+        rc.geometric.max_rounds == 2 and rc.refine.iterations == (5,) and rc.verdict.ok_inliers == 7
+    )
 
 
 def test_bad_optimizer_value_is_a_user_error_naming_the_field():
@@ -94,7 +113,9 @@ def test_bad_optimizer_value_is_a_user_error_naming_the_field():
 def test_data_init_none_reaches_the_problem(tmp_path):
     from icomma_plugin.localization.problem import load_problem
 
-    cfg = compose([f"data.path={tmp_path / 'demo'}", "data.width=48", "data.height=48", "data.init=none"])
+    cfg = compose(
+        [f"data.path={tmp_path / 'demo'}", "data.width=48", "data.height=48", "data.init=none"]
+    )
     problem = load_problem(_tools_common().container(cfg.data))
     assert problem.init_c2w is None and problem.gt_c2w is not None
     assert len(problem.candidate_c2ws()) == len(problem.cameras) > 0

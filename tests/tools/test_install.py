@@ -40,8 +40,11 @@ def _run(cmd, cwd, env, timeout=900) -> subprocess.CompletedProcess:
 
 
 def _copy_source(dst: Path) -> None:
-    """The files a commit would hold (tracked + untracked, not ignored); pip builds in-tree, so a
-    copy keeps its build/ and *.egg-info out of the checkout (whose build/ `make` uses)."""
+    """The files a commit would hold (tracked + untracked, not ignored), copied.
+
+    pip builds in-tree, so a copy keeps its build/ and *.egg-info out of the checkout (whose build/
+    `make` uses).
+    """
     names = None
     if (REPO / ".git").exists() and shutil.which("git"):
         p = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],

@@ -1,5 +1,8 @@
-"""tools/localize.py end to end: outputs of a short run, the Hydra CLI (single run, multirun),
-one-line errors for bad inputs, and the demo converging from 20 degrees off on CPU."""
+"""tools/localize.py end to end.
+
+Outputs of a short run, the Hydra CLI (single run, multirun), one-line errors for bad inputs,
+and the demo converging from 20 degrees off on CPU.
+"""
 from __future__ import annotations
 
 import json
@@ -29,13 +32,28 @@ def _cli(args, timeout=600):
 
 def test_run_writes_every_output(small_demo, tmp_path):
     tool = localize_tool()
-    cfg = compose(_demo_overrides(small_demo) + [
-        "optimizer=icomma", "optimizer.max_iterations=4", "output.progress=false", "output.gif=true",
-        "output.gif_every=2"])
+    cfg = compose(
+        _demo_overrides(small_demo)
+        + [
+            "optimizer=icomma",
+            "optimizer.max_iterations=4",
+            "output.progress=false",
+            "output.gif=true",
+            "output.gif_every=2",
+        ]
+    )
     out = tmp_path / "out"
     res = tool.run(cfg, out)
-    for name in ("result.json", "trace.json", "trace.csv", "overlay_initial.png", "overlay_final.png",
-                 "matches_initial.png", "convergence.png", "optimisation.gif"):
+    for name in (
+        "result.json",
+        "trace.json",
+        "trace.csv",
+        "overlay_initial.png",
+        "overlay_final.png",
+        "matches_initial.png",
+        "convergence.png",
+        "optimisation.gif",
+    ):
         assert (out / name).is_file(), name
     j = json.loads((out / "result.json").read_text())
     assert j == json.loads(json.dumps(res))
@@ -45,8 +63,17 @@ def test_run_writes_every_output(small_demo, tmp_path):
     assert set(e) == {"id", "img_name", "width", "height", "position", "rotation", "fx", "fy"}
     assert np.allclose(e["position"], c2w[:3, 3]) and (e["width"], e["height"]) == (64, 64)
     assert 20.0 <= j["initial_rotation_error_deg"] <= 40.0
-    for key in ("final_rotation_error_deg", "initial_translation_error", "final_translation_error",
-                "iterations", "switch_iteration", "match_counts", "seconds", "stop_reason", "config"):
+    for key in (
+        "final_rotation_error_deg",
+        "initial_translation_error",
+        "final_translation_error",
+        "iterations",
+        "switch_iteration",
+        "match_counts",
+        "seconds",
+        "stop_reason",
+        "config",
+    ):
         assert key in j, key
     assert j["iterations"] == 4 and j["stop_reason"] == "max_iterations"
     assert j["config"]["optimizer"]["max_iterations"] == 4
@@ -59,10 +86,19 @@ def test_run_writes_every_output(small_demo, tmp_path):
 
 def test_init_override_and_compare_only(small_demo, tmp_path):
     tool = localize_tool()
-    cfg = compose(_demo_overrides(small_demo) + [
-        "optimizer=compare_only", "matcher=none", "optimizer.max_iterations=2", "output.progress=false",
-        "data.init.rot_deg=5", "output.overlays=false", "output.convergence_plot=false",
-        "output.trace_format=csv"])
+    cfg = compose(
+        _demo_overrides(small_demo)
+        + [
+            "optimizer=compare_only",
+            "matcher=none",
+            "optimizer.max_iterations=2",
+            "output.progress=false",
+            "data.init.rot_deg=5",
+            "output.overlays=false",
+            "output.convergence_plot=false",
+            "output.trace_format=csv",
+        ]
+    )
     res = tool.run(cfg, tmp_path)
     assert abs(res["initial_rotation_error_deg"] - 5.0) < 1e-6
     assert res["matcher"] is None and res["switch_iteration"] == 0
@@ -102,18 +138,38 @@ def test_cli_bad_inputs(small_demo, tmp_path):
     def _cli(args):  # keep Hydra's run folders out of the repository
         return globals()["_cli"](args + [f"hydra.run.dir={tmp_path / 'runs'}"])
 
-    p = _cli(["data=model_folder", f"data.model_path={tmp_path / 'missing'}", "data.init.rot_deg=10",
-              "data.query.camera=ring_000"])
+    p = _cli(
+        [
+            "data=model_folder",
+            f"data.model_path={tmp_path / 'missing'}",
+            "data.init.rot_deg=10",
+            "data.query.camera=ring_000",
+        ]
+    )
     _assert_one_line_error(p, "data.model_path", "not found")
 
-    p = _cli(["data=model_folder", f"data.model_path={small_demo}", f"data.query.image={small_demo / 'query.png'}",
-              "data.query.camera=no_such_camera", "data.init.rot_deg=10"])
+    p = _cli(
+        [
+            "data=model_folder",
+            f"data.model_path={small_demo}",
+            f"data.query.image={small_demo / 'query.png'}",
+            "data.query.camera=no_such_camera",
+            "data.init.rot_deg=10",
+        ]
+    )
     _assert_one_line_error(p, "no_such_camera")
 
     bad = tmp_path / "bad_c2w.txt"
     bad.write_text("1 2 3\n4 5 6\n")
-    p = _cli(["data=model_folder", f"data.model_path={small_demo}", f"data.query.image={small_demo / 'query.png'}",
-              "data.intrinsics.camera=ring_000", f"data.init.c2w_file={bad}"])
+    p = _cli(
+        [
+            "data=model_folder",
+            f"data.model_path={small_demo}",
+            f"data.query.image={small_demo / 'query.png'}",
+            "data.intrinsics.camera=ring_000",
+            f"data.init.c2w_file={bad}",
+        ]
+    )
     _assert_one_line_error(p, "data.init.c2w_file", "4x4")
 
     p = _cli(["matcher=loftr"])
@@ -137,19 +193,35 @@ def test_model_folder_query_image_and_c2w_file(small_demo, tmp_path):
                     "output.overlays=false", "output.convergence_plot=false"])
     res = tool.run(cfg, tmp_path / "out")
     assert abs(res["initial_rotation_error_deg"] - scene.init_rot_deg) < 1e-6
-    assert res["intrinsics"]["width"] == 64 and abs(res["intrinsics"]["fx"] - scene.intrinsics.fx) < 1e-9
+    assert (
+        res["intrinsics"]["width"] == 64
+        and abs(res["intrinsics"]["fx"] - scene.intrinsics.fx) < 1e-9
+    )
     assert res["scene_scale"] == pytest.approx(scene.scene_scale)
 
 
 def test_demo_converges_from_20_degrees(tmp_path):
-    """The paper's method, acceptance run at reduced resolution: 20 degrees off -> < 0.5 deg, < 1%
-    of the scene scale."""
+    """The paper's method, acceptance run at reduced resolution.
+
+    20 degrees off -> < 0.5 deg, < 1% of the scene scale.
+    """
     tool = localize_tool()
     # The demo built at 100x100 (a query rendered at the working size: resizing a 200 px query
     # instead biases the photometric optimum by a few tenths of a degree).
-    cfg = compose([f"data.path={tmp_path / 'demo100'}", "data.width=100", "data.height=100",
-                    "optimizer=icomma", "data.init.rot_deg=20", "data.init.seed=1", "output.progress=false",
-                    "output.overlays=false", "output.match_lines=false", "output.convergence_plot=false"])
+    cfg = compose(
+        [
+            f"data.path={tmp_path / 'demo100'}",
+            "data.width=100",
+            "data.height=100",
+            "optimizer=icomma",
+            "data.init.rot_deg=20",
+            "data.init.seed=1",
+            "output.progress=false",
+            "output.overlays=false",
+            "output.match_lines=false",
+            "output.convergence_plot=false",
+        ]
+    )
     res = tool.run(cfg, tmp_path / "out")
     assert abs(res["initial_rotation_error_deg"] - 20.0) < 1e-6
     assert res["final_rotation_error_deg"] < 0.5, res["final_rotation_error_deg"]
@@ -158,8 +230,10 @@ def test_demo_converges_from_20_degrees(tmp_path):
 
 
 def test_model_folder_query_from_dataset_view(small_demo, tmp_path):
-    """data.query.dataset + index: image, intrinsics and ground truth from a (Blender) dataset view;
-    the initial pose is the ground truth perturbed by data.init.rot_deg."""
+    """data.query.dataset + index: image, intrinsics and ground truth from a (Blender) dataset view.
+
+    The initial pose is the ground truth perturbed by data.init.rot_deg.
+    """
     import math
     import shutil
 
@@ -171,14 +245,29 @@ def test_model_folder_query_from_dataset_view(small_demo, tmp_path):
     root = tmp_path / "blender"
     (root / "test").mkdir(parents=True)
     shutil.copy(scene.query_image_path, root / "test" / "r_0.png")
-    frame = {"file_path": "./test/r_0", "transform_matrix": opengl_to_opencv_c2w(scene.gt_c2w).tolist()}
+    frame = {
+        "file_path": "./test/r_0",
+        "transform_matrix": opengl_to_opencv_c2w(scene.gt_c2w).tolist(),
+    }
     doc = {"camera_angle_x": 2 * math.atan(64 / (2 * scene.intrinsics.fx)), "frames": [frame]}
     for split in ("train", "test"):
         (root / f"transforms_{split}.json").write_text(json.dumps(doc))
-    cfg = compose(["data=model_folder", f"data.model_path={small_demo}", f"data.query.dataset={root}",
-                    "data.query.index=0", "data.init.rot_deg=5", "data.init.trans=0.01", "matcher=none",
-                    "optimizer=compare_only", "optimizer.max_iterations=1", "output.progress=false",
-                    "output.overlays=false", "output.convergence_plot=false"])
+    cfg = compose(
+        [
+            "data=model_folder",
+            f"data.model_path={small_demo}",
+            f"data.query.dataset={root}",
+            "data.query.index=0",
+            "data.init.rot_deg=5",
+            "data.init.trans=0.01",
+            "matcher=none",
+            "optimizer=compare_only",
+            "optimizer.max_iterations=1",
+            "output.progress=false",
+            "output.overlays=false",
+            "output.convergence_plot=false",
+        ]
+    )
     res = tool.run(cfg, tmp_path / "out")
     assert abs(res["initial_rotation_error_deg"] - 5.0) < 1e-4
     assert np.allclose(res["ground_truth_c2w"], scene.gt_c2w, atol=1e-6)

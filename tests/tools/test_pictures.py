@@ -1,5 +1,8 @@
-"""Pictures where a person looks: the optimisation as MP4, the contact sheet of a batch (framed
-by verdict colour), the trajectory plot, and the benchmark curves beside the paper's numbers."""
+"""Pictures where a person looks.
+
+The optimisation as MP4, the contact sheet of a batch (framed by verdict colour), the
+trajectory plot, and the benchmark curves beside the paper's numbers.
+"""
 
 from __future__ import annotations
 

@@ -1,6 +1,9 @@
-"""Sequences (data.sequence): constant-velocity prediction, video files written and read back
-(MP4, GIF fallback), relocalization of a failed frame, and tracking a synthetic path on a
-100x100 demo scene from a folder of frames and from an MP4 through the tool."""
+"""Sequences (data.sequence): prediction, videos, relocalization, tracking through the tool.
+
+Constant-velocity prediction, video files written and read back (MP4, GIF fallback),
+relocalization of a failed frame, and tracking a synthetic path on a 100x100 demo scene from a
+folder of frames and from an MP4 through the tool.
+"""
 
 from __future__ import annotations
 

@@ -25,7 +25,8 @@ def test_new_files_get_the_umask_mode_and_replaced_files_keep_theirs(tmp_path):
     try:
         p = tmp_path / "poses.csv"
         write_text_atomic(p, "x\n")
-        assert stat.S_IMODE(p.stat().st_mode) == 0o644  # readable by others, as open() would make it
+        # readable by others, as open() would make it
+        assert stat.S_IMODE(p.stat().st_mode) == 0o644
         os.chmod(p, 0o640)
         write_text_atomic(p, "y\n")
         assert stat.S_IMODE(p.stat().st_mode) == 0o640 and p.read_text() == "y\n"

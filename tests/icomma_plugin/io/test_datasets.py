@@ -55,8 +55,10 @@ def quat_from_axis_angle(axis, angle):
 
 
 def colmap_scene(root: Path, fmt: str = "bin", extra_unregistered: bool = True):
-    """A 9-image COLMAP scene: camera 1 PINHOLE 32x24 with an off-centre principal point,
-    camera 2 SIMPLE_PINHOLE 20x16; every image sees world point X at a known pixel."""
+    """A 9-image COLMAP scene where every image sees world point X at a known pixel.
+
+    Camera 1 is PINHOLE 32x24 with an off-centre principal point, camera 2 SIMPLE_PINHOLE 20x16.
+    """
     cameras = [(1, "PINHOLE", 32, 24, [30.0, 28.0, 18.0, 11.0]),  # cx_colmap 18 (centre 16)
                (2, "SIMPLE_PINHOLE", 20, 16, [22.0, 10.0, 8.0])]
     X = np.array([0.2, -0.1, 0.3])
@@ -93,13 +95,17 @@ def colmap_scene(root: Path, fmt: str = "bin", extra_unregistered: bool = True):
 
 
 def blender_scene(root: Path, white=False, with_ext=False):
-    """Frames in OpenGL axes: camera at (0, 0, 4) looking down -z (identity rotation), and one at
-    (4, 0, 0) looking at the origin."""
+    """Frames in OpenGL axes.
+
+    A camera at (0, 0, 4) looking down -z (identity rotation), and one at (4, 0, 0) looking at the
+    origin.
+    """
     W, H = 8, 6
     angle = 2 * math.atan(W / (2 * 10.0))  # fx = 10
     gl_front = np.eye(4)
     gl_front[2, 3] = 4.0
-    gl_side = np.array([[0, 0, 1, 4.0], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1.0]])  # looks along -x
+    # looks along -x
+    gl_side = np.array([[0, 0, 1, 4.0], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1.0]])
     for split, mats in (("train", [gl_front, gl_side]), ("val", [gl_side]), ("test", [gl_front])):
         frames = []
         for i, m in enumerate(mats):
@@ -139,13 +145,19 @@ def test_blender_conventions_and_splits(tmp_path):
     assert project(v, intr, [0, 0.4, 0])[1] == pytest.approx((H - 1) / 2 - 10 * 0.4 / 4)
     # the side camera at (4, 0, 0) also sees the origin at the centre
     side = s.train[1]
-    np.testing.assert_allclose(project(side, intr, [0, 0, 0]), [(W - 1) / 2, (H - 1) / 2], atol=1e-9)
+    np.testing.assert_allclose(
+        project(side, intr, [0, 0, 0]), [(W - 1) / 2, (H - 1) / 2], atol=1e-9
+    )
     np.testing.assert_allclose(side.c2w[:3, 2], [-1, 0, 0], atol=1e-12)  # looks along -x
     # splits
     assert len(read_blender(tmp_path, test_split="val").test) == 1
     assert read_blender(tmp_path, test_split="val").test[0].image_path.parent.name == "val"
     merged = read_blender(tmp_path, eval=False)
-    assert len(merged.train) == 3 and merged.test == [] and all(v.split == "train" for v in merged.train)
+    assert (
+        len(merged.train) == 3
+        and merged.test == []
+        and all(v.split == "train" for v in merged.train)
+    )
     with pytest.raises(ValueError, match="test_split"):
         read_blender(tmp_path, test_split="training")
     assert s.points is None and s.colors is None
@@ -186,8 +198,10 @@ def test_blender_composite_and_scale(tmp_path):
 def test_blender_ngp_keys_and_random_points(tmp_path):
     write_png(tmp_path / "train" / "a.png", solid(6, 8, (1, 2, 3)))
     write_png(tmp_path / "train" / "b.jpg", solid(6, 8, (1, 2, 3)))
-    frames = [{"file_path": "train/a", "transform_matrix": np.eye(4).tolist()},
-              {"file_path": "train/b", "transform_matrix": np.eye(4).tolist(), "cx": 5.0, "fl_y": 12.0}]
+    frames = [
+        {"file_path": "train/a", "transform_matrix": np.eye(4).tolist()},
+        {"file_path": "train/b", "transform_matrix": np.eye(4).tolist(), "cx": 5.0, "fl_y": 12.0},
+    ]
     (tmp_path / "transforms_train.json").write_text(json.dumps(
         {"fl_x": 11.0, "cx": 4.0, "cy": 3.0, "w": 8, "h": 6, "frames": frames}))
     s = read_blender(tmp_path, random_init_points=True, seed=3)
@@ -269,13 +283,17 @@ def test_colmap_poses_intrinsics_points(tmp_path, fmt, caplog):
     np.testing.assert_allclose(s.points[0], X)
     np.testing.assert_allclose(s.colors[0], [1.0, 128 / 255, 0.0])
     centres = np.stack([v.campos for v in s.train])
-    assert s.scene_radius() == pytest.approx(1.1 * np.linalg.norm(centres - centres.mean(0), axis=1).max())
+    assert s.scene_radius() == pytest.approx(
+        1.1 * np.linalg.norm(centres - centres.mean(0), axis=1).max()
+    )
     # other split options
     assert read_colmap(tmp_path, eval=False).test == []
     s2 = read_colmap(tmp_path, test_list=["img_03", "img_05.png"])
     assert [v.name for v in s2.test] == ["img_03.png", "img_05.png"]
     (tmp_path / "list.txt").write_text("# test images\nimg_04.png\n")
-    assert [v.name for v in read_colmap(tmp_path, test_list=tmp_path / "list.txt").test] == ["img_04.png"]
+    assert [v.name for v in read_colmap(tmp_path, test_list=tmp_path / "list.txt").test] == [
+        "img_04.png"
+    ]
     (tmp_path / "sparse" / "0" / "test.txt").write_text("img_02.png\n")
     assert [v.name for v in read_colmap(tmp_path).test] == ["img_02.png"]
 
@@ -367,7 +385,9 @@ def test_colmap_damaged_inputs(tmp_path):
     colmap_scene(tmp_path / "b", "txt")
     p = tmp_path / "b" / "sparse" / "0" / "cameras.txt"
     p.write_text(p.read_text().replace("SIMPLE_PINHOLE", "FANCY_LENS"))
-    with pytest.raises(DatasetError, match=r"cameras\.txt:\d+: unknown COLMAP camera model 'FANCY_LENS'"):
+    with pytest.raises(
+        DatasetError, match=r"cameras\.txt:\d+: unknown COLMAP camera model 'FANCY_LENS'"
+    ):
         read_colmap(tmp_path / "b")
     # wrong parameter count in text
     colmap_scene(tmp_path / "c", "txt")
@@ -504,7 +524,9 @@ def test_cameras_json_scene(tmp_path):
     Image.fromarray(solid(12, 16, (1, 2, 3))).save(imgs / "b.jpg")
     write_png(imgs / "c.png", solid(6, 8, (1, 2, 3)))  # downsampled copy
     s = read_cameras_json_scene(model, images=imgs)
-    assert s.source == "cameras_json" and s.test == [] and [v.name for v in s.train] == ["a", "b", "c"]
+    assert (
+        s.source == "cameras_json" and s.test == [] and [v.name for v in s.train] == ["a", "b", "c"]
+    )
     a, b, c = s.train
     assert b.image_path.name == "b.jpg"
     np.testing.assert_allclose(a.c2w[:3, 3], entries[0]["position"])
@@ -515,7 +537,10 @@ def test_cameras_json_scene(tmp_path):
     np.testing.assert_allclose(project(a, a.intrinsics, [0, 0, 0]), [7.5, 5.5], atol=1e-9)
     s2 = read_cameras_json_scene(model / "cameras.json", images=imgs, test_names=["b"])
     assert [v.name for v in s2.test] == ["b"] and s2.test[0].split == "test"
-    assert [v.name for v in read_cameras_json_scene(model, images=imgs, llffhold=2).test] == ["a", "c"]
+    assert [v.name for v in read_cameras_json_scene(model, images=imgs, llffhold=2).test] == [
+        "a",
+        "c",
+    ]
     # dispatch needs model/images by default
     with pytest.raises(DatasetError, match="images"):
         read_dataset(model)
@@ -536,7 +561,10 @@ def test_read_dataset_dispatch(tmp_path):
     colmap_scene(tmp_path / "colmap", "bin")
     assert detect_dataset_kind(tmp_path / "blender") == "blender"
     assert detect_dataset_kind(tmp_path / "colmap") == "colmap"
-    assert read_dataset(tmp_path / "blender", white_background=True, test_split="val").source == "blender"
+    assert (
+        read_dataset(tmp_path / "blender", white_background=True, test_split="val").source
+        == "blender"
+    )
     assert read_dataset(tmp_path / "colmap", llffhold=4).source == "colmap"
     with pytest.raises(ValueError, match="read_colmap.*test_split"):
         read_dataset(tmp_path / "colmap", test_split="val")

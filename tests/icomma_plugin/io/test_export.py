@@ -1,5 +1,8 @@
-"""icomma_plugin.io.export: each format read back with our readers gives the same poses and
-intrinsics (1e-9), plus the files' conventions, and bad input."""
+"""icomma_plugin.io.export: each format read back with our readers, conventions, bad input.
+
+Read back, every format gives the same poses and intrinsics (1e-9); plus the files' conventions,
+and bad input.
+"""
 from __future__ import annotations
 
 import json
@@ -232,8 +235,11 @@ def test_named_pose_keeps_its_own_copy():
 
 
 def test_lego_views_round_trip(lego_root, tmp_path):
-    """Real poses (NeRF-synthetic JSON, rotations orthonormal to ~1e-7): the JSON formats keep
-    them to 1e-9; COLMAP's quaternion makes the rotation exactly orthonormal, so 1e-6 there."""
+    """Real poses (NeRF-synthetic JSON, rotations orthonormal to ~1e-7) survive each format.
+
+    The JSON formats keep them to 1e-9; COLMAP's quaternion makes the rotation exactly orthonormal,
+    so 1e-6 there.
+    """
     views = read_dataset(lego_root).test[:6]
     (tmp_path / "ns").mkdir()
     export_poses(tmp_path / "ns", views, "nerfstudio")

@@ -1,6 +1,7 @@
-"""Fuzzing the file readers: a corrupted PLY, COLMAP (binary and text), cameras.json,
-transforms.json or cfg_args file gives a clean error naming the file, or a valid result; never a
-crash, a hang or an allocation sized by a corrupt count.
+"""Fuzzing the file readers: a clean error naming the file, or a valid result.
+
+For a corrupted PLY, COLMAP (binary and text), cameras.json, transforms.json or cfg_args file;
+never a crash, a hang or an allocation sized by a corrupt count.
 
 Two kinds of test per format: random corruption (hypothesis, fixed example counts,
 derandomized: fuzz_strategies.fuzz_settings) of a valid seed file (fuzz_seeds.py, both in

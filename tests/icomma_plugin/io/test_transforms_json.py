@@ -41,8 +41,11 @@ def ring(n, radius=4.0):
 
 def write_capture(root: Path, n=10, W=16, H=12, missing=(), order=None, top=None, per_frame=None,
                   ext=True) -> dict:
-    """A capture of n frames named f_000.. (file order `order`), images W x H (absent for the
-    indices in `missing`), top-level keys `top` (default: fl_x/fl_y/cx/cy/w/h)."""
+    """A capture of n frames named f_000.. in file order `order`.
+
+    Images W x H (absent for the indices in `missing`), top-level keys `top` (default:
+    fl_x/fl_y/cx/cy/w/h).
+    """
     top = dict(fl_x=20.0, fl_y=21.0, cx=8.5, cy=5.75, w=W, h=H) if top is None else top
     frames = []
     for k, m in enumerate(ring(n)):
@@ -91,8 +94,9 @@ def test_poses_intrinsics_split_and_detection(tmp_path, caplog):
     # OpenGL -> OpenCV: the look-at target projects to the principal point, world +z (the
     # cameras' up) is up in the image (smaller row), and z looks forward
     for v in s.views("all"):
-        np.testing.assert_allclose(project(v, v.intrinsics, [0, 0, 0]), [v.intrinsics.cx_px, v.intrinsics.cy_px],
-                                   atol=1e-9)
+        np.testing.assert_allclose(
+            project(v, v.intrinsics, [0, 0, 0]), [v.intrinsics.cx_px, v.intrinsics.cy_px], atol=1e-9
+        )
         assert project(v, v.intrinsics, [0, 0, 0.3])[1] < v.intrinsics.cy_px
         gl = np.array(ring(20)[int(v.name[2:])])
         np.testing.assert_allclose(v.c2w[:3, 0], gl[:3, 0])
@@ -187,9 +191,11 @@ LENSES = {
 
 @pytest.mark.parametrize("model", sorted(LENSES))
 def test_undistortion_and_validity_mask(tmp_path, model):
-    """The reader maps each model's coefficients to OpenCV correctly: the undistorted image is
-    the pattern sampled through the forward lens model, and exactly the pixels whose source lies
-    outside the photo are masked (and 0)."""
+    """The reader maps each model's coefficients to OpenCV correctly.
+
+    The undistorted image is the pattern sampled through the forward lens model, and exactly the
+    pixels whose source lies outside the photo are masked (and 0).
+    """
     keys, distort, order = LENSES[model]
     W, H = 64, 48
     fx, fy, cx, cy = 40.0, 42.0, 31.0, 24.5  # file convention (+0.5); ours: 30.5, 24.0
@@ -341,7 +347,9 @@ def test_real_fox(fox_root, caplog):
     # the cameras look at the figurine near the origin from 3.8 to 6.3 units away
     assert np.linalg.norm(s.init_box[0]) < 0.3 and 4.0 < s.init_box[1] < 8.0
     for w in s.views("all"):
-        assert np.all(np.abs(project(w, w.intrinsics, s.init_box[0]) - [i.cx_px, i.cy_px]) < [540, 960])
+        assert np.all(
+            np.abs(project(w, w.intrinsics, s.init_box[0]) - [i.cx_px, i.cy_px]) < [540, 960]
+        )
     im = v.load_image(scale=0.25)
     assert im.rgb.shape == (3, 480, 270) and im.valid.shape == (1, 480, 270)
     valid = im.valid[0]

@@ -206,8 +206,11 @@ def test_perturb_pose_rejects_bad_pivot():
 
 
 def test_rotation_error_is_well_conditioned_near_zero_and_on_float32_rotations():
-    """Small angles are resolved (arccos would lose them), and a rotation that is orthonormal only
-    to float32 precision (NeRF-synthetic's matrices) does not read as 0.03 deg off itself."""
+    """Small angles are resolved, and float32-orthonormal rotations read as 0 off themselves.
+
+    arccos would lose the small angles; a rotation that is orthonormal only to float32 precision
+    (NeRF-synthetic's matrices) does not read as 0.03 deg off itself.
+    """
     R = _random_rigid(7)[:3, :3]
     for deg in (1e-7, 1e-4, 0.01):
         ref = np.vstack([np.hstack([R, np.zeros((3, 1))]), [0, 0, 0, 1]])
