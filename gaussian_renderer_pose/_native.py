@@ -5,8 +5,10 @@ same signature as `gaussian_renderer_pose.reference.rasterize_gaussians_referenc
 the complete backward (every tensor input, including viewmatrix / projmatrix / campos) run in C++
 (csrc/cpu/rasterize_cpu.cpp) for CPU tensors, or in CUDA (csrc/cuda/, present when `_C.WITH_CUDA`)
 for CUDA tensors, chosen by the dispatcher; the camera gradient is only computed when one of the
-camera tensors requires grad. Arguments are assumed validated (`_validate.py`); C++ TORCH_CHECKs
-are a second line of defence and raise RuntimeError.
+camera tensors requires grad, and the Gaussians' gradients only when one of the Gaussian tensors
+(means3D .. cov3D_precomp) does (a localizer's fixed scene: the backward then does only the camera
+work, and the camera gradient is the same bits). Arguments are assumed validated
+(`_validate.py`); C++ TORCH_CHECKs are a second line of defence and raise RuntimeError.
 """
 from __future__ import annotations
 
@@ -77,6 +79,7 @@ class _RasterizeGaussians(torch.autograd.Function):
         device = tensors[0].device  # means3D: every saved tensor lives there
         need = ctx.needs_input_grad
         want_camera = bool(need[9] or need[10] or need[11])
+        want_gaussians = any(need[:8])  # means3D .. cov3D_precomp (bg's gradient is always made)
 
         def g(t, shape):
             return torch.zeros(shape, dtype=torch.float32, device=device) if t is None else t.contiguous()
@@ -84,10 +87,11 @@ class _RasterizeGaussians(torch.autograd.Function):
         grads = _native_ops().rasterize_backward(
             *tensors, *ctx.settings, *state,
             g(grad_color, (3, H, W)), g(grad_invdepth, (1, H, W)), g(grad_depth_acc, (1, H, W)),
-            g(grad_alpha, (1, H, W)), want_camera,
+            g(grad_alpha, (1, H, W)), want_camera, want_gaussians,
         )
         # grads: means3D, means2D, opacities, shs, colors_precomp, scales, rotations,
-        # cov3D_precomp, bg, viewmatrix, projmatrix, campos (the order of forward's inputs).
+        # cov3D_precomp, bg, viewmatrix, projmatrix, campos (the order of forward's inputs); None
+        # where not computed.
         out = [o if need[i] else None for i, o in enumerate(grads)]
         return (*out, None)
 

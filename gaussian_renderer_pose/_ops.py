@@ -67,19 +67,21 @@ def _rasterize_backward_fake(*args, **kwargs):
     def like(name):
         return m.new_empty(a[name].shape)
 
-    # As the kernels: one of colors_precomp / shs, one of cov3D_precomp / (scales, rotations).
+    # As the kernels: one of colors_precomp / shs, one of cov3D_precomp / (scales, rotations); the
+    # Gaussians' gradients only with compute_gaussian_grads, the camera's with compute_camera_grad.
     colors = a["colors_precomp"] is not None
     cov = a["cov3D_precomp"] is not None
     cam = a["compute_camera_grad"]
+    gauss = a["compute_gaussian_grads"]
     return (
-        like("means3D"),
-        m.new_empty(P, 3),  # means2D
-        like("opacities"),
-        None if colors else like("shs"),
-        like("colors_precomp") if colors else None,
-        None if cov else like("scales"),
-        None if cov else like("rotations"),
-        like("cov3D_precomp") if cov else None,
+        like("means3D") if gauss else None,
+        m.new_empty(P, 3) if gauss else None,  # means2D
+        like("opacities") if gauss else None,
+        like("shs") if gauss and not colors else None,
+        like("colors_precomp") if gauss and colors else None,
+        like("scales") if gauss and not cov else None,
+        like("rotations") if gauss and not cov else None,
+        like("cov3D_precomp") if gauss and cov else None,
         like("bg"),
         like("viewmatrix") if cam else None,
         like("projmatrix") if cam else None,

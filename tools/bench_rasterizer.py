@@ -1,9 +1,13 @@
 """Time the rasterizer backends on synthetic scenes; prints a markdown table.
 
 For each backend x scene (Gaussians x resolution) it measures, in ms (median of --repeats after a
-warm-up run): the forward, the forward + backward (gradients for the Gaussians), and the forward +
-backward with the pose gradient (viewmatrix / projmatrix / campos require grad), plus the
-native/reference speed ratio measured in the same run. The reference (pure PyTorch) is only run up to
+warm-up run): the forward, the forward + backward (gradients for the Gaussians), the forward +
+backward with the pose gradient too (viewmatrix / projmatrix / campos require grad), and the
+forward + backward with ONLY the pose requiring grad (a localizer's fixed scene: the native
+backward then skips the Gaussians' own gradients), plus the native/reference speed ratio and, per
+backend, the fwd+bwd+pose / fwd+pose-only ratio, measured in the same run (the modes of a scene
+are timed interleaved, one call of each in turn, so that a change of machine load hits them
+alike). The reference (pure PyTorch) is only run up to
 --reference-max-gaussians and --reference-max-pixels ("—" elsewhere).
 
 The "cuda" backend (native CUDA kernel; scene copied to the GPU once, timings bracketed by
@@ -36,7 +40,7 @@ if str(REPO) not in sys.path:
 
 from icomma_plugin.demo_scene import raster_bench_scene  # noqa: E402  (the one home of synthetic scenes)
 
-MODES = ("fwd", "fwd+bwd", "fwd+bwd+pose")
+MODES = ("fwd", "fwd+bwd", "fwd+bwd+pose", "fwd+pose-only")
 DEFAULT_SIZES = (10_000, 50_000, 200_000)
 DEFAULT_RES = (200, 400, 800)
 
@@ -93,7 +97,8 @@ POSE_INPUTS = ("viewmatrix", "projmatrix", "campos")
 def run_once(fn: Callable, scene: Dict[str, object], mode: str) -> float:
     tensors = {k: v for k, v in scene.items() if k != "settings"}
     if mode != "fwd":
-        names = GRAD_INPUTS + (POSE_INPUTS if mode == "fwd+bwd+pose" else ())
+        names = {"fwd+bwd": GRAD_INPUTS, "fwd+bwd+pose": GRAD_INPUTS + POSE_INPUTS,
+                 "fwd+pose-only": POSE_INPUTS}[mode]
         tensors = {k: (v.detach().clone().requires_grad_(True) if (k in names and v is not None) else v)
                    for k, v in tensors.items()}
     _sync(scene)
@@ -109,10 +114,17 @@ def run_once(fn: Callable, scene: Dict[str, object], mode: str) -> float:
     return (time.perf_counter() - t0) * 1e3
 
 
-def time_mode(fn: Callable, scene: Dict[str, object], mode: str, repeats: int, warmup: bool = True) -> float:
+def time_modes(fn: Callable, scene: Dict[str, object], modes: List[str], repeats: int,
+               warmup: bool = True) -> Dict[str, float]:
+    """Median ms per mode; the modes are run in turn, `repeats` rounds (after one warm-up round)."""
     if warmup:
-        run_once(fn, scene, mode)
-    return statistics.median(run_once(fn, scene, mode) for _ in range(repeats))
+        for mode in modes:
+            run_once(fn, scene, mode)
+    times: Dict[str, List[float]] = {mode: [] for mode in modes}
+    for _ in range(repeats):
+        for mode in modes:
+            times[mode].append(run_once(fn, scene, mode))
+    return {mode: statistics.median(t) for mode, t in times.items()}
 
 
 def atomic_write_json(path: Path, data: object) -> None:
@@ -175,15 +187,14 @@ def main(argv: Optional[List[str]] = None) -> int:
             scene = on_device[dev]
             skip = fn is None or (b == "reference" and (P > args.reference_max_gaussians
                                                         or R * R > args.reference_max_pixels))
-            for mode in MODES:
-                if skip:
-                    row["ms"][f"{b}/{mode}"] = None
-                    continue
-                log(f"[{P} x {R}^2] {b} {mode} ...")
-                # the reference is slow and has no JIT/caches to warm: one timed run
-                is_ref = b == "reference"
-                row["ms"][f"{b}/{mode}"] = time_mode(fn, scene, mode, 1 if is_ref else repeats,
-                                                     warmup=not is_ref)
+            if skip:
+                row["ms"].update({f"{b}/{mode}": None for mode in MODES})
+                continue
+            log(f"[{P} x {R}^2] {b} {', '.join(MODES)} ...")
+            # the reference is slow and has no JIT/caches to warm: one timed run
+            is_ref = b == "reference"
+            ms = time_modes(fn, scene, list(MODES), 1 if is_ref else repeats, warmup=not is_ref)
+            row["ms"].update({f"{b}/{mode}": v for mode, v in ms.items()})
         results.append(row)
 
     # markdown table
@@ -194,9 +205,12 @@ def main(argv: Optional[List[str]] = None) -> int:
         ratio_cols = [("reference", b, m) for b in backends if b != "reference" for m in MODES]
     if "cpu" in backends and "cuda" in backends:
         ratio_cols += [("cpu", "cuda", m) for m in MODES]
+    # (backend, numerator mode, denominator mode): what skipping the Gaussians' gradients buys
+    mode_ratio_cols = [(b, "fwd+bwd+pose", "fwd+pose-only") for b in backends if b != "reference"]
     short = {"reference": "ref"}
     header = (["Gaussians", "image"] + [f"{c} (ms)" for c in cols]
-              + [f"{short.get(a, a)}/{b} {m}" for a, b, m in ratio_cols])
+              + [f"{short.get(a, a)}/{b} {m}" for a, b, m in ratio_cols]
+              + [f"{b} {n} / {d}" for b, n, d in mode_ratio_cols])
     gpu = f", GPU: {torch.cuda.get_device_name()}" if "cuda" in backends and fns.get("cuda") else ""
     print(f"threads: {torch.get_num_threads()}{gpu}, repeats: {repeats} (median, after a warm-up), "
           "reference: 1 timed run")
@@ -212,6 +226,11 @@ def main(argv: Optional[List[str]] = None) -> int:
             ratio = None if (r is None or n is None or n <= 0) else r / n
             row.setdefault("ratio", {})[f"{a}/{b}/{m}"] = ratio
             cells.append("—" if ratio is None else (f"{ratio:.0f}x" if ratio >= 10 else f"{ratio:.1f}x"))
+        for b, n, d in mode_ratio_cols:
+            num, den = row["ms"].get(f"{b}/{n}"), row["ms"].get(f"{b}/{d}")
+            ratio = None if (num is None or den is None or den <= 0) else num / den
+            row.setdefault("ratio", {})[f"{b}/{n}/{d}"] = ratio
+            cells.append("—" if ratio is None else f"{ratio:.2f}x")
         print("| " + " | ".join(cells) + " |")
     if args.json is not None:
         atomic_write_json(args.json, {"threads": torch.get_num_threads(), "repeats": repeats, "results": results})

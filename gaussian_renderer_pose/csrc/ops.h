@@ -77,14 +77,19 @@ namespace grp {
   GRP_RASTER_INPUTS(X)                                                                      \
   GRP_SAVED_STATE(X)                                                                        \
   GRP_IMAGE_GRADS(X)                                                                        \
-  X(Bool, compute_camera_grad) /* false: no camera work, camera gradients None           */
+  X(Bool, compute_camera_grad)    /* false: no camera work, camera gradients None         */ \
+  X(Bool, compute_gaussian_grads) /* false: none of the work that only the Gaussians'      */ \
+                                  /* gradients need (grad_means3D .. grad_cov3D_precomp    */ \
+                                  /* None); grad_bg and the camera gradient are unchanged   */
 
 // Gradients w.r.t. the inputs: None where the input is absent (of shs and colors_precomp only the
-// one used; of cov3D_precomp and scales/rotations likewise) and for the camera unless asked.
+// one used; of cov3D_precomp and scales/rotations likewise), for the camera unless
+// compute_camera_grad, and for the Gaussians (means3D .. cov3D_precomp) unless
+// compute_gaussian_grads. grad_bg is always returned.
 #define GRP_BACKWARD_OUTPUTS(X)                                                             \
-  X(Tensor, grad_means3D)                                                                   \
-  X(Tensor, grad_means2D)      /* [P, 3] d/d NDC (x, y) of the centre, z = 0 (upstream)   */ \
-  X(Tensor, grad_opacities)                                                                 \
+  X(OptTensor, grad_means3D)                                                                \
+  X(OptTensor, grad_means2D)   /* [P, 3] d/d NDC (x, y) of the centre, z = 0 (upstream)   */ \
+  X(OptTensor, grad_opacities)                                                              \
   X(OptTensor, grad_shs)                                                                    \
   X(OptTensor, grad_colors_precomp)                                                         \
   X(OptTensor, grad_scales)                                                                 \

@@ -130,11 +130,11 @@ def test_no_camera_gradient_when_not_requested():
     state = outs[4:]  # radii and the saved state
     grads = ops.rasterize_backward(*tensors, *settings, False, False, *state, torch.ones(3, H, W),
                                    torch.zeros(1, H, W), torch.zeros(1, H, W),
-                                   torch.zeros(1, H, W), False)
+                                   torch.zeros(1, H, W), False, True)
     assert grads[9] is None and grads[10] is None and grads[11] is None
     grads_cam = ops.rasterize_backward(*tensors, *settings, False, False, *state,
                                        torch.ones(3, H, W), torch.zeros(1, H, W),
-                                       torch.zeros(1, H, W), torch.zeros(1, H, W), True)
+                                       torch.zeros(1, H, W), torch.zeros(1, H, W), True, True)
     assert all(t is not None for t in grads_cam[9:])
     for a, b in zip(grads[:9], grads_cam[:9]):
         assert (a is None and b is None) or torch.equal(a, b)
@@ -197,10 +197,11 @@ def test_torch_check_errors_are_runtime_errors():
     g = [torch.zeros(3, H, W), torch.zeros(1, H, W), torch.zeros(1, H, W), torch.zeros(1, H, W)]
     radii, state = outs[4], outs[5:]
     with pytest.raises(RuntimeError):
-        ops.rasterize_backward(*tensors, *settings, False, False, radii[:-1], *state, *g, True)
+        ops.rasterize_backward(*tensors, *settings, False, False, radii[:-1], *state, *g, True,
+                               True)
     with pytest.raises(RuntimeError):
         ops.rasterize_backward(*tensors, *settings, False, False, radii, *state,
-                               torch.zeros(3, H + 1, W), *g[1:], True)
+                               torch.zeros(3, H + 1, W), *g[1:], True, True)
     with pytest.raises(RuntimeError):
         ops.mark_visible(scene.means3D.double(), tensors[8], tensors[9])
 

@@ -44,7 +44,7 @@ def test_op_schemas_follow_the_backend_contract():
     assert _names(fwd.arguments) == inputs
     assert _names(fwd.returns) == [*IMAGES, *STATE]
     assert _names(bwd.arguments) == [*inputs, *STATE, *(f"grad_{n}" for n in IMAGES),
-                                     "compute_camera_grad"]
+                                     "compute_camera_grad", "compute_gaussian_grads"]
     # _native.py hands the backward's returns to autograd in the order of its tensor inputs
     assert _names(bwd.returns) == [f"grad_{n}" for n in tensors]
     assert _names(ops.mark_visible._schema.arguments) == ["means3D", "viewmatrix", "projmatrix"]
@@ -83,8 +83,9 @@ def test_opcheck_forward(device, case):
 
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("case", ["sh+scale_rot", "precomp colours+cov3D, antialiasing"])
-@pytest.mark.parametrize("camera", [True, False])
-def test_opcheck_backward(device, case, camera):
+@pytest.mark.parametrize("camera,gaussians", [(True, True), (False, True), (True, False),
+                                              (False, False)])
+def test_opcheck_backward(device, case, camera, gaussians):
     ops = _ops()
     tensors, settings = _op_inputs(device, **FORWARD_CASES[case])
     with torch.no_grad():
@@ -93,7 +94,8 @@ def test_opcheck_backward(device, case, camera):
     g = torch.Generator().manual_seed(3)
     shapes = ((3, H, W), (1, H, W), (1, H, W), (1, H, W))
     grads = [torch.rand(s, generator=g).to(device) for s in shapes]
-    torch.library.opcheck(ops.rasterize_backward, (*tensors, *settings, *outs[4:], *grads, camera))
+    torch.library.opcheck(ops.rasterize_backward,
+                          (*tensors, *settings, *outs[4:], *grads, camera, gaussians))
 
 
 @pytest.mark.parametrize("device", DEVICES)

@@ -8,7 +8,11 @@
 //    and its exact derivative is returned).
 //  * Symmetric 3x3 matrices are stored as 6 floats (xx, xy, xz, yy, yz, zz); their gradients are
 //    w.r.t. those 6 independent values (off-diagonals counted once).
-// Everything is GRP_HD so that a CUDA kernel can include this header unchanged.
+// Everything is GRP_HD so that a CUDA kernel can include this header unchanged. The helpers the
+// per-Gaussian bodies of raster.h call are GRP_FORCE_INLINE (host_device.h): left to GCC's
+// unit-growth heuristics, a larger translation unit put compute_cov2d / compute_cov3d / eval_sh_vjp
+// out of line, which changed the forward's float rounding (FMA contraction across the call) and
+// cost time.
 #pragma once
 
 #include <cmath>
@@ -123,7 +127,7 @@ GRP_INLINE Mat3 quat_to_rotmat(Vec4 q) {  // q = (w=r, x, y, z), stored as (x=r,
   return R;
 }
 
-GRP_INLINE Sym3 compute_cov3d(Vec3 scale, float mod, Vec4 q) {
+GRP_FORCE_INLINE Sym3 compute_cov3d(Vec3 scale, float mod, Vec4 q) {
   const Mat3 R = quat_to_rotmat(q);
   const float s[3] = {mod * scale.x, mod * scale.y, mod * scale.z};
   float Mm[3][3];  // M = S R^T: M[i][j] = s_i R[j][i]
@@ -180,8 +184,9 @@ struct Cov2DCtx {
   bool clamped_x, clamped_y;
 };
 
-GRP_INLINE Sym2 compute_cov2d(Vec3 t, float focal_x, float focal_y, float tanfovx, float tanfovy,
-                              const Sym3& cov3d, const float* V, Cov2DCtx& ctx) {
+GRP_FORCE_INLINE Sym2 compute_cov2d(Vec3 t, float focal_x, float focal_y, float tanfovx,
+                                    float tanfovy, const Sym3& cov3d, const float* V,
+                                    Cov2DCtx& ctx) {
   const float limx = kFrustumClamp * tanfovx;
   const float limy = kFrustumClamp * tanfovy;
   const float txtz = t.x / t.z;
@@ -216,11 +221,12 @@ GRP_INLINE Sym2 compute_cov2d(Vec3 t, float focal_x, float focal_y, float tanfov
 }
 
 // VJP of compute_cov2d. dL_dcov2 = (d/da, d/db with b counted once, d/dc). Adds to dL_dt,
-// writes dL_dcov3d (6 stored values), adds to dL_dV[16] (rotation block) when non-null.
+// writes *dL_dcov3d (6 stored values) when non-null, adds to dL_dV[16] (rotation block) when
+// non-null.
 template <typename Acc>
-GRP_INLINE void compute_cov2d_vjp(Vec3 t, float focal_x, float focal_y, const Sym3& cov3d,
-                                  const float* V, const Cov2DCtx& ctx, Sym2 dL_dcov2, Vec3& dL_dt,
-                                  Sym3& dL_dcov3d, Acc* dL_dV) {
+GRP_FORCE_INLINE void compute_cov2d_vjp(Vec3 t, float focal_x, float focal_y, const Sym3& cov3d,
+                                        const float* V, const Cov2DCtx& ctx, Sym2 dL_dcov2,
+                                        Vec3& dL_dt, Sym3* dL_dcov3d, Acc* dL_dV) {
   const float S[3][3] = {{cov3d.v[0], cov3d.v[1], cov3d.v[2]},
                          {cov3d.v[1], cov3d.v[3], cov3d.v[4]},
                          {cov3d.v[2], cov3d.v[4], cov3d.v[5]}};
@@ -234,18 +240,20 @@ GRP_INLINE void compute_cov2d_vjp(Vec3 t, float focal_x, float focal_y, const Sy
     dT[0][c] = 2.f * ga * U[0][c] + gb * U[1][c];
     dT[1][c] = gb * U[0][c] + 2.f * gc * U[1][c];
   }
-  float Gf[3][3];  // dL/dSigma (full) = T^T G2 T
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 3; ++c)
-      Gf[r][c] = ga * ctx.T[0][r] * ctx.T[0][c] +
-                 0.5f * gb * (ctx.T[0][r] * ctx.T[1][c] + ctx.T[1][r] * ctx.T[0][c]) +
-                 gc * ctx.T[1][r] * ctx.T[1][c];
-  dL_dcov3d.v[0] = Gf[0][0];
-  dL_dcov3d.v[1] = Gf[0][1] + Gf[1][0];
-  dL_dcov3d.v[2] = Gf[0][2] + Gf[2][0];
-  dL_dcov3d.v[3] = Gf[1][1];
-  dL_dcov3d.v[4] = Gf[1][2] + Gf[2][1];
-  dL_dcov3d.v[5] = Gf[2][2];
+  if (dL_dcov3d != nullptr) {
+    float Gf[3][3];  // dL/dSigma (full) = T^T G2 T
+    for (int r = 0; r < 3; ++r)
+      for (int c = 0; c < 3; ++c)
+        Gf[r][c] = ga * ctx.T[0][r] * ctx.T[0][c] +
+                   0.5f * gb * (ctx.T[0][r] * ctx.T[1][c] + ctx.T[1][r] * ctx.T[0][c]) +
+                   gc * ctx.T[1][r] * ctx.T[1][c];
+    dL_dcov3d->v[0] = Gf[0][0];
+    dL_dcov3d->v[1] = Gf[0][1] + Gf[1][0];
+    dL_dcov3d->v[2] = Gf[0][2] + Gf[2][0];
+    dL_dcov3d->v[3] = Gf[1][1];
+    dL_dcov3d->v[4] = Gf[1][2] + Gf[2][1];
+    dL_dcov3d->v[5] = Gf[2][2];
+  }
   // dL/dJ[i][r] = sum_c dT[i][c] Rw[r][c], Rw[r][c] = V[4c + r]
   const float dJ00 = dT[0][0] * V[0] + dT[0][1] * V[4] + dT[0][2] * V[8];
   const float dJ02 = dT[0][0] * V[2] + dT[0][1] * V[6] + dT[0][2] * V[10];
@@ -288,7 +296,7 @@ struct ConicResult {
   Sym2 dilated;
 };
 
-GRP_INLINE ConicResult dilate_and_invert(Sym2 cov, bool antialiasing) {
+GRP_FORCE_INLINE ConicResult dilate_and_invert(Sym2 cov, bool antialiasing) {
   ConicResult r;
   const float det0 = cov.a * cov.c - cov.b * cov.b;
   r.dilated = {cov.a + kDilation, cov.b, cov.c + kDilation};
@@ -305,7 +313,8 @@ GRP_INLINE ConicResult dilate_and_invert(Sym2 cov, bool antialiasing) {
 
 // dL_dconic: true partials w.r.t. conic (a, b, c) entries (b counted once); dL_dcoef w.r.t. the
 // antialiasing opacity scale. Returns dL/d undilated cov2D (a, b once, c).
-GRP_INLINE Sym2 dilate_and_invert_vjp(Sym2 cov, bool antialiasing, Sym2 dL_dconic, float dL_dcoef) {
+GRP_FORCE_INLINE Sym2 dilate_and_invert_vjp(Sym2 cov, bool antialiasing, Sym2 dL_dconic,
+                                             float dL_dcoef) {
   const float A = cov.a + kDilation, B = cov.b, C = cov.c + kDilation;
   const float det = A * C - B * B;
   const float inv = 1.f / det;

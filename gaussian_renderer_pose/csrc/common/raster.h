@@ -178,10 +178,17 @@ GRP_FORCE_INLINE PreprocessResult preprocess_gaussian(const RasterArgs& a, int64
 // through the per-Gaussian VJPs and writes its rows of `out`. V / Pm / cpos: view / projection
 // matrices and camera centre. Camera terms are accumulated into dV[16], dP[16], dC[3] (Acc = float
 // or double) when non-null.
+// out.means3D == nullptr: the Gaussians' gradients are not wanted (`out` is not written) and only
+// the camera terms are computed (dV, dP, dC non-null). A runtime test, not a template argument:
+// one compiled body serves both cases, so the camera terms are the same machine operations, hence
+// the same bits, whether the Gaussians' gradients are wanted or not (two instantiations may
+// contract a*b + c*d into different FMAs). Slots 5 (opacity) and 6..8 (colour) are read only where
+// they reach the camera: with antialiasing, and with SH of degree > 0.
 template <typename Acc>
 GRP_FORCE_INLINE void gaussian_backward_one(const RasterArgs& a, int64_t g, const float* s,
                                             const float* V, const float* Pm, Vec3 cpos,
                                             const GaussianGrads& out, Acc* dV, Acc* dP, Acc* dC) {
+  const bool gauss = out.means3D != nullptr;
   const Vec3 m = load3(a.means + 3 * g);
   const Vec3 t = transform_point_4x3(V, m);
   const Vec4 ph = transform_point_4x4(Pm, m);
@@ -190,41 +197,48 @@ GRP_FORCE_INLINE void gaussian_backward_one(const RasterArgs& a, int64_t g, cons
   const Sym2 cov2 = compute_cov2d(t, a.focal_x, a.focal_y, a.tanfovx, a.tanfovy, cov3, V, ctx);
   const ConicResult cr = dilate_and_invert(cov2, a.antialiasing);
   // opacity_eff = opacity * coef
-  out.opac[g] = s[5] * cr.coef;
+  if (gauss) out.opac[g] = s[5] * cr.coef;
   const float dcoef = s[5] * a.opac[g];
   const Sym2 dcov2 = dilate_and_invert_vjp(cov2, a.antialiasing, {s[2], s[3], s[4]}, dcoef);
   Vec3 dt = {0.f, 0.f, -s[9] / (t.z * t.z) + s[10]};  // features 1/z and z
   Sym3 dcov3;
-  compute_cov2d_vjp(t, a.focal_x, a.focal_y, cov3, V, ctx, dcov2, dt, dcov3, dV);
-  if (out.cov3d != nullptr) {
-    for (int k = 0; k < 6; ++k) out.cov3d[6 * g + k] = dcov3.v[k];
-  } else {
-    const float* q = a.rots + 4 * g;
-    Vec3 dsc;
-    Vec4 dq;
-    compute_cov3d_vjp(load3(a.scales + 3 * g), a.scale_modifier, {q[0], q[1], q[2], q[3]}, dcov3,
-                      dsc, dq);
-    out.scales[3 * g + 0] = dsc.x;
-    out.scales[3 * g + 1] = dsc.y;
-    out.scales[3 * g + 2] = dsc.z;
-    out.rots[4 * g + 0] = dq.x;
-    out.rots[4 * g + 1] = dq.y;
-    out.rots[4 * g + 2] = dq.z;
-    out.rots[4 * g + 3] = dq.w;
+  compute_cov2d_vjp(t, a.focal_x, a.focal_y, cov3, V, ctx, dcov2, dt,
+                    gauss ? &dcov3 : nullptr, dV);
+  if (gauss) {
+    if (out.cov3d != nullptr) {
+      for (int k = 0; k < 6; ++k) out.cov3d[6 * g + k] = dcov3.v[k];
+    } else {
+      const float* q = a.rots + 4 * g;
+      Vec3 dsc;
+      Vec4 dq;
+      compute_cov3d_vjp(load3(a.scales + 3 * g), a.scale_modifier, {q[0], q[1], q[2], q[3]},
+                        dcov3, dsc, dq);
+      out.scales[3 * g + 0] = dsc.x;
+      out.scales[3 * g + 1] = dsc.y;
+      out.scales[3 * g + 2] = dsc.z;
+      out.rots[4 * g + 0] = dq.x;
+      out.rots[4 * g + 1] = dq.y;
+      out.rots[4 * g + 2] = dq.z;
+      out.rots[4 * g + 3] = dq.w;
+    }
   }
   const Vec2 dndc = {s[0] * 0.5f * a.W, s[1] * 0.5f * a.H};
-  out.means2D[3 * g + 0] = dndc.x;
-  out.means2D[3 * g + 1] = dndc.y;
+  if (gauss) {
+    out.means2D[3 * g + 0] = dndc.x;
+    out.means2D[3 * g + 1] = dndc.y;
+  }
   Vec3 dm = {0.f, 0.f, 0.f};
   project_vjp(Pm, m, ph, dndc, dm, dP);
   transform_point_4x3_vjp(V, m, dt, dm, dV);
-  if (out.colors != nullptr) {
-    out.colors[3 * g + 0] = s[6];
-    out.colors[3 * g + 1] = s[7];
-    out.colors[3 * g + 2] = s[8];
-  } else {
+  if (a.colors != nullptr) {
+    if (gauss) {
+      out.colors[3 * g + 0] = s[6];
+      out.colors[3 * g + 1] = s[7];
+      out.colors[3 * g + 2] = s[8];
+    }
+  } else if (gauss || a.sh_degree > 0) {  // at degree 0 the colour ignores the camera
     const Vec3 dv = eval_sh_vjp(a.sh_degree, a.shs + g * a.M * 3, m, cpos, {s[6], s[7], s[8]},
-                                out.shs + g * a.M * 3);
+                                gauss ? out.shs + g * a.M * 3 : nullptr);
     if (a.sh_degree > 0) {
       dm.x += dv.x;
       dm.y += dv.y;
@@ -236,9 +250,11 @@ GRP_FORCE_INLINE void gaussian_backward_one(const RasterArgs& a, int64_t g, cons
       }
     }
   }
-  out.means3D[3 * g + 0] = dm.x;
-  out.means3D[3 * g + 1] = dm.y;
-  out.means3D[3 * g + 2] = dm.z;
+  if (gauss) {
+    out.means3D[3 * g + 0] = dm.x;
+    out.means3D[3 * g + 1] = dm.y;
+    out.means3D[3 * g + 2] = dm.z;
+  }
 }
 
 }  // namespace grp

@@ -145,10 +145,13 @@ inline RenderOutputs render_outputs(ForwardOutputs& f) {
 }
 
 // The backward's outputs with zero-filled per-Gaussian gradients (undefined where the input is
-// absent); grad_bg and the camera gradients are left to the backend.
-inline BackwardOutputs zero_gaussian_grads(const RasterArgs& a, const at::TensorOptions& fopt) {
+// absent, and all undefined unless gaussian_grads: compute_gaussian_grads of ../ops.h); grad_bg
+// and the camera gradients are left to the backend.
+inline BackwardOutputs zero_gaussian_grads(const RasterArgs& a, bool gaussian_grads,
+                                           const at::TensorOptions& fopt) {
   const int64_t P = a.P;
   BackwardOutputs g;
+  if (!gaussian_grads) return g;
   g.grad_means3D = at::zeros({P, 3}, fopt);
   g.grad_means2D = at::zeros({P, 3}, fopt);
   g.grad_opacities = at::zeros({P, 1}, fopt);

@@ -25,7 +25,7 @@ constexpr float kShC3_5 = 1.445305721320277f;
 constexpr float kShC3_6 = -0.5900435899266435f;
 
 // Fills basis[0..(deg+1)^2) and, when grad != nullptr, d basis / d dir (x, y, z) per basis.
-GRP_INLINE int sh_basis(int deg, Vec3 d, float* basis, Vec3* grad) {
+GRP_FORCE_INLINE int sh_basis(int deg, Vec3 d, float* basis, Vec3* grad) {
   const float x = d.x, y = d.y, z = d.z;
   basis[0] = kShC0;
   if (grad) grad[0] = {0.f, 0.f, 0.f};
@@ -97,9 +97,10 @@ GRP_FORCE_INLINE Vec3 eval_sh(int deg, const float* sh, Vec3 m, Vec3 campos) {
 }
 
 // VJP: dL_drgb is the gradient of the clamped colour; channels whose raw value was < 0 get none.
-// Writes dL_dsh[0..(deg+1)^2) (3 per coefficient) and returns dL/d(m - campos) (unnormalised v).
-GRP_INLINE Vec3 eval_sh_vjp(int deg, const float* sh, Vec3 m, Vec3 campos, Vec3 dL_drgb,
-                            float* dL_dsh) {
+// Writes dL_dsh[0..(deg+1)^2) (3 per coefficient) when non-null and returns dL/d(m - campos)
+// (unnormalised v).
+GRP_FORCE_INLINE Vec3 eval_sh_vjp(int deg, const float* sh, Vec3 m, Vec3 campos, Vec3 dL_drgb,
+                                  float* dL_dsh) {
   float norm;
   const Vec3 d = view_dir(m, campos, norm);
   float basis[16];
@@ -111,9 +112,11 @@ GRP_INLINE Vec3 eval_sh_vjp(int deg, const float* sh, Vec3 m, Vec3 campos, Vec3 
                   fwd.z < 0.f ? 0.f : dL_drgb.z};
   Vec3 dL_ddir = {0.f, 0.f, 0.f};
   for (int k = 0; k < n; ++k) {
-    dL_dsh[3 * k + 0] = basis[k] * g.x;
-    dL_dsh[3 * k + 1] = basis[k] * g.y;
-    dL_dsh[3 * k + 2] = basis[k] * g.z;
+    if (dL_dsh != nullptr) {
+      dL_dsh[3 * k + 0] = basis[k] * g.x;
+      dL_dsh[3 * k + 1] = basis[k] * g.y;
+      dL_dsh[3 * k + 2] = basis[k] * g.z;
+    }
     const float s = sh[3 * k + 0] * g.x + sh[3 * k + 1] * g.y + sh[3 * k + 2] * g.z;
     dL_ddir.x += grad[k].x * s;
     dL_ddir.y += grad[k].y * s;

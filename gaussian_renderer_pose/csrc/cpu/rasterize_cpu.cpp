@@ -17,6 +17,8 @@
 //      order and store them in its slot.
 //   5. per Gaussian (parallel over fixed-size blocks): sum its slots in tile order, chain through
 //      the per-Gaussian VJPs; camera terms summed per block in double, then blocks in order.
+//      Without compute_gaussian_grads only the camera terms are computed (no Gaussian gradient
+//      is allocated, zero-filled or written); with neither flag the step is skipped.
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
 
@@ -276,8 +278,15 @@ void render_tile(const RasterArgs& in, int64_t tile, const float* geom, const in
 }
 
 // ------------------------------------------------------------------------------------------------
-// 4. Backward of one tile: writes the slot of every entry of the tile's list.
+// 4. Backward of one tile: writes the slot of every entry of the tile's list, and the tile's
+// background terms dbg_tile[3] (only those when slots == nullptr).
+// kOpacitySlot / kColourSlot = false: slot 5 (opacity) / slots 6..8 (colour) are written as 0
+// without being accumulated (for a caller that never reads them). The other slots come from the
+// same statements in the same order in every variant (independent accumulators, explicit vector
+// types: nothing for the vectoriser to regroup); tests/renderer/test_pose_only_backward.py checks
+// that the camera gradient is the same bits in each.
 // ------------------------------------------------------------------------------------------------
+template <bool kOpacitySlot, bool kColourSlot>
 void backward_tile(const RasterArgs& in, int64_t tile, const float* geom, const int32_t* binning,
                    const int32_t* tile_ranges, const float* final_T, const int32_t* last_contrib,
                    const GradImages& gin, float* slots, double* dbg_tile) {
@@ -325,6 +334,7 @@ void backward_tile(const RasterArgs& in, int64_t tile, const float* geom, const 
     }
   }
   for (int k = 0; k < 3; ++k) dbg_tile[k] = dbg[k];
+  if (slots == nullptr) return;
   const int32_t start = tile_ranges[tile], end = tile_ranges[tile + 1];
   // Entries behind every pixel's last contributor get zero slots.
   for (int32_t j = start + maxlast + 1; j < end; ++j) {
@@ -363,10 +373,10 @@ void backward_tile(const RasterArgs& in, int64_t tile, const float* geom, const 
       const vf Tn = R.T * inv_1ma;  // unchanged where invalid (a = 0)
       const vf w = a * Tn;
       vf fdot = f[0] * R.dp[0];
-      s_f[0] += w * R.dp[0];
+      if (kColourSlot) s_f[0] += w * R.dp[0];
       for (int k = 1; k < kNumFeat; ++k) {
         fdot += f[k] * R.dp[k];
-        s_f[k] += w * R.dp[k];
+        if (kColourSlot || k >= 3) s_f[k] += w * R.dp[k];
       }
       const vf la = R.lastA;
       const vf ndot = la * R.lfdot + (1.f - la) * R.accdot;
@@ -378,7 +388,7 @@ void backward_tile(const RasterArgs& in, int64_t tile, const float* geom, const 
       // alpha = min(0.99, o G): no gradient to o G where the clamp is active
       const vi pass = valid & ~(oG > splat(kAlphaMax));
       const vf dLdG = pass ? o * dLda : splat(0.f);
-      s_o += pass ? G * dLda : splat(0.f);
+      if (kOpacitySlot) s_o += pass ? G * dLda : splat(0.f);
       const vf gdx = G * dx, gdy = G * dy;
       s_dx += dLdG * (-gdx * cA - gdy * cB);
       s_dy += dLdG * (-gdy * cC - gdx * cB);
@@ -393,10 +403,36 @@ void backward_tile(const RasterArgs& in, int64_t tile, const float* geom, const 
       red[2] += s_cA[i];
       red[3] += s_cB[i];
       red[4] += s_cC[i];
-      red[5] += s_o[i];
-      for (int k = 0; k < kNumFeat; ++k) red[6 + k] += s_f[k][i];
+      if (kOpacitySlot) red[5] += s_o[i];
+      for (int k = 0; k < kNumFeat; ++k)
+        if (kColourSlot || k >= 3) red[6 + k] += s_f[k][i];
     }
     for (int k = 0; k < kSlot; ++k) slot[k] = red[k];
+  }
+}
+
+// ------------------------------------------------------------------------------------------------
+// 5. Per-Gaussian backward of block `blk` (kGaussBlock Gaussians): sums each visible Gaussian's
+// slots in tile order and chains them through gaussian_backward_one (../common/raster.h), which
+// writes gout (not when gout.means3D == nullptr: camera terms only); the camera terms go to
+// cam[kCamGrad] (double, in Gaussian order) when cam != nullptr.
+// ------------------------------------------------------------------------------------------------
+void gaussian_backward_block(const RasterArgs& in, int64_t blk, const int32_t* rad,
+                             const int64_t* off, const float* slots, const GaussianGrads& gout,
+                             double* cam) {
+  double* dV = cam;
+  double* dP = cam ? cam + 16 : nullptr;
+  double* dC = cam ? cam + 32 : nullptr;
+  const Vec3 cpos = load3(in.campos);
+  const int64_t g1 = std::min(in.P, (blk + 1) * kGaussBlock);
+  for (int64_t g = blk * kGaussBlock; g < g1; ++g) {
+    if (rad[g] <= 0) continue;
+    float s[kSlot] = {0};
+    for (int64_t e = off[g]; e < off[g + 1]; ++e) {
+      const float* sl = slots + e * kSlot;
+      for (int k = 0; k < kSlot; ++k) s[k] += sl[k];
+    }
+    gaussian_backward_one(in, g, s, in.viewmatrix, in.projmatrix, cpos, gout, dV, dP, dC);
   }
 }
 
@@ -483,9 +519,17 @@ BackwardOutputs rasterize_backward_cpu(const BackwardInputs& b) {
               "saved binning state does not match the inputs");
 
   const auto fopt = b.means3D.options();
-  BackwardOutputs grads = zero_gaussian_grads(in, fopt);
+  const bool compute_camera_grad = b.compute_camera_grad;
+  const bool compute_gaussian_grads = b.compute_gaussian_grads;
+  BackwardOutputs grads = zero_gaussian_grads(in, compute_gaussian_grads, fopt);
   // 4. Per-tile backward into per-entry slots.
-  // Every slot is written by exactly one tile (no zero-fill needed).
+  // Every slot is written by exactly one tile (no zero-fill needed). Without the Gaussians'
+  // gradients, the slots that cannot reach the camera are not accumulated: the opacity (it reaches
+  // it only through the antialiasing factor) and the colour (only through SH of degree > 0); with
+  // neither the camera nor the Gaussians, only the background terms are computed.
+  const bool want_slots = compute_camera_grad || compute_gaussian_grads;
+  const bool opacity_slot = compute_gaussian_grads || in.antialiasing;
+  const bool colour_slot = compute_gaussian_grads || (in.colors == nullptr && in.sh_degree > 0);
   std::unique_ptr<float[]> slots(new float[(size_t)std::max<int64_t>(num_rendered, 1) * kSlot]);
   std::vector<double> dbg_tiles((size_t)num_tiles * 3);
   const float* gm = b.geom.data_ptr<float>();
@@ -495,8 +539,12 @@ BackwardOutputs rasterize_backward_cpu(const BackwardInputs& b) {
                        b.grad_depth_acc.data_ptr<float>(), b.grad_alpha.data_ptr<float>()};
   const float* fT = b.final_T.data_ptr<float>();
   const int32_t* lc = b.last_contrib.data_ptr<int32_t>();
+  float* sl = want_slots ? slots.get() : nullptr;
+  auto* tile_fn = opacity_slot
+                      ? (colour_slot ? &backward_tile<true, true> : &backward_tile<true, false>)
+                      : (colour_slot ? &backward_tile<false, true> : &backward_tile<false, false>);
   parallel_dynamic(num_tiles, [&](int64_t t) {
-    backward_tile(in, t, gm, bin, tr, fT, lc, gin, slots.get(), dbg_tiles.data() + 3 * t);
+    tile_fn(in, t, gm, bin, tr, fT, lc, gin, sl, dbg_tiles.data() + 3 * t);
   });
   grads.grad_bg = at::empty({3}, fopt);
   {
@@ -506,32 +554,20 @@ BackwardOutputs rasterize_backward_cpu(const BackwardInputs& b) {
     for (int k = 0; k < 3; ++k) grads.grad_bg.data_ptr<float>()[k] = (float)s[k];
   }
 
-  // 5. Per-Gaussian backward.
+  // 5. Per-Gaussian backward (nothing to do when neither the camera nor the Gaussians need it).
   const int64_t nblocks = (P + kGaussBlock - 1) / kGaussBlock;
-  const bool compute_camera_grad = b.compute_camera_grad;
   std::vector<double> cam_blocks(compute_camera_grad ? (size_t)nblocks * kCamGrad : 0, 0.0);
   const int32_t* rad = b.radii.data_ptr<int32_t>();
   const int64_t* off = b.offsets.data_ptr<int64_t>();
   const GaussianGrads gout = gaussian_grad_ptrs(grads);
-  const Vec3 cpos = load3(in.campos);
-  at::parallel_for(0, nblocks, 1, [&](int64_t b0, int64_t b1) {
-    for (int64_t blk = b0; blk < b1; ++blk) {
-      double* cam = compute_camera_grad ? cam_blocks.data() + blk * kCamGrad : nullptr;
-      double* dV = cam;
-      double* dP = cam ? cam + 16 : nullptr;
-      double* dC = cam ? cam + 32 : nullptr;
-      const int64_t g1 = std::min(P, (blk + 1) * kGaussBlock);
-      for (int64_t g = blk * kGaussBlock; g < g1; ++g) {
-        if (rad[g] <= 0) continue;
-        float s[kSlot] = {0};
-        for (int64_t e = off[g]; e < off[g + 1]; ++e) {
-          const float* sl = slots.get() + e * kSlot;
-          for (int k = 0; k < kSlot; ++k) s[k] += sl[k];
-        }
-        gaussian_backward_one(in, g, s, in.viewmatrix, in.projmatrix, cpos, gout, dV, dP, dC);
+  if (compute_camera_grad || compute_gaussian_grads) {
+    at::parallel_for(0, nblocks, 1, [&](int64_t b0, int64_t b1) {
+      for (int64_t blk = b0; blk < b1; ++blk) {
+        double* cam = compute_camera_grad ? cam_blocks.data() + blk * kCamGrad : nullptr;
+        gaussian_backward_block(in, blk, rad, off, slots.get(), gout, cam);
       }
-    }
-  });
+    });
+  }
   if (compute_camera_grad) {
     double sum[kCamGrad] = {0};
     for (int64_t blk = 0; blk < nblocks; ++blk)

@@ -15,7 +15,8 @@
 //             batches of 32; per Gaussian each warp reduces its 32 pixels with shuffles, the 8
 //             warps are summed in a fixed order and the result is STORED in the entry's slot: no
 //             atomics) -> gaussian_backward (1 thread / Gaussian: sums its slots in order, chains
-//             the VJPs; camera terms reduced per block in double into a [blocks, 35] buffer) ->
+//             the VJPs; camera terms reduced per block in double into a [blocks, 35] buffer; the
+//             Gaussians' own gradients only when asked) ->
 //             reduce_partials (fixed-order reduction of the per-block camera terms and of the
 //             per-tile background terms). The backward is therefore bitwise deterministic.
 #include <cub/cub.cuh>
@@ -373,6 +374,9 @@ __global__ void __launch_bounds__(kBlockSize)
 // ------------------------------------------------------------------------------------------------
 // 5. Per-Gaussian backward (mirror of the per-Gaussian loop of rasterize_backward_cpu).
 // ------------------------------------------------------------------------------------------------
+// kCam: reduce the camera terms per block. out.means3D == nullptr: the Gaussians' gradients are not
+// written (camera terms only; a runtime test inside gaussian_backward_one, so that the camera terms
+// are the same code either way).
 template <bool kCam>
 __global__ void __launch_bounds__(kGaussThreads)
     gaussian_backward_kernel(const RasterArgs a, const int32_t* __restrict__ radii,
@@ -545,7 +549,7 @@ cudaError_t gaussian_backward(const RasterArgs& a, const int32_t* radii, const i
                               const float* slots, const GaussianGrads& out, double* cam_partials,
                               cudaStream_t stream) {
   const int64_t nb = gaussian_backward_blocks(a.P);
-  if (nb == 0) return cudaSuccess;
+  if (nb == 0 || (out.means3D == nullptr && cam_partials == nullptr)) return cudaSuccess;
   if (cam_partials != nullptr)
     gaussian_backward_kernel<true><<<(unsigned)nb, kGaussThreads, 0, stream>>>(a, radii, offsets, slots,
                                                                               out, cam_partials);

@@ -81,9 +81,10 @@ cudaError_t render_backward(const RasterArgs& a, const float* geom, const int32_
 // is absent.
 // Number of blocks of the per-Gaussian backward (= rows of cam_partials).
 int64_t gaussian_backward_blocks(int64_t P);
-// Per Gaussian: sums its slots in order and chains through the per-Gaussian VJPs. When
+// Per Gaussian: sums its slots in order and chains through the per-Gaussian VJPs, writing `out`
+// (all nullptr when the Gaussians' gradients are not wanted: `out` is then not touched). When
 // cam_partials != nullptr, also reduces the camera terms of each block (in double) into
-// cam_partials [gaussian_backward_blocks(P), kCamGrad].
+// cam_partials [gaussian_backward_blocks(P), kCamGrad]. Launches nothing when there is neither.
 cudaError_t gaussian_backward(const RasterArgs& a, const int32_t* radii, const int64_t* offsets,
                               const float* slots, const GaussianGrads& out, double* cam_partials,
                               cudaStream_t stream);

@@ -154,7 +154,9 @@ BackwardOutputs rasterize_backward_cuda(const BackwardInputs& b) {
   const cudaStream_t stream = c10::cuda::getCurrentCUDAStream().stream();
   const auto fopt = b.means3D.options();
   const auto dopt = fopt.dtype(at::kDouble);
-  BackwardOutputs grads = zero_gaussian_grads(a, fopt);
+  const bool compute_camera_grad = b.compute_camera_grad;
+  const bool compute_gaussian_grads = b.compute_gaussian_grads;
+  BackwardOutputs grads = zero_gaussian_grads(a, compute_gaussian_grads, fopt);
 
   // 4. Per-tile backward into per-entry slots (zero-filled: unvisited entries contribute 0).
   at::Tensor slots = at::zeros({num_rendered * kSlot}, fopt);
@@ -171,10 +173,10 @@ BackwardOutputs rasterize_backward_cuda(const BackwardInputs& b) {
   C10_CUDA_CHECK(cuda::reduce_partials(dbg_tiles.data_ptr<double>(), num_tiles, 3, 3,
                                        grads.grad_bg.data_ptr<float>(), stream));
 
-  // 5. Per-Gaussian backward (+ per-block camera terms, reduced in a fixed order).
+  // 5. Per-Gaussian backward (+ per-block camera terms, reduced in a fixed order); only the camera
+  // terms without compute_gaussian_grads, nothing with neither flag.
   const GaussianGrads gout = gaussian_grad_ptrs(grads);
   const int64_t nblocks = cuda::gaussian_backward_blocks(P);
-  const bool compute_camera_grad = b.compute_camera_grad;
   at::Tensor cam_partials;
   if (compute_camera_grad) cam_partials = at::empty({std::max<int64_t>(nblocks, 1) * kCamGrad}, dopt);
   double* cam = compute_camera_grad ? cam_partials.data_ptr<double>() : nullptr;
