@@ -82,7 +82,9 @@ class _RasterizeGaussians(torch.autograd.Function):
         want_gaussians = any(need[:8])  # means3D .. cov3D_precomp (bg's gradient is always made)
 
         def g(t, shape):
-            return torch.zeros(shape, dtype=torch.float32, device=device) if t is None else t.contiguous()
+            if t is None:
+                return torch.zeros(shape, dtype=torch.float32, device=device)
+            return t.contiguous()
 
         grads = _native_ops().rasterize_backward(
             *tensors, *ctx.settings, *state,
@@ -140,7 +142,9 @@ def rasterize_gaussians_native(
     )
 
 
-def mark_visible(means3D: torch.Tensor, viewmatrix: torch.Tensor, projmatrix: torch.Tensor) -> torch.Tensor:
+def mark_visible(
+    means3D: torch.Tensor, viewmatrix: torch.Tensor, projmatrix: torch.Tensor
+) -> torch.Tensor:
     """bool [P]: view-space z > 0.2 (upstream markVisible)."""
     ops = _native_ops()
     if means3D.device.type == "cuda":

@@ -11,23 +11,20 @@ alike). The reference (pure PyTorch) is only run up to
 --reference-max-gaussians and --reference-max-pixels ("—" elsewhere).
 
 The "cuda" backend (native CUDA kernel; scene copied to the GPU once, timings bracketed by
-torch.cuda.synchronize) is added to the default backends when it is usable here; the table then also
-gives the cpu/cuda speed ratio of the same run.
+torch.cuda.synchronize) is added to the default backends when it is usable here; the table then
+also gives the cpu/cuda speed ratio of the same run.
 
 Examples:
     python tools/bench_rasterizer.py                       # full table
     python tools/bench_rasterizer.py --quick               # small, fast
     python tools/bench_rasterizer.py --backends cpu --threads 2 --json bench_out/raster.json
-    python tools/bench_rasterizer.py --backends cuda,cpu --sizes 300000 --resolutions 800  # GPU target
+    python tools/bench_rasterizer.py --backends cuda,cpu --sizes 300000 --resolutions 800  # GPU
 """
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import statistics
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Tuple
@@ -38,7 +35,9 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from icomma_plugin.demo_scene import raster_bench_scene  # noqa: E402  (the one home of synthetic scenes)
+# the one home of synthetic scenes, and of atomic writes
+from icomma_plugin.demo_scene import raster_bench_scene  # noqa: E402
+from icomma_plugin.io.atomic import write_json_atomic  # noqa: E402
 
 MODES = ("fwd", "fwd+bwd", "fwd+bwd+pose", "fwd+pose-only")
 DEFAULT_SIZES = (10_000, 50_000, 200_000)
@@ -46,6 +45,7 @@ DEFAULT_RES = (200, 400, 800)
 
 
 def log(msg: str) -> None:
+    """Progress on stderr (stdout carries the table)."""
     print(msg, file=sys.stderr, flush=True)
 
 
@@ -60,6 +60,7 @@ BACKEND_DEVICE = {"reference": "cpu", "cpu": "cpu", "cuda": "cuda"}
 
 
 def get_backend(name: str) -> Tuple[Optional[Callable], Optional[str]]:
+    """(rasterize function, None) for a usable backend, else (None, why it is not usable)."""
     if name == "reference":
         from gaussian_renderer_pose.reference import rasterize_gaussians_reference
 
@@ -82,6 +83,7 @@ def default_backends() -> str:
 
 
 def scene_to(scene: Dict[str, object], device: str) -> Dict[str, object]:
+    """The scene with its tensors on ``device``."""
     return {k: (v.to(device) if isinstance(v, torch.Tensor) else v) for k, v in scene.items()}
 
 
@@ -95,12 +97,15 @@ POSE_INPUTS = ("viewmatrix", "projmatrix", "campos")
 
 
 def run_once(fn: Callable, scene: Dict[str, object], mode: str) -> float:
+    """Milliseconds of one call of ``fn`` in ``mode`` (one of MODES)."""
     tensors = {k: v for k, v in scene.items() if k != "settings"}
     if mode != "fwd":
         names = {"fwd+bwd": GRAD_INPUTS, "fwd+bwd+pose": GRAD_INPUTS + POSE_INPUTS,
                  "fwd+pose-only": POSE_INPUTS}[mode]
-        tensors = {k: (v.detach().clone().requires_grad_(True) if (k in names and v is not None) else v)
-                   for k, v in tensors.items()}
+        tensors = {
+            k: (v.detach().clone().requires_grad_(True) if (k in names and v is not None) else v)
+            for k, v in tensors.items()
+        }
     _sync(scene)
     t0 = time.perf_counter()
     if mode == "fwd":
@@ -127,27 +132,21 @@ def time_modes(fn: Callable, scene: Dict[str, object], modes: List[str], repeats
     return {mode: statistics.median(t) for mode, t in times.items()}
 
 
-def atomic_write_json(path: Path, data: object) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=2)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def main(argv: Optional[List[str]] = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    """Command line entry point; returns the exit status."""
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--backends", default=None,
-                    help="comma list of reference, cpu, cuda (default: cpu,reference, and cuda when usable)")
-    ap.add_argument("--sizes", default=",".join(map(str, DEFAULT_SIZES)), help="numbers of Gaussians")
-    ap.add_argument("--resolutions", default=",".join(map(str, DEFAULT_RES)), help="square image sizes")
+                    help="comma list of reference, cpu, cuda "
+                         "(default: cpu,reference, and cuda when usable)")
+    ap.add_argument("--sizes", default=",".join(map(str, DEFAULT_SIZES)),
+                    help="numbers of Gaussians")
+    ap.add_argument("--resolutions", default=",".join(map(str, DEFAULT_RES)),
+                    help="square image sizes")
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's)")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="torch.set_num_threads (default: torch's)")
     ap.add_argument("--reference-max-gaussians", type=int, default=20_000)
     ap.add_argument("--reference-max-pixels", type=int, default=200 * 200)
     ap.add_argument("--json", type=Path, default=None, help="also write the results here (atomic)")
@@ -225,7 +224,9 @@ def main(argv: Optional[List[str]] = None) -> int:
             r, n = row["ms"].get(f"{a}/{m}"), row["ms"].get(f"{b}/{m}")
             ratio = None if (r is None or n is None or n <= 0) else r / n
             row.setdefault("ratio", {})[f"{a}/{b}/{m}"] = ratio
-            cells.append("—" if ratio is None else (f"{ratio:.0f}x" if ratio >= 10 else f"{ratio:.1f}x"))
+            cells.append(
+                "—" if ratio is None else (f"{ratio:.0f}x" if ratio >= 10 else f"{ratio:.1f}x")
+            )
         for b, n, d in mode_ratio_cols:
             num, den = row["ms"].get(f"{b}/{n}"), row["ms"].get(f"{b}/{d}")
             ratio = None if (num is None or den is None or den <= 0) else num / den
@@ -233,7 +234,10 @@ def main(argv: Optional[List[str]] = None) -> int:
             cells.append("—" if ratio is None else f"{ratio:.2f}x")
         print("| " + " | ".join(cells) + " |")
     if args.json is not None:
-        atomic_write_json(args.json, {"threads": torch.get_num_threads(), "repeats": repeats, "results": results})
+        write_json_atomic(
+            args.json,
+            {"threads": torch.get_num_threads(), "repeats": repeats, "results": results},
+        )
         log(f"wrote {args.json}")
     return 0
 

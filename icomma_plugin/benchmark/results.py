@@ -55,8 +55,11 @@ def _now() -> str:
 
 
 def load_done(path, retry_errors: bool = True) -> Dict[str, Dict[str, Any]]:
-    """Records of a previous results.json keyed by their key (to resume a run). Runs that raised
-    are left out when ``retry_errors`` (the default), so a resumed benchmark runs them again."""
+    """Records of a previous results.json keyed by their key (to resume a run).
+
+    Runs that raised are left out when ``retry_errors`` (the default), so a resumed benchmark runs
+    them again.
+    """
     p = Path(str(path)).expanduser()
     if not p.is_file():
         raise FileNotFoundError(f"resume: no results.json at {p}")

@@ -16,9 +16,9 @@ import torch
 from gaussian_renderer_pose import _backend
 from gaussian_renderer_pose.camera import camera_matrices
 from gaussian_renderer_pose.reference import rasterize_gaussians_reference
-from tests.renderer.scenes import make_scene, se3_exp
-from tests.renderer.test_native_misc import _pose_loss
-from tests.renderer.test_native_vs_reference import GAUSSIAN_INPUTS, assert_grad_close
+from tests.helpers.scenes import make_scene, se3_exp
+from tests.gaussian_renderer_pose.test_native_misc import _pose_loss
+from tests.gaussian_renderer_pose.test_native_vs_reference import GAUSSIAN_INPUTS, assert_grad_close
 
 _OK, _WHY = _backend.native_status("cpu")
 pytestmark = pytest.mark.skipif(not _OK, reason=f"native CPU backend not built: {_WHY}")
@@ -56,8 +56,10 @@ def _ops():
 
 
 def _render_grads(fn, scene, *, gaussians: bool, cot_seed: int = 1):
-    """Forward + backward of sum(out * cot) with the pose twist xi requiring grad, and the
-    Gaussian tensors too when `gaussians`. -> (outputs, grads by name)."""
+    """Forward + backward of sum(out * cot) -> (outputs, grads by name).
+
+    The pose twist xi requires grad, and the Gaussian tensors too when `gaussians`.
+    """
     leaves = {name: None if getattr(scene, name) is None else
               getattr(scene, name).detach().clone().requires_grad_(gaussians)
               for name in GAUSSIAN_INPUTS}

@@ -38,7 +38,10 @@ def test_resume_reuses_finished_runs_and_retries_the_ones_that_raised(tmp_path):
     from icomma_plugin.benchmark.results import SCHEMA, load_done
 
     p = tmp_path / "results.json"
-    p.write_text(json.dumps({"schema": SCHEMA, "records": [
-        {"key": "a", "final_rot_deg": 0.1}, {"key": "b", "error": {"type": "ValueError", "message": "x"}}]}))
+    records = [
+        {"key": "a", "final_rot_deg": 0.1},
+        {"key": "b", "error": {"type": "ValueError", "message": "x"}},
+    ]
+    p.write_text(json.dumps({"schema": SCHEMA, "records": records}))
     assert set(load_done(p)) == {"a"}
     assert set(load_done(p, retry_errors=False)) == {"a", "b"}

@@ -1,0 +1,31 @@
+"""tools/bench_rasterizer.py on tiny scenes.
+
+Every mode is timed, the reference is skipped above its limits, the table and the JSON agree.
+"""
+
+from __future__ import annotations
+
+import json
+
+
+def test_tiny_table_and_json(tmp_path, capsys):
+    from tools.bench_rasterizer import MODES, main
+
+    out = tmp_path / "raster.json"
+    rc = main(["--backends", "cpu,reference", "--sizes", "300", "--resolutions", "32",
+               "--repeats", "1", "--threads", "1", "--reference-max-gaussians", "300",
+               "--reference-max-pixels", str(32 * 32), "--json", str(out)])
+    assert rc == 0
+    data = json.loads(out.read_text())
+    assert data["threads"] == 1 and data["repeats"] == 1
+    # the asked-for scene, and the reference's target size (--reference-max-gaussians at 200 px)
+    small, target = data["results"]
+    assert [(r["gaussians"], r["resolution"]) for r in (small, target)] == [(300, 32), (300, 200)]
+    for mode in MODES:
+        assert small["ms"][f"cpu/{mode}"] > 0 and small["ms"][f"reference/{mode}"] > 0
+        assert target["ms"][f"cpu/{mode}"] > 0
+        assert target["ms"][f"reference/{mode}"] is None  # 200x200 is above --reference-max-pixels
+    table = [line for line in capsys.readouterr().out.splitlines() if line.startswith("|")]
+    assert len(table) == 4  # header, rule, two scenes
+    assert "—" in table[3]
+    assert len(table[0].split("|")) == len(table[2].split("|"))
