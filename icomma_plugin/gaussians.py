@@ -29,8 +29,29 @@ def sh_to_rgb(sh: torch.Tensor) -> torch.Tensor:
     return sh * SH_C0 + 0.5
 
 
+class GaussianTensors:
+    """What a set of Gaussians says about itself through its ``means`` [P, 3]."""
+
+    means: torch.Tensor
+
+    @property
+    def num_gaussians(self) -> int:
+        """The number of Gaussians P."""
+        return int(self.means.shape[0])
+
+    @property
+    def device(self) -> torch.device:
+        """The device of the tensors."""
+        return self.means.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """The dtype of the tensors."""
+        return self.means.dtype
+
+
 @dataclass
-class GaussianModel:
+class GaussianModel(GaussianTensors):
     """Raw Gaussian parameters; P Gaussians, SH degree D (K = (D+1)^2 - 1 rest coefficients)."""
 
     means: torch.Tensor  # [P, 3] world units
@@ -64,21 +85,6 @@ class GaussianModel:
                 raise ValueError(
                     f"GaussianModel.{name} must have shape {list(shape)}, got {list(t.shape)}"
                 )
-
-    @property
-    def num_gaussians(self) -> int:
-        """The number of Gaussians P."""
-        return int(self.means.shape[0])
-
-    @property
-    def device(self) -> torch.device:
-        """The device of the tensors."""
-        return self.means.device
-
-    @property
-    def dtype(self) -> torch.dtype:
-        """The dtype of the tensors."""
-        return self.means.dtype
 
     def opacities(self) -> torch.Tensor:
         """Opacities [P, 1] in (0, 1) (sigmoid of the logits)."""

@@ -23,13 +23,13 @@ import torch
 import gaussian_renderer_pose as grp
 
 from .camera import Intrinsics
-from .gaussians import SH_C0, GaussianModel, num_sh_coeffs
+from .gaussians import SH_C0, GaussianModel, GaussianTensors, num_sh_coeffs
 
 __all__ = ["PreparedScene", "prepare_scene", "render"]
 
 
 @dataclass(frozen=True)
-class PreparedScene:
+class PreparedScene(GaussianTensors):
     """The rasterizer inputs of a fixed :class:`GaussianModel`, computed once.
 
     Made by :func:`prepare_scene`; all contiguous, detached, finite, on the model's dtype and
@@ -53,21 +53,6 @@ class PreparedScene:
     shs: Optional[torch.Tensor]
     colors: Optional[torch.Tensor]
     sh_degree: int
-
-    @property
-    def num_gaussians(self) -> int:
-        """The number of Gaussians P."""
-        return int(self.means.shape[0])
-
-    @property
-    def device(self) -> torch.device:
-        """The device of the tensors."""
-        return self.means.device
-
-    @property
-    def dtype(self) -> torch.dtype:
-        """The dtype of the tensors."""
-        return self.means.dtype
 
 
 def _check_sh_degree(sh_degree, model_degree: int) -> int:

@@ -300,9 +300,19 @@ def plot_convergence(
     ax.set_title("schedule")
     if title:
         fig.suptitle(title, fontsize=9)
+    return save_figure(fig, path)
+
+
+def save_figure(fig, path: PathLike, tight: bool = False) -> Path:
+    """Write a matplotlib figure to ``path`` as a PNG (atomically) and close it.
+
+    ``tight`` crops the margins (``bbox_inches="tight"``).
+    """
+    import matplotlib.pyplot as plt
+
     path = Path(path)
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
+        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight" if tight else None)
     plt.close(fig)
     return path
 
@@ -527,11 +537,7 @@ def plot_trajectory(
     )
     if title:
         fig.suptitle(title, fontsize=9)
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -631,8 +637,4 @@ def plot_curves_vs_paper(
         "(dotted horizontal lines)",
         fontsize=9,
     )
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, tight=True)

@@ -258,19 +258,12 @@ def _plt():
     return plt
 
 
-def _save(fig, path: Path) -> Path:
-    from ..io.atomic import atomic_path
-
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
-    return path
-
-
 def save_plots(
     spec: ProtocolSpec, summary: Dict[str, Any], out_dir, matcher: Optional[str] = None
 ) -> List[str]:
     """Write the protocol's PNGs into ``out_dir``; returns their file names."""
+    from ..visualize import save_figure
+
     plt = _plt()
     out_dir = Path(out_dir)
     files: List[str] = []
@@ -301,8 +294,7 @@ def save_plots(
                 ax.legend(fontsize=7, loc="lower right")
                 break
         name = f"success_vs_iteration_{spec.name}.png"
-        _save(fig, out_dir / name)
-        plt.close(fig)
+        save_figure(fig, out_dir / name, tight=True)
         files.append(name)
         # the same curves with the paper's final numbers drawn beside them (where it has them)
         from ..visualize import plot_curves_vs_paper
@@ -338,8 +330,7 @@ def save_plots(
             ax.grid(axis="y", alpha=0.3)
         axes[0, 0].set_ylabel(ylabel)
         axes[0, -1].legend(fontsize=7)
-        _save(fig, out_dir / name)
-        plt.close(fig)
+        save_figure(fig, out_dir / name, tight=True)
         files.append(name)
 
     if spec.kind == "relative_pose":

@@ -35,7 +35,15 @@ import torch
 from ..camera import Intrinsics
 from .inputs import PhotoMismatch, PoseTable, list_photos, photo_intrinsics, read_poses_file
 from .ledger import PosesLedger
-from .problem import Problem, ProblemError, _init_group, _perturbed, load_c2w_file, read_query_image
+from .problem import (
+    Problem,
+    ProblemError,
+    _init_group,
+    _perturbed,
+    load_c2w_file,
+    open_model_folder,
+    read_query_image,
+)
 from .types import LocalizationResult, Query
 
 logger = logging.getLogger(__name__)
@@ -95,27 +103,6 @@ class BatchPlan:
     resize: Optional[int]
     init_mode: str  # none | constant | per_photo | perturbed
     source: Any = None
-
-
-def open_model_folder(data: Dict[str, Any]):
-    """(ModelFolder, white_background) of ``data.model_path`` / ``data.iteration``."""
-    from ..io.model_folder import load_model_folder
-
-    mp_s = data.get("model_path")
-    if not mp_s or mp_s == "???":
-        raise ProblemError(
-            "data.model_path is required with data=model_folder (a trained 3DGS output folder)"
-        )
-    mp = Path(str(mp_s)).expanduser()
-    if not mp.is_dir():
-        raise ProblemError(f"data.model_path: model folder not found: {mp}")
-    mf = load_model_folder(mp, iteration=data.get("iteration"))
-    white = (
-        mf.white_background
-        if data.get("white_background") is None
-        else bool(data["white_background"])
-    )
-    return mf, white
 
 
 def _positive(d, key, default=None):

@@ -170,12 +170,14 @@ def _demo(d: Dict[str, Any], backend: str) -> Problem:
     )
 
 
-def _model_folder(d: Dict[str, Any]) -> Problem:
-    from ..io.cameras_json import entry_to_intrinsics, find_entry
-    from ..io.datasets import read_dataset
+def open_model_folder(data: Dict[str, Any]):
+    """(ModelFolder, white_background) of ``data.model_path`` / ``data.iteration``.
+
+    ``data.white_background`` overrides the folder's ``cfg_args`` when it is set.
+    """
     from ..io.model_folder import load_model_folder
 
-    mp_s = d.get("model_path")
+    mp_s = data.get("model_path")
     if not mp_s or mp_s == "???":
         raise ProblemError(
             "data.model_path is required with data=model_folder (a trained 3DGS output folder)"
@@ -183,10 +185,21 @@ def _model_folder(d: Dict[str, Any]) -> Problem:
     mp = Path(str(mp_s)).expanduser()
     if not mp.is_dir():
         raise ProblemError(f"data.model_path: model folder not found: {mp}")
-    mf = load_model_folder(mp, iteration=d.get("iteration"))
+    mf = load_model_folder(mp, iteration=data.get("iteration"))
     white = (
-        mf.white_background if d.get("white_background") is None else bool(d["white_background"])
+        mf.white_background
+        if data.get("white_background") is None
+        else bool(data["white_background"])
     )
+    return mf, white
+
+
+def _model_folder(d: Dict[str, Any]) -> Problem:
+    from ..io.cameras_json import entry_to_intrinsics, find_entry
+    from ..io.datasets import read_dataset
+
+    mf, white = open_model_folder(d)
+    mp = mf.path
     bg = _bg(white)
     q = d.get("query") or {}
 

@@ -17,7 +17,7 @@ from gaussian_renderer_pose import _backend
 from gaussian_renderer_pose.camera import camera_matrices
 from gaussian_renderer_pose.reference import rasterize_gaussians_reference
 from tests.helpers.scenes import make_scene, se3_exp
-from tests.gaussian_renderer_pose.test_native_misc import _pose_loss
+from tests.gaussian_renderer_pose.test_native_misc import assert_pose_grad_matches_fd
 from tests.gaussian_renderer_pose.test_native_vs_reference import GAUSSIAN_INPUTS, assert_grad_close
 
 _OK, _WHY = _backend.native_status("cpu")
@@ -139,23 +139,7 @@ def test_pose_only_gradient_matches_finite_differences(colors, covariance):
     scene = make_scene(20, height=48, width=64, sh_degree=3, seed=41, colors=colors,
                        covariance=covariance, frac_behind=0.0, frac_offscreen=0.0,
                        frac_cluster=0.0, scale_range=(0.3, 0.8), opacity_range=(0.6, 0.95))
-    g = torch.Generator().manual_seed(6)
-    cots = [torch.rand(s, generator=g, dtype=torch.float64) for s in
-            ((3, 48, 64), (1, 48, 64), (1, 48, 64), (1, 48, 64))]
-    xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
-    _pose_loss(scene, xi, cots).backward()
-    grad = xi.grad.clone()
-    eps = 1e-3
-    fd = torch.zeros(6, dtype=torch.float64)
-    with torch.no_grad():
-        for i in range(6):
-            d = torch.zeros(6, dtype=torch.float64)
-            d[i] = eps
-            fd[i] = (_pose_loss(scene, d, cots) - _pose_loss(scene, -d, cots)) / (2 * eps)
-    err = (grad - fd).abs()
-    tol = 5e-2 * fd.abs() + 1e-2 * fd.abs().max()
-    assert bool((err <= tol).all()), f"pose gradient {grad.tolist()} vs central FD {fd.tolist()}"
-    assert float(torch.nn.functional.cosine_similarity(grad, fd, dim=0)) > 0.999
+    assert_pose_grad_matches_fd(scene, cot_seed=6)
 
 
 def _op_call(scene, camera: bool, gaussians: bool):
