@@ -11,12 +11,12 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
-from typing import List, Optional, Sequence
+from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
 from ..camera import Intrinsics
-from ..checks import check_int, check_real
+from ..checks import check_bool, check_int, check_real
 from ..gaussians import GaussianModel
 from ..matchers.base import mutual_nn_count
 from ..pose.convert import look_at_c2w
@@ -24,7 +24,15 @@ from .state import LocalizationState
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["CandidateConfig", "CandidateSet", "rank_scale", "sample_views", "scene_frame", "usable"]
+__all__ = [
+    "CandidateConfig",
+    "CandidateSet",
+    "rank_scale",
+    "rolled_w2c",
+    "sample_views",
+    "scene_frame",
+    "usable",
+]
 
 
 @dataclass
@@ -36,18 +44,24 @@ class CandidateConfig:
     rank_side: the longer side of the images used for ranking [px].
     top_k: best-ranked candidates the geometric stage is run from.
     min_cosine: descriptor cosine for a ranking match.
+    quarter_turns: also rank against the photo turned by 90, 180 and 270 degrees, and start from
+        the candidate turned alike about its optical axis. Learned descriptors are not invariant
+        to large in-plane rotations: a camera held sideways, or one looking straight down at the
+        scene (every candidate near it differs by its roll), else finds no candidate.
     """
 
     num_sampled: int = 60
     rank_side: int = 128
     top_k: int = 4
     min_cosine: float = 0.8
+    quarter_turns: bool = True
 
     def __post_init__(self):
         check_int(self.num_sampled, "CandidateConfig.num_sampled", 0)
         check_int(self.rank_side, "CandidateConfig.rank_side", 16)
         check_int(self.top_k, "CandidateConfig.top_k", 1)
         check_real(self.min_cosine, "CandidateConfig.min_cosine", -1.0, 1.0)
+        check_bool(self.quarter_turns, "CandidateConfig.quarter_turns")
 
 
 def scene_frame(model: GaussianModel, cameras_c2w: Sequence[np.ndarray]):
@@ -195,20 +209,49 @@ class CandidateSet:
         return self.intrinsics == intrinsics.scaled(rank_scale(intrinsics, cfg.rank_side)) \
             if rank_scale(intrinsics, cfg.rank_side) != 1.0 else self.intrinsics == intrinsics
 
-    def rank(self, state: LocalizationState, cfg: CandidateConfig) -> List[int]:
-        """Candidate indices, best first (most mutual-NN matches with the query)."""
+    def rank(self, state: LocalizationState, cfg: CandidateConfig) -> List[Tuple[int, int]]:
+        """(candidate index, quarter turns), best first (most mutual-NN matches with the query).
+
+        The quarter turns (0 unless ``cfg.quarter_turns``) are those of the photo that matched the
+        candidate best; `start_w2c` turns the candidate's camera alike.
+        """
         if not self.compatible(state.query.intrinsics, cfg):
             raise ValueError("this candidate set was built for photos of another size or camera "
                              f"({self.intrinsics}); build one for {state.query.intrinsics}")
         scale = rank_scale(state.query.intrinsics, cfg.rank_side)
+        turns = range(4) if cfg.quarter_turns else range(1)
+        best: List[Tuple[int, int]] = [(-1, 0)] * len(self.features)
         with state.timed("candidates"):
-            fq = state.query_features(scale)
-            counts = [
-                (-1 if f is None else mutual_nn_count(f, fq, cfg.min_cosine)) for f in self.features
-            ]
-        order = sorted(range(len(counts)), key=lambda i: -counts[i])
-        self.last_counts = counts
-        return order
+            for k in turns:
+                fq = state.query_features(scale, k)
+                for i, f in enumerate(self.features):
+                    if f is not None:
+                        n = mutual_nn_count(f, fq, cfg.min_cosine)
+                        if n > best[i][0]:
+                            best[i] = (n, k)
+        order = sorted(range(len(best)), key=lambda i: -best[i][0])
+        self.last_counts = [b[0] for b in best]
+        return [(i, best[i][1]) for i in order]
+
+    def start_w2c(self, index: int, quarter_turns: int = 0) -> np.ndarray:
+        """The start pose (w2c) of candidate ``index`` for a photo that matched it turned."""
+        return rolled_w2c(np.linalg.inv(self.c2w[index]), quarter_turns)
+
+
+def rolled_w2c(w2c: np.ndarray, quarter_turns: int) -> np.ndarray:
+    """``w2c`` rolled about its optical axis so that its image is ``torch.rot90(image, -k)``.
+
+    A photo that matches a view after ``torch.rot90(photo, k)`` was taken by this camera. Rolling
+    the camera frame by +90 degrees (x' = -y, y' = x) moves the content at pixel (x, y) to (-y, x)
+    about the centre: a clockwise quarter turn on screen, which ``rot90`` with k = -1 makes.
+    """
+    k = quarter_turns % 4
+    if k == 0:
+        return np.asarray(w2c, np.float64)
+    c, s = [(1, 0), (0, 1), (-1, 0), (0, -1)][k]
+    roll = np.eye(4)
+    roll[:2, :2] = [[c, -s], [s, c]]
+    return roll @ np.asarray(w2c, np.float64)
 
 
 def rank_scale(intrinsics: Intrinsics, side: int) -> float:

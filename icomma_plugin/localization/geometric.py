@@ -36,7 +36,9 @@ __all__ = ["GeometricConfig", "GeometricOutcome", "pnp_from_observation", "run_g
 class GeometricConfig:
     """Constants of the geometric stage.
 
-    max_rounds: render-match-PnP rounds at most (usually 2-4 are used).
+    max_rounds: render-match-PnP rounds at most (usually 2-5 are used; from 60 degrees and more
+        the PnP pose can still improve in the fifth: 4 rounds left 2 of 200 held-out lego starts
+        at 1-9 degrees).
     ransac_px: RANSAC inlier threshold [px at the working resolution].
     min_pnp_inliers: a PnP with fewer inliers is no proposal.
     min_alpha: lift only keypoints where the rendered alpha exceeds this.
@@ -50,7 +52,7 @@ class GeometricConfig:
         centre motion relative to the scene depth) ends the stage.
     """
 
-    max_rounds: int = 4
+    max_rounds: int = 8
     ransac_px: float = 3.0
     min_pnp_inliers: int = 12
     min_alpha: float = 0.5

@@ -208,15 +208,15 @@ def localize_robust(
             cs = CandidateSet.build(state, cameras_c2w, cfg.candidates, camera_names)
         order = cs.rank(state, cfg.candidates)
         if fallback_w2c is None and order:
-            fallback_w2c = np.linalg.inv(cs.c2w[order[0]])
+            fallback_w2c = cs.start_w2c(*order[0])
         state.record(TraceRecord(iteration=state.steps, stage=Stage.CANDIDATES, matches=len(order)))
-        for rank, idx in enumerate(order[: cfg.candidates.top_k]):
+        for rank, (idx, turns) in enumerate(order[: cfg.candidates.top_k]):
             if cs.features[idx] is None:
                 continue
             g = run_geometric(
-                state, np.linalg.inv(cs.c2w[idx]), cfg.geometric, scale, hypothesis=rank + 1
+                state, cs.start_w2c(idx, turns), cfg.geometric, scale, hypothesis=rank + 1
             )
-            hyps.append((cs.source[idx], g))
+            hyps.append((cs.source[idx] + (f" turned {90 * turns} deg" if turns else ""), g))
             if _better(g, best):
                 best = g
             if _convincing(best.score, cfg, cfg.good_inliers):

@@ -77,7 +77,7 @@ class LocalizationState:
     trace: List[TraceRecord] = field(default_factory=list)
     seconds: Dict[str, float] = field(default_factory=lambda: defaultdict(float))
     _queries: Dict[float, Query] = field(default_factory=dict)
-    _features: Dict[float, Any] = field(default_factory=dict)
+    _features: Dict[Any, Any] = field(default_factory=dict)
     steps: int = 0  # trace records made so far (also when the trace is not kept)
 
     def __post_init__(self):
@@ -153,18 +153,24 @@ class LocalizationState:
             self._queries[scale] = q
         return q
 
-    def query_features(self, scale: float):
+    def query_features(self, scale: float, quarter_turns: int = 0):
         """The matcher's features of the query at ``scale`` (computed once).
 
+        ``quarter_turns``: of the query turned by that many times 90 degrees
+        (``torch.rot90``, counter-clockwise on screen), for the candidate ranking.
         None when the matcher cannot extract features on their own.
         """
         if self.matcher is None or not getattr(self.matcher, "supports_features", False):
             return None
-        f = self._features.get(scale)
+        key = scale if quarter_turns % 4 == 0 else (scale, quarter_turns % 4)
+        f = self._features.get(key)
         if f is None:
+            rgb = self.query_at(scale).rgb
+            if quarter_turns % 4:
+                rgb = torch.rot90(rgb, quarter_turns % 4, dims=(1, 2))
             with self.timed("matcher"):
-                f = self.matcher.extract(self.query_at(scale).rgb)
-            self._features[scale] = f
+                f = self.matcher.extract(rgb)
+            self._features[key] = f
         return f
 
     # ------------------------------------------------------------------ render / match

@@ -174,7 +174,7 @@ def test_candidates_rank_the_nearest_camera_first(demo, xfeat):
         model, scene.intrinsics, xfeat, torch.zeros(3), cams, CandidateConfig()
     )
     st = _state(demo, xfeat)
-    order = cs.rank(st, CandidateConfig())
+    order = [i for i, _ in cs.rank(st, CandidateConfig())]
     angles = [float(rotation_error_deg(c, scene.gt_c2w)) for c in cs.c2w]
     dists = [np.linalg.norm(c[:3, 3] - scene.gt_c2w[:3, 3]) for c in cs.c2w]
     best = order[0]
@@ -185,6 +185,33 @@ def test_candidates_rank_the_nearest_camera_first(demo, xfeat):
                               torch.zeros(3), matcher=xfeat)
     with pytest.raises(ValueError, match="another size"):
         cs.rank(other, CandidateConfig())
+
+
+@pytest.mark.parametrize("k", [1, 2, 3])
+def test_rolled_w2c_renders_the_view_turned_like_rot90(demo, k):
+    """The camera of a photo that matches a view after rot90(photo, k) is rolled_w2c(view, k)."""
+    from icomma_plugin.localization.candidates import rolled_w2c
+
+    scene, _, _, _ = demo
+    st = _state(demo)
+    w2c = np.linalg.inv(scene.gt_c2w)
+    view = st.render(w2c).color
+    photo = st.render(rolled_w2c(w2c, k)).color  # a square image with its centre at (W-1)/2
+    assert float((torch.rot90(photo, k, dims=(1, 2)) - view).abs().mean()) < 0.01
+    assert float((torch.rot90(photo, -k, dims=(1, 2)) - view).abs().mean()) > 0.02 or k == 2
+
+
+def test_a_photo_taken_sideways_is_found_without_a_start(demo, xfeat):
+    """No start, a camera rolled 90 degrees: the best-ranked start is a camera turned alike."""
+    from icomma_plugin.localization.candidates import rolled_w2c
+    from icomma_plugin.localize import localize
+
+    scene, model, _, cams = demo
+    gt_w2c = rolled_w2c(np.linalg.inv(scene.gt_c2w), 1)
+    photo = _state(demo).render(gt_w2c).color.clamp(0, 1)
+    res = localize(model, photo, scene.intrinsics, None, xfeat, gt_w2c=gt_w2c, cameras_c2w=cams)
+    assert res.final_rotation_error_deg < 0.1 and res.verdict.status == "ok", res.verdict.reason
+    assert res.hypotheses[0]["start"].endswith("turned 90 deg"), res.hypotheses
 
 
 # ------------------------------------------------------------------------------------ verdict
