@@ -14,21 +14,11 @@ import torch
 
 from gaussian_renderer_pose.camera import camera_matrices
 from gaussian_renderer_pose.reference import rasterize_gaussians_reference
-from tests.helpers.scenes import make_scene, se3_exp
+from tests.helpers.scenes import TENSOR_NAMES, make_scene, se3_exp
 
 pytestmark = pytest.mark.usefixtures("native_backend")
 
-GAUSSIAN_INPUTS = (
-    "means3D",
-    "means2D",
-    "opacities",
-    "shs",
-    "colors_precomp",
-    "scales",
-    "rotations",
-    "cov3D_precomp",
-    "bg",
-)
+GAUSSIAN_INPUTS = TENSOR_NAMES  # the contract's tensor inputs but the camera's, in its order
 CAMERA_INPUTS = ("viewmatrix", "projmatrix", "campos")
 
 

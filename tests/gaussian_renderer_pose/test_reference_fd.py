@@ -24,7 +24,14 @@ from gaussian_renderer_pose import (
 from gaussian_renderer_pose.reference import projection as ref_projection
 from gaussian_renderer_pose.reference import rasterize_gaussians_reference
 from gaussian_renderer_pose.reference.sh import eval_sh
-from tests.helpers.scenes import Scene, cov3d_from_scale_rot, make_scene, random_w2c, se3_exp
+from tests.helpers.scenes import (
+    TENSOR_NAMES,
+    Scene,
+    cov3d_from_scale_rot,
+    make_scene,
+    random_w2c,
+    se3_exp,
+)
 
 F64 = torch.float64
 EPS = 1e-6
@@ -437,20 +444,7 @@ def test_reference_matches_literal_upstream_loop(kw):
     scene = make_scene(60, height=20, width=40, dtype=F64, **kw)
     with torch.no_grad():
         color, radii, invdepth, depth_acc, alpha = rasterize_gaussians_reference(
-            *[
-                getattr(scene, k)
-                for k in (
-                    "means3D",
-                    "means2D",
-                    "opacities",
-                    "shs",
-                    "colors_precomp",
-                    "scales",
-                    "rotations",
-                    "cov3D_precomp",
-                    "bg",
-                )
-            ],
+            *[getattr(scene, k) for k in TENSOR_NAMES],
             *camera_matrices(
                 scene.w2c, scene.fx, scene.fy, scene.width, scene.height, scene.cx, scene.cy
             )[:3],

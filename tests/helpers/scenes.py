@@ -21,6 +21,7 @@ import torch
 
 from gaussian_renderer_pose.camera import camera_matrices
 from gaussian_renderer_pose.rasterizer import GaussianRasterizationSettings
+from gaussian_renderer_pose.reference.projection import quat_to_rotmat_unnormalised
 
 TENSOR_NAMES = (
     "means3D",
@@ -37,14 +38,7 @@ TENSOR_NAMES = (
 
 def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
     """Rotation matrix of NORMALISED quaternions (w, x, y, z), [..., 4] -> [..., 3, 3]."""
-    q = q / q.norm(dim=-1, keepdim=True)
-    r, x, y, z = q.unbind(-1)
-    rows = [
-        torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - r * z), 2 * (x * z + r * y)], -1),
-        torch.stack([2 * (x * y + r * z), 1 - 2 * (x * x + z * z), 2 * (y * z - r * x)], -1),
-        torch.stack([2 * (x * z - r * y), 2 * (y * z + r * x), 1 - 2 * (x * x + y * y)], -1),
-    ]
-    return torch.stack(rows, -2)
+    return quat_to_rotmat_unnormalised(q / q.norm(dim=-1, keepdim=True))
 
 
 def cov3d_from_scale_rot(
