@@ -357,3 +357,21 @@ def test_a_photo_sharper_than_the_model_is_worked_at_the_model_resolution(demo, 
     scales = {r.scale for r in res.trace if r.stage == Stage.GEOMETRIC}
     assert scales == {0.5} and res.config["work_side"] == 100
     assert res.final_rotation_error_deg < 0.5 and res.verdict.status == "ok"
+
+
+def test_the_paper_method_too_works_at_the_model_resolution(demo, xfeat):
+    from icomma_plugin.localize import LocalizerConfig, localize
+    from icomma_plugin.localization.state import resize_image
+
+    scene, model, q, _ = demo
+    big = resize_image(q, 200, 200).clamp(0, 1)
+    intr = scene.intrinsics.scaled(2.0)
+    init = np.linalg.inv(perturb_pose(scene.gt_c2w, 5.0, 0.02, 8, pivot=scene.scene_centre))
+    cfg = LocalizerConfig(max_iterations=3)
+    res = localize(model, big, intr, init, xfeat, cfg, gt_w2c=np.linalg.inv(scene.gt_c2w),
+                   model_side=100)
+    assert res.config["image_scale"] == 0.5 and cfg.image_scale == 1.0  # the caller's is untouched
+    # an explicit working scale is kept
+    res = localize(model, big, intr, init, xfeat, LocalizerConfig(max_iterations=2,
+                   image_scale=0.25), model_side=100)
+    assert res.config["image_scale"] == 0.25
