@@ -13,8 +13,10 @@ of different runs).
 
 Scenes: ``lego200``: the fitted model (``--model``, default ~/.cache/icomma/scenes/lego_200,
 fitted at 200x200 from lego_400) with its test views at 200x200; ``lego400``: the SAME model
-with the test views and intrinsics at full size (400x400; the model was fitted at 200, so this
-times 400 px renders, not a 400 px fit); ``demo``: the built-in demo scene
+with the test views and intrinsics at full size (400x400 photos; the model was fitted at 200, and
+both methods work at no more than the model's training resolution, as ``tools/localize.py``
+does, so this times 400 px photos against a 200 px model, not a 400 px fit); ``demo``: the
+built-in demo scene
 (icomma_plugin/demo_scene.py) and its query.
 
 Starts: as the benchmark (``icomma_plugin.benchmark.sampling.sample_initial_pose``: rotation
@@ -377,6 +379,7 @@ def run_start(scene, st: Start, method: str, path: str, matcher, args) -> Dict[s
                 cameras_c2w=scene.cameras_c2w,
                 candidate_set=candidates,
                 query_name=q.name,
+                model_side=scene.model_side,  # as tools/localize.py and the benchmark do
             )
     except Exception as e:  # a run that raises is a failed run (recorded), not the end of all
         log(f"start {st.index} ({method}, {path}) raised {type(e).__name__}: {e}")
