@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from .camera import Intrinsics
+from .checks import check_int
 from .gaussians import GaussianModel
 from .localization.geometry import lift_keypoints, sample_bilinear
 from .localization.icomma import GRADIENT_MODES, LocalizerConfig, run_icomma
@@ -55,6 +56,18 @@ def as_pose(T, name: str) -> np.ndarray:
     if isinstance(T, torch.Tensor):
         T = T.detach().cpu()
     return np.asarray(T, np.float64)
+
+
+def _at_model_resolution(cfg: Config, intrinsics: Intrinsics, model_side: Optional[int]) -> Config:
+    """``cfg`` set to work at no more than ``model_side`` px, unless it sets a resolution itself."""
+    if model_side is None:
+        return cfg
+    if isinstance(cfg, RobustConfig):
+        return cfg if cfg.work_side is not None else dataclasses.replace(cfg, work_side=model_side)
+    side = max(intrinsics.width, intrinsics.height)
+    if cfg.image_scale != 1.0 or side <= model_side:
+        return cfg
+    return dataclasses.replace(cfg, image_scale=float(model_side) / side)
 
 
 def _verify_final(
@@ -129,12 +142,6 @@ def localize(
         :class:`LocalizationResult` with the pose, the verdict and the trace.
     """
     cfg = config if config is not None else RobustConfig()
-    if isinstance(cfg, RobustConfig) and cfg.work_side is None and model_side is not None:
-        cfg = dataclasses.replace(cfg, work_side=int(model_side))
-    side = max(int(intrinsics.width), int(intrinsics.height))
-    if (isinstance(cfg, LocalizerConfig) and cfg.image_scale == 1.0 and model_side is not None
-            and side > int(model_side)):
-        cfg = dataclasses.replace(cfg, image_scale=float(model_side) / side)
     if not isinstance(cfg, (LocalizerConfig, RobustConfig)):
         raise ValueError(
             f"config must be a RobustConfig or a LocalizerConfig, got {type(cfg).__name__}"
@@ -144,6 +151,8 @@ def localize(
     if not isinstance(model, GaussianModel):
         raise ValueError(f"model must be a GaussianModel, got {type(model).__name__}")
     query = Query(query_rgb, intrinsics, query_alpha, query_valid, query_name)
+    cfg = _at_model_resolution(cfg, intrinsics, check_int(model_side, "model_side", 1,
+                                                          optional=True))
     w2c0 = None if init_w2c is None else as_pose(init_w2c, "init_w2c")
     gt_c2w = None if gt_w2c is None else invert_rigid(as_pose(gt_w2c, "gt_w2c"))
     if bg is None:

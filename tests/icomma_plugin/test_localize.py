@@ -259,6 +259,10 @@ def test_bad_inputs(plane):
         localize(model, query, intr, bad, None)
     with pytest.raises(ValueError, match="query_alpha"):
         localize(model, query, intr, w2c, None, query_alpha=torch.ones(1, 8, 8))
+    with pytest.raises(ValueError, match="model_side"):
+        localize(model, query, intr, w2c, None, model_side="64")
+    with pytest.raises(ValueError, match="intrinsics must be an Intrinsics"):
+        localize(model, query, {"fx": 1.0}, w2c, None, model_side=64)
 
 
 def test_lift_keypoints_roundtrip(plane):
