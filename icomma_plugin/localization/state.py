@@ -77,7 +77,7 @@ class LocalizationState:
     trace: List[TraceRecord] = field(default_factory=list)
     seconds: Dict[str, float] = field(default_factory=lambda: defaultdict(float))
     _queries: Dict[float, Query] = field(default_factory=dict)
-    _features: Dict[Any, Any] = field(default_factory=dict)
+    _features: Dict[Tuple[float, int], Any] = field(default_factory=dict)
     steps: int = 0  # trace records made so far (also when the trace is not kept)
 
     def __post_init__(self):
@@ -162,12 +162,10 @@ class LocalizationState:
         """
         if self.matcher is None or not getattr(self.matcher, "supports_features", False):
             return None
-        key = scale if quarter_turns % 4 == 0 else (scale, quarter_turns % 4)
+        key = (scale, quarter_turns % 4)
         f = self._features.get(key)
         if f is None:
-            rgb = self.query_at(scale).rgb
-            if quarter_turns % 4:
-                rgb = torch.rot90(rgb, quarter_turns % 4, dims=(1, 2))
+            rgb = torch.rot90(self.query_at(scale).rgb, key[1], dims=(1, 2))
             with self.timed("matcher"):
                 f = self.matcher.extract(rgb)
             self._features[key] = f
