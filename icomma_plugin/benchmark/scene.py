@@ -183,7 +183,7 @@ def load_model_folder_scene(
         no_start_queries: also load this many evenly spaced views for the runs without a start
             pose (they have nothing random to vary, so each run takes another view).
     """
-    from ..io.datasets import read_dataset
+    from ..io.datasets import detect_dataset_kind, read_dataset
     from ..io.model_folder import load_model_folder
     from ..localization.candidates import scene_frame
     from ..localization.problem import query_from_view
@@ -203,20 +203,15 @@ def load_model_folder_scene(
         )
     if split not in ("train", "test", "val"):
         raise ValueError(f"split must be train, test or val (Blender datasets), got {split!r}")
-    kw = {"white_background": white}
+    kw = {}
     if split == "val":  # NeRF-synthetic's third split: read it as the test split
-        kw["test_split"] = "val"
-    try:
-        sd = read_dataset(root, **kw)
-    except ValueError as e:
-        if "does not take" not in str(e):
-            raise
-        if split == "val":
+        if detect_dataset_kind(root) != "blender":
             raise ValueError(
                 f"split 'val' exists only for Blender / NeRF-synthetic datasets; {root} is "
                 "another kind"
-            ) from None
-        sd = read_dataset(root)
+            )
+        kw["test_split"] = "val"
+    sd = read_dataset(root, white_background=white, **kw)
     split_of_views = "test" if split == "val" else split
     views = getattr(sd, split_of_views)
     if not views:

@@ -182,14 +182,10 @@ def _dataset_photos(
 
     if split not in ("train", "test", "all"):
         raise ProblemError(f"data.queries_split must be train, test or all, got {split!r}")
-    kw = {} if white_background is None else {"white_background": bool(white_background)}
     try:
-        scene = read_dataset(root, **kw)
+        scene = read_dataset(root, white_background=white_background)
     except ValueError as e:
-        if kw and "does not take" in str(e):
-            scene = read_dataset(root)
-        else:
-            raise ProblemError(f"{what}: {e}") from None
+        raise ProblemError(f"{what}: {e}") from None
     views = {"train": scene.train, "test": scene.test, "all": scene.train + scene.test}[split]
     views = sorted(views, key=lambda v: natural_key(str(v.name)))
     if not views:

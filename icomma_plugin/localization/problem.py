@@ -218,12 +218,7 @@ def _model_folder(d: Dict[str, Any]) -> Problem:
                 f"{what} needs the source images: set data.query.dataset (cfg_args source_path "
                 f"{mf.cfg.get('source_path')!r} is not a folder here) or data.query.image"
             )
-        try:
-            return read_dataset(Path(str(root)).expanduser(), white_background=white)
-        except ValueError as e:
-            if "does not take" in str(e):
-                return read_dataset(Path(str(root)).expanduser())
-            raise
+        return read_dataset(Path(str(root)).expanduser(), white_background=white)
 
     chosen = [k for k in ("image", "camera", "index") if q.get(k) is not None]
     if not chosen:

@@ -106,13 +106,16 @@ def detect_dataset_kind(path) -> str:
     raise DatasetError(f"unrecognised dataset folder {root}: looked for {_LOOKED_FOR}; found none")
 
 
-def read_dataset(path, kind: Optional[str] = None, **kwargs: Any) -> SceneData:
+def read_dataset(path, kind: Optional[str] = None, *, white_background: Optional[bool] = None,
+                 **kwargs: Any) -> SceneData:
     """Read any supported dataset folder.
 
     Args:
         path: the dataset folder.
         kind: force a reader ('colmap', 'blender', 'transforms_json', 'llff', 'cameras_json');
             None detects it (`detect_dataset_kind`).
+        white_background: composite RGBA images over white (True) or black (False); None keeps
+            the reader's default. Formats whose images have no alpha ignore it.
         **kwargs: passed to that reader.
 
     Raises:
@@ -130,4 +133,6 @@ def read_dataset(path, kind: Optional[str] = None, **kwargs: Any) -> SceneData:
     if unknown:
         raise ValueError(f"{reader.__name__} ({kind} dataset at {path}) does not take {unknown}; "
                          f"it accepts {accepted}")
+    if white_background is not None and "white_background" in accepted:
+        kwargs["white_background"] = bool(white_background)
     return reader(path, **kwargs)
