@@ -26,6 +26,7 @@ by undistortion): `ViewImage(rgb, alpha, valid)`; `valid` is None when every pix
 from __future__ import annotations
 
 import inspect
+import logging
 from pathlib import Path
 from typing import Any, Callable, Dict, Optional
 
@@ -42,7 +43,7 @@ from .base import (
 )
 from .blender import read_blender
 from .cameras_json_reader import read_cameras_json_scene
-from .colmap import read_colmap
+from .colmap import missing_model_files, read_colmap
 from .llff import read_llff
 from .transforms_json import read_transforms_json
 
@@ -66,6 +67,8 @@ __all__ = [
     "undistort_image",
 ]
 
+logger = logging.getLogger(__name__)
+
 READERS: Dict[str, Callable[..., SceneData]] = {
     "colmap": read_colmap,
     "blender": read_blender,
@@ -84,7 +87,10 @@ _LOOKED_FOR = (
 def detect_dataset_kind(path) -> str:
     """The kind of dataset folder: 'colmap', 'blender', 'transforms_json', 'llff', 'cameras_json'.
 
-    Checked in 3DGS's dispatch order, with transforms.json after transforms_train.json.
+    Checked in 3DGS's dispatch order, with transforms.json after transforms_train.json. A
+    `sparse/` folder whose model lacks its cameras or images file beside a `poses_bounds.npy`
+    is an LLFF folder (a warning names the missing file): its poses are complete, and the
+    LLFF reader still takes the model's points.
     """
     root = Path(path)
     if not root.exists():
@@ -94,7 +100,12 @@ def detect_dataset_kind(path) -> str:
             f"dataset path is not a folder: {root} (expected a folder with {_LOOKED_FOR})"
         )
     if (root / "sparse").is_dir():
-        return "colmap"
+        missing = missing_model_files(root)
+        if not missing or not (root / "poses_bounds.npy").is_file():
+            return "colmap"
+        logger.warning("%s: the COLMAP model has no %s (nor its .txt twin): using the LLFF poses "
+                       "of %s instead", root, " or ".join(missing), root / "poses_bounds.npy")
+        return "llff"
     if (root / "transforms_train.json").is_file():
         return "blender"
     if (root / "transforms.json").is_file():

@@ -443,6 +443,21 @@ def find_sparse_dir(root: PathLike) -> Path:
     )
 
 
+def missing_model_files(root: PathLike) -> List[str]:
+    """The COLMAP model files that `read_colmap` needs and `<root>/sparse` lacks.
+
+    Looks in the folder `find_sparse_dir` would pick (sparse/0 when it exists); each missing
+    file is named as ``sparse/0/images.bin`` (its .txt twin would do as well).
+    """
+    root = Path(root)
+    folder = root / "sparse" / "0" if (root / "sparse" / "0").is_dir() else root / "sparse"
+    return [
+        f"{folder.relative_to(root).as_posix()}/{stem}.bin"
+        for stem in ("cameras", "images")
+        if not any((folder / f"{stem}.{e}").is_file() for e in ("bin", "txt"))
+    ]
+
+
 def _pick(sparse: Path, stem: str, required: bool = True) -> Optional[Path]:
     for ext in ("bin", "txt"):
         p = sparse / f"{stem}.{ext}"

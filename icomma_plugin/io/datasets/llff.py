@@ -31,6 +31,8 @@ from .base import (
     image_size,
     is_image_file,
 )
+from .colmap import read_points3D_binary, read_points3D_text
+from .transforms_json import camera_box
 
 logger = logging.getLogger(__name__)
 
@@ -67,6 +69,33 @@ def read_poses_bounds(path: PathLike) -> np.ndarray:
     if not np.all(np.isfinite(arr)):
         raise DatasetError(f"{path}: contains non-finite values")
     return arr
+
+
+def sparse_points_file(root: PathLike) -> Optional[Path]:
+    """The COLMAP points file beside an LLFF folder's poses (sparse/0, else sparse/), or None."""
+    root = Path(root)
+    for folder in (root / "sparse" / "0", root / "sparse"):
+        for ext in ("bin", "txt"):
+            p = folder / f"points3D.{ext}"
+            if p.is_file():
+                return p
+    return None
+
+
+def read_sparse_points(root: PathLike):
+    """(xyz [N, 3], rgb [N, 3] in [0, 1]) of the COLMAP points beside the poses, or (None, None).
+
+    An empty points file counts as none.
+    """
+    path = sparse_points_file(root)
+    if path is None:
+        return None, None
+    xyz, rgb = read_points3D_binary(path) if path.suffix == ".bin" else read_points3D_text(path)
+    if xyz is None or len(xyz) == 0:
+        logger.warning("%s holds no points: no initial point cloud", path)
+        return None, None
+    logger.info("LLFF dataset %s: %d initial points from %s", root, len(xyz), path)
+    return xyz, rgb
 
 
 def read_llff(path: PathLike, factor: Optional[int] = None, eval: bool = True, llffhold: int = 8,
@@ -120,12 +149,18 @@ def read_llff(path: PathLike, factor: Optional[int] = None, eval: bool = True, l
         )
         (test if t else train).append(v)
     logger.info("LLFF dataset %s: %d train, %d test views", root, len(train), len(test))
+    points, colors = read_sparse_points(root)
+    init_box = None
+    if points is None:
+        centre, half = camera_box([v.c2w for v in train + test])
+        init_box = (tuple(float(c) for c in centre), half)
     return SceneData(
         train=train,
         test=test,
-        points=None,
-        colors=None,
+        points=points,
+        colors=colors,
         white_background=white_background,
         source="llff",
         root=root,
+        init_box=init_box,
     )

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from pathlib import Path
 
 import cv2
@@ -621,3 +622,58 @@ def test_real_lego(lego_root):
     assert rgb_b.shape == (3, 200, 200) and float(rgb_b[:, 0, 0].abs().max()) == 0.0
     assert 3.0 < s.scene_radius() < 8.0
     assert len(read_dataset(lego_root, test_split="val").test) == 100
+
+
+def _llff_with_sparse(root: Path, n: int = 10):
+    """An LLFF folder (poses_bounds.npy + images/) with a COLMAP sparse/0 beside it.
+
+    Returns the camera-to-world poses (OpenCV axes) and the sparse points written.
+    """
+    rows, c2ws = [], []
+    for i in range(n):
+        a = 2 * math.pi * i / n
+        c2w = look_at_c2w([3 * math.cos(a), 3 * math.sin(a), 0.5])
+        c2ws.append(c2w)
+        llff = np.stack([c2w[:3, 1], c2w[:3, 0], -c2w[:3, 2], c2w[:3, 3], [12.0, 16.0, 20.0]], 1)
+        rows.append(np.concatenate([llff.ravel(), [1.0, 6.0]]))
+        write_png(root / "images" / f"IMG_{i:03d}.png", solid(12, 16, (i, 0, 0)))
+    np.save(root / "poses_bounds.npy", np.array(rows))
+    cameras = [(1, "SIMPLE_PINHOLE", 16, 12, [20.0, 8.0, 6.0])]
+    images = [(1, [1.0, 0, 0, 0], [0.0, 0.0, 3.0], 1, "IMG_000.png", [])]
+    pts = [(1, np.array([0.1, -0.2, 0.3]), (255, 0, 0), 0.5, []),
+           (2, np.array([-0.4, 0.2, 0.0]), (0, 255, 0), 0.5, [])]
+    write_colmap_bin(root / "sparse" / "0", cameras, images, pts)
+    return c2ws, np.array([p[1] for p in pts])
+
+
+def test_llff_with_sparse_lacking_images_bin_falls_back_to_llff_poses(tmp_path, caplog):
+    """Issue 16 bug 3: sparse/0 without images.bin, complete poses_bounds.npy -> LLFF poses."""
+    c2ws, pts = _llff_with_sparse(tmp_path)
+    (tmp_path / "sparse" / "0" / "images.bin").unlink()
+    with caplog.at_level("WARNING"):
+        kind = detect_dataset_kind(tmp_path)
+        s = read_dataset(tmp_path)
+    assert kind == "llff" and s.source == "llff"
+    assert len(s.train) + len(s.test) == 10
+    for v in s.views("all"):
+        np.testing.assert_allclose(v.c2w, c2ws[v.meta["index"]], atol=1e-12)
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert any("images.bin" in m and "poses_bounds.npy" in m for m in warned), warned
+    # the sparse points (same world frame as the LLFF poses) are the initial cloud
+    np.testing.assert_allclose(s.points, pts)
+    np.testing.assert_allclose(s.colors, [[1.0, 0, 0], [0, 1.0, 0]])
+
+
+def test_llff_reads_points_of_a_complete_sparse_model(tmp_path):
+    """An LLFF folder with a complete COLMAP model beside it.
+
+    The kind is colmap (per-image intrinsics); read_llff uses the model's points.
+    """
+    _, pts = _llff_with_sparse(tmp_path)
+    assert detect_dataset_kind(tmp_path) == "colmap"
+    s = read_llff(tmp_path)
+    np.testing.assert_allclose(s.points, pts)
+    assert s.init_box is None
+    shutil.rmtree(tmp_path / "sparse")
+    s = read_llff(tmp_path)
+    assert s.points is None and s.init_box is not None  # no cloud: the fit makes its own
