@@ -79,6 +79,28 @@ def resolution_scale(resolution: Optional[int], downscale: Optional[float], widt
     return r / float(width)
 
 
+TINY_SIDE = 64  # pixels: a fitted image with a side under this is almost surely a mistake
+
+
+def tiny_resolution_message(resolution: Optional[int], downscale: Optional[float],
+                            intrinsics) -> Optional[str]:
+    """A warning when `-r` read as a target width (upstream's rule) makes the images tiny.
+
+    Upstream's `-r` divides the size for 1, 2, 4, 8 and is a target width in pixels otherwise,
+    so `-r 6` means "6 px wide", not "a sixth". Returns the message (naming the flag and what the
+    user probably meant) when a side of the result is under `TINY_SIDE`, else None.
+    """
+    if downscale is not None or resolution in (None, -1, 1, 2, 4, 8):
+        return None
+    small = intrinsics.scaled(resolution_scale(resolution, None, intrinsics.width))
+    if min(small.width, small.height) >= TINY_SIDE:
+        return None
+    return (f"-r/--resolution {resolution} is a target width in pixels (upstream 3DGS's rule for "
+            f"values other than 1, 2, 4, 8): the {intrinsics.width}x{intrinsics.height} images "
+            f"become {small.width}x{small.height} px. -r 1/2/4/8 are downscale factors; to divide "
+            f"the size by {resolution}, use --downscale {resolution} (downscale={resolution}).")
+
+
 def cfg_resolution_value(resolution: Optional[int], downscale: Optional[float], width: int) -> int:
     """The `resolution` to store in cfg_args so that upstream reproduces the same image size."""
     if downscale is None:
@@ -200,6 +222,9 @@ def fit_scene(
     # validate the resolution before loading anything heavy
     w0 = scene.train[0].intrinsics.width
     resolution_scale(resolution, downscale, w0)
+    tiny = tiny_resolution_message(resolution, downscale, scene.train[0].intrinsics)
+    if tiny:
+        log.warning("%s", tiny)
     bg = (1.0, 1.0, 1.0) if scene.white_background else (0.0, 0.0, 0.0)
     dev = torch.device(device) if device is not None else torch.device("cpu")
 

@@ -610,3 +610,21 @@ def test_fit_scene_on_transforms_json_capture(tmp_path):
     assert ev["test_psnr"] == pytest.approx(m["test_psnr"], abs=1e-3)
     assert ev["train_psnr"] == pytest.approx(m["train_psnr"], abs=1e-3)
     assert ev["resolution"] == [32, 32] and set(ev["per_view"]) >= {"v0", "v8"}
+
+
+def test_resolution_as_target_width_warns_when_images_become_tiny(tmp_path, caplog):
+    """Issue 16 bug 4: `-r 6` is upstream's target width (6 px), not a factor: say so."""
+    from icomma_plugin.fit import fit_scene
+
+    rendered = _render_views(_gt_model(), _ring_poses(4), size=128)
+    _write_blender_dataset(tmp_path / "data", rendered[:3], rendered[3:])
+    cfg = FitConfig.scaled_schedule(1, sh_degree=1, num_random_points=50)
+    with caplog.at_level("WARNING"):
+        res = fit_scene(tmp_path / "data", tmp_path / "m6", cfg, resolution=6)
+    assert res.metrics["resolution"] == [6, 6]  # upstream's rule is kept
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert any("-r" in m and "6x6" in m and "--downscale 6" in m for m in warned), warned
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        fit_scene(tmp_path / "data", tmp_path / "m2", cfg, resolution=2)  # a factor: 64x64
+    assert not [r for r in caplog.records if "-r" in r.getMessage()]
