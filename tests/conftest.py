@@ -55,7 +55,7 @@ def fox_root() -> Path:
 @pytest.fixture(scope="module")
 def small_demo(tmp_path_factory) -> Path:
     """A 64x64 demo scene folder (built once per test module)."""
-    from icomma_plugin.demo_scene import build_demo_scene
+    from icomma_plugin.app.demo_scene import build_demo_scene
 
     path = tmp_path_factory.mktemp("demo") / "scene"
     build_demo_scene(path, seed=0, width=64, height=64)

@@ -168,7 +168,7 @@ def load_scene(name: str, args) -> "Any":
         if got != want:
             log(f"note: {name}: the queries are {got} px wide (dataset {sc.info['dataset']})")
         return sc
-    from icomma_plugin.localization.problem import load_problem
+    from icomma_plugin.app.problem import load_problem
 
     p = load_problem(
         {"kind": "demo", "path": args.demo_path, "width": args.demo_size, "height": args.demo_size}

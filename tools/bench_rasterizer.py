@@ -36,7 +36,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 # the one home of synthetic scenes, and of atomic writes
-from icomma_plugin.demo_scene import raster_bench_scene  # noqa: E402
+from icomma_plugin.app.demo_scene import raster_bench_scene  # noqa: E402
 from icomma_plugin.io.atomic import write_json_atomic  # noqa: E402
 
 MODES = ("fwd", "fwd+bwd", "fwd+bwd+pose", "fwd+pose-only")

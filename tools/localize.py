@@ -82,8 +82,8 @@ def run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
 
 
 def _run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
-    from icomma_plugin.localization.output import OutputOptions, write_outputs
-    from icomma_plugin.localization.problem import load_problem
+    from icomma_plugin.app.output import OutputOptions, write_outputs
+    from icomma_plugin.app.problem import load_problem
     from icomma_plugin.localize import LocalizerConfig, localize
 
     output_dir.mkdir(parents=True, exist_ok=True)
@@ -193,7 +193,7 @@ class _Bar:
 
 def _run_many(cfg: DictConfig, out: Path) -> Dict[str, Any]:
     """A batch (data.queries) or a sequence (data.sequence) into ``out``; returns poses.json."""
-    from icomma_plugin.localization.batch import (
+    from icomma_plugin.app.batch import (
         WorkerSetup,
         export_rows,
         open_model_folder,
@@ -201,8 +201,8 @@ def _run_many(cfg: DictConfig, out: Path) -> Dict[str, Any]:
         run_batch,
         run_identity,
     )
-    from icomma_plugin.localization.ledger import PosesLedger
-    from icomma_plugin.localization.output import OutputOptions
+    from icomma_plugin.app.ledger import PosesLedger
+    from icomma_plugin.app.output import OutputOptions
     from icomma_plugin.localize import LocalizerConfig
 
     data = common.container(cfg.data)
@@ -324,10 +324,10 @@ def _run_many(cfg: DictConfig, out: Path) -> Dict[str, Any]:
 
 
 def _run_sequence(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, Any]:
-    from icomma_plugin.localization.batch import BatchWorker, run_identity, start_poses
-    from icomma_plugin.localization.inputs import photo_intrinsics, read_poses_file
-    from icomma_plugin.localization.ledger import PosesLedger
-    from icomma_plugin.localization.tracking import (
+    from icomma_plugin.app.batch import BatchWorker, run_identity, start_poses
+    from icomma_plugin.app.inputs import photo_intrinsics, read_poses_file
+    from icomma_plugin.app.ledger import PosesLedger
+    from icomma_plugin.app.tracking import (
         FrameSource,
         TrackingConfig,
         track,

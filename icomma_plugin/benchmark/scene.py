@@ -186,7 +186,7 @@ def load_model_folder_scene(
     from ..io.datasets import detect_dataset_kind, read_dataset
     from ..io.model_folder import load_model_folder
     from ..localization.candidates import scene_frame
-    from ..localization.problem import query_from_view
+    from ..app.problem import query_from_view
 
     mp = Path(str(model_path)).expanduser()
     if not mp.is_dir():
@@ -290,7 +290,7 @@ def synthetic_scene(
     from ..pose.convert import look_at_c2w
     from ..render import render
 
-    from ..demo_scene import blob_model
+    from ..app.demo_scene import blob_model
 
     model = blob_model(num_gaussians, seed)
     intr = Intrinsics.from_fov(int(width), int(height), math.radians(float(fov_deg)))

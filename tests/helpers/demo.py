@@ -7,7 +7,7 @@ from typing import Tuple
 import numpy as np
 import torch
 
-from icomma_plugin.demo_scene import DemoScene, build_demo_scene
+from icomma_plugin.app.demo_scene import DemoScene, build_demo_scene
 from icomma_plugin.gaussians import GaussianModel
 from icomma_plugin.io.model_folder import load_model_folder
 from icomma_plugin.render import render

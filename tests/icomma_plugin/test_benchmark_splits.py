@@ -11,7 +11,7 @@ def test_val_split_queries_and_candidates_from_the_fitted_cameras(lego_root, tmp
 
     The candidate views are the train cameras only, never a camera of a held-out split.
     """
-    from icomma_plugin.demo_scene import blob_model
+    from icomma_plugin.app.demo_scene import blob_model
     from icomma_plugin.io.cameras_json import CameraEntry
     from icomma_plugin.io.datasets import read_dataset
     from icomma_plugin.io.model_folder import write_model_folder

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from icomma_plugin.camera import Intrinsics
-from icomma_plugin.demo_scene import textured_plane_model
+from icomma_plugin.app.demo_scene import textured_plane_model
 from icomma_plugin.pose.convert import look_at_c2w, perturb_pose
 from icomma_plugin.localize import LocalizationResult, LocalizerConfig, lift_keypoints, localize
 from icomma_plugin.matchers import make_matcher

@@ -22,7 +22,7 @@ from icomma_plugin.pose.convert import look_at_c2w, perturb_pose, rotation_error
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
     """The demo scene at 100x100 (model, query, intrinsics, gt, ring cameras)."""
-    from icomma_plugin.demo_scene import build_demo_scene
+    from icomma_plugin.app.demo_scene import build_demo_scene
     from icomma_plugin.io.cameras_json import read_cameras_json
 
     scene = build_demo_scene(

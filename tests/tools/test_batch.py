@@ -23,9 +23,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from icomma_plugin.localization.inputs import list_photos, read_poses_file
-from icomma_plugin.localization.ledger import CSV_COLUMNS, LedgerError, PosesLedger
-from icomma_plugin.localization.problem import ProblemError
+from icomma_plugin.app.inputs import list_photos, read_poses_file
+from icomma_plugin.app.ledger import CSV_COLUMNS, LedgerError, PosesLedger
+from icomma_plugin.app.problem import ProblemError
 from tests.helpers.demo import demo_model, photo
 from tests.helpers.paths import REPO
 from tests.helpers.tools import LOCALIZE_TOOL, compose, localize_tool

@@ -111,7 +111,7 @@ def test_bad_optimizer_value_is_a_user_error_naming_the_field():
 
 
 def test_data_init_none_reaches_the_problem(tmp_path):
-    from icomma_plugin.localization.problem import load_problem
+    from icomma_plugin.app.problem import load_problem
 
     cfg = compose(
         [f"data.path={tmp_path / 'demo'}", "data.width=48", "data.height=48", "data.init=none"]

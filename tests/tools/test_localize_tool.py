@@ -179,7 +179,7 @@ def test_cli_bad_inputs(small_demo, tmp_path):
 def test_model_folder_query_image_and_c2w_file(small_demo, tmp_path):
     """data=model_folder with a query image, intrinsics from a camera entry, an init c2w file."""
     tool = localize_tool()
-    from icomma_plugin.demo_scene import build_demo_scene
+    from icomma_plugin.app.demo_scene import build_demo_scene
 
     scene = build_demo_scene(small_demo, seed=0, width=64, height=64)
     init = tmp_path / "init.npy"
@@ -237,7 +237,7 @@ def test_model_folder_query_from_dataset_view(small_demo, tmp_path):
     import math
     import shutil
 
-    from icomma_plugin.demo_scene import build_demo_scene
+    from icomma_plugin.app.demo_scene import build_demo_scene
     from icomma_plugin.pose.convert import opengl_to_opencv_c2w
 
     tool = localize_tool()

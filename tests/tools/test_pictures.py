@@ -19,7 +19,7 @@ pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
 
 def test_optimisation_as_mp4(tmp_path):
-    from icomma_plugin.demo_scene import build_demo_scene
+    from icomma_plugin.app.demo_scene import build_demo_scene
 
     scene = build_demo_scene(tmp_path / "demo", seed=0, width=64, height=64)
     cfg = compose(

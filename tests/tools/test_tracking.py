@@ -17,8 +17,8 @@ import torch
 from PIL import Image
 
 from icomma_plugin.io import video
-from icomma_plugin.localization.ledger import PosesLedger
-from icomma_plugin.localization.tracking import FrameSource, TrackingConfig, predict_w2c, track
+from icomma_plugin.app.ledger import PosesLedger
+from icomma_plugin.app.tracking import FrameSource, TrackingConfig, predict_w2c, track
 from icomma_plugin.localization.types import Verdict
 from icomma_plugin.pose.se3 import se3_exp
 from tests.helpers.demo import demo_model, photo

@@ -44,7 +44,7 @@ from .problem import (
     open_model_folder,
     read_query_image,
 )
-from .types import LocalizationResult, Query
+from ..localization.types import LocalizationResult, Query
 
 logger = logging.getLogger(__name__)
 
@@ -350,7 +350,7 @@ def safe_name(name: str) -> str:
 
 def resize_query(q: Query, side: Optional[int]) -> Query:
     """``q`` resized so that its longer side is ``side`` px (intrinsics follow); as is for None."""
-    from .state import resize_image
+    from ..localization.state import resize_image
 
     W, H = q.intrinsics.width, q.intrinsics.height
     if not side or max(W, H) == side:
@@ -481,8 +481,8 @@ class BatchWorker:
     # ------------------------------------------------------------------ candidates
     def candidates(self, intr: Intrinsics):
         """The candidate set for photos with ``intr`` (built on first use, then reused)."""
-        from .candidates import CandidateSet, usable
-        from .robust import RobustConfig
+        from ..localization.candidates import CandidateSet, usable
+        from ..localization.robust import RobustConfig
 
         cfg = self.setup.method
         if not isinstance(cfg, RobustConfig) or not cfg.use_candidates or not usable(self.matcher):
@@ -512,7 +512,7 @@ class BatchWorker:
 
     def candidates_without(self, intr: Intrinsics, gt_c2w: Optional[np.ndarray]):
         """:meth:`candidates` less the model's camera at ``gt_c2w`` (the photo's own view)."""
-        from .candidates import CandidateSet
+        from ..localization.candidates import CandidateSet
 
         cs = self.candidates(intr)
         self.left_out = 0
@@ -671,7 +671,7 @@ class BatchWorker:
             return failure_row(task, msg, msg, time.perf_counter() - t0)
 
     def _can_search(self) -> bool:
-        from .robust import RobustConfig
+        from ..localization.robust import RobustConfig
 
         return isinstance(self.setup.method, RobustConfig)
 

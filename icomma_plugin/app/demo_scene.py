@@ -38,9 +38,9 @@ from typing import Optional, Tuple, Union
 import numpy as np
 import torch
 
-from .camera import Intrinsics
-from .gaussians import GaussianModel, rgb_to_sh
-from .pose.convert import look_at_c2w, perturb_pose, rotation_about_axis
+from ..camera import Intrinsics
+from ..gaussians import GaussianModel, rgb_to_sh
+from ..pose.convert import look_at_c2w, perturb_pose, rotation_about_axis
 
 logger = logging.getLogger(__name__)
 
@@ -430,7 +430,7 @@ class DemoScene:
 
     def load_model(self) -> GaussianModel:
         """The scene's Gaussians, read from the model folder."""
-        from .io.model_folder import load_model_folder
+        from ..io.model_folder import load_model_folder
 
         return load_model_folder(self.path).model
 
@@ -569,10 +569,10 @@ def _build_into(
 ) -> None:
     from PIL import Image
 
-    from .io.atomic import write_json_atomic, write_text_atomic
-    from .io.cameras_json import CameraEntry
-    from .io.model_folder import write_model_folder
-    from .render import render
+    from ..io.atomic import write_json_atomic, write_text_atomic
+    from ..io.cameras_json import CameraEntry
+    from ..io.model_folder import write_model_folder
+    from ..render import render
 
     seed = params["seed"]
     W, H = params["width"], params["height"]

@@ -21,7 +21,7 @@ import torch
 
 from ..pose.se3 import se3_exp
 from .problem import Problem
-from .types import LocalizationResult, TraceRecord
+from ..localization.types import LocalizationResult, TraceRecord
 
 logger = logging.getLogger(__name__)
 

@@ -29,7 +29,7 @@ from .batch import BatchWorker, PhotoTask, failure_row, result_row, resize_query
 from .inputs import list_photos
 from .ledger import PosesLedger
 from .problem import ProblemError
-from .types import Query
+from ..localization.types import Query
 
 logger = logging.getLogger(__name__)
 

@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any, Dict, Iterator, List, Optional, Sequence
 
 from ..io.atomic import write_json_atomic, write_text_atomic
-from .types import VERDICTS
+from ..localization.types import VERDICTS
 
 logger = logging.getLogger(__name__)
 

@@ -19,7 +19,7 @@ import torch
 
 from ..camera import Intrinsics
 from ..pose.convert import cameras_extent, perturb_pose, rigid_problem
-from .types import Query
+from ..localization.types import Query
 
 logger = logging.getLogger(__name__)
 
@@ -135,7 +135,7 @@ def _get(d: Dict[str, Any], key: str, default=None):
 
 
 def _demo(d: Dict[str, Any], backend: str) -> Problem:
-    from ..demo_scene import build_demo_scene
+    from .demo_scene import build_demo_scene
     from ..io.cameras_json import read_cameras_json
 
     scene = build_demo_scene(
