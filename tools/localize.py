@@ -296,7 +296,7 @@ def _run_many(cfg: DictConfig, out: Path) -> Dict[str, Any]:
             }
             rows = ledger.all_rows()
             if setup.thumbs and rows:
-                from icomma_plugin.visualize import contact_sheet
+                from icomma_plugin.pictures import contact_sheet
 
                 try:
                     contact_sheet(out / "contact_sheet.png", rows, out)
@@ -372,7 +372,7 @@ def _run_sequence(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, An
     files = []
     try:
         if oc.get("trajectory_plot") and rows:
-            from icomma_plugin.visualize import plot_trajectory
+            from icomma_plugin.pictures import plot_trajectory
 
             plot_trajectory(
                 out / "trajectory.png",

@@ -100,7 +100,7 @@ def main(argv=None) -> int:
     from icomma_plugin.io.video import write_video
     from icomma_plugin.localization.candidates import scene_frame
     from icomma_plugin.render import render
-    from icomma_plugin.visualize import save_image, to_uint8
+    from icomma_plugin.pictures import save_image, to_uint8
 
     mf = load_model_folder(Path(a.model).expanduser())
     if not mf.cameras:

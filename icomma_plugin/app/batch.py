@@ -626,7 +626,7 @@ class BatchWorker:
             folder = rel
         if self.setup.thumbs:
             try:
-                from ..visualize import save_thumbnail
+                from ..pictures import save_thumbnail
 
                 rel = f"thumbs/{safe}.png"
                 save_thumbnail(

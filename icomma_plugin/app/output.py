@@ -175,7 +175,7 @@ def write_outputs(
     seconds_total: Optional[float] = None,
 ) -> Dict[str, Any]:
     """Write every output of one localization into ``out_dir``; returns the result.json document."""
-    from .. import visualize as viz
+    from .. import pictures as viz
     from ..io.atomic import write_json_atomic
 
     opt = options or OutputOptions()

@@ -297,7 +297,7 @@ def write_tracking_video(
 ) -> Path:
     """render | frame | blend | difference of every tracked frame, as an MP4.
 
-    Panels by ``visualize.overlay_panel``: the render at the frame's estimate (a frame without one
+    Panels by ``pictures.overlay_panel``: the render at the frame's estimate (a frame without one
     shows black). A GIF when no MP4 encoder works.
 
     Returns:
@@ -305,7 +305,7 @@ def write_tracking_video(
     """
     from ..io.video import write_video
     from ..render import render
-    from ..visualize import overlay_panel, VERDICT_COLOURS
+    from ..pictures import overlay_panel, VERDICT_COLOURS
 
     by_name = {r["name"]: r for r in rows}
     panels = []

@@ -262,7 +262,7 @@ def save_plots(
     spec: ProtocolSpec, summary: Dict[str, Any], out_dir, matcher: Optional[str] = None
 ) -> List[str]:
     """Write the protocol's PNGs into ``out_dir``; returns their file names."""
-    from ..visualize import save_figure
+    from ..pictures import save_figure
 
     plt = _plt()
     out_dir = Path(out_dir)
@@ -297,7 +297,7 @@ def save_plots(
         save_figure(fig, out_dir / name, tight=True)
         files.append(name)
         # the same curves with the paper's final numbers drawn beside them (where it has them)
-        from ..visualize import plot_curves_vs_paper
+        from ..pictures import plot_curves_vs_paper
 
         def paper(iv, m, metric):
             key = "success_rate" if spec.kind == "time" else metric

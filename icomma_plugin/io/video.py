@@ -16,20 +16,26 @@ import logging
 import os
 import tempfile
 from pathlib import Path
-from typing import Iterable, Iterator, Optional, Tuple, Union
+from typing import Iterable, Iterator, List, Optional, Tuple, Union
 
 import numpy as np
+import torch
+
+from .atomic import atomic_path
 
 logger = logging.getLogger(__name__)
 
 PathLike = Union[str, os.PathLike]
+ImageLike = Union[torch.Tensor, np.ndarray]
 
 __all__ = [
     "VIDEO_SUFFIXES",
     "VideoError",
     "is_video_file",
     "read_video_frames",
+    "to_uint8",
     "video_info",
+    "write_gif",
     "write_video",
 ]
 
@@ -161,8 +167,6 @@ def write_video(path: PathLike, frames: Iterable, fps: float = 10.0) -> Path:
     Raises:
         VideoError: no frames, or frames of different sizes.
     """
-    from ..visualize import save_gif, to_uint8
-
     path = Path(path)
     arr = [_even(to_uint8(f)) for f in frames]
     if not arr:
@@ -189,4 +193,51 @@ def write_video(path: PathLike, frames: Iterable, fps: float = 10.0) -> Path:
             path.name,
         )
         path = gif
-    return save_gif(path, arr, fps=fps)
+    return write_gif(path, arr, fps=fps)
+
+
+def to_uint8(img: ImageLike) -> np.ndarray:
+    """An image as ``[H, W, 3]`` uint8.
+
+    From a ``[3, H, W]`` tensor or an ``[H, W, 3]`` array, float in [0, 1] or uint8.
+    """
+    if isinstance(img, torch.Tensor):
+        t = img.detach().cpu()
+        if t.ndim != 3 or t.shape[0] not in (1, 3):
+            raise ValueError(f"image tensor must be [3, H, W] or [1, H, W], got {list(t.shape)}")
+        if t.shape[0] == 1:
+            t = t.expand(3, -1, -1)
+        a = t.permute(1, 2, 0).numpy()
+    else:
+        a = np.asarray(img)
+        if a.ndim == 2:
+            a = np.repeat(a[..., None], 3, axis=2)
+        if a.ndim != 3 or a.shape[2] not in (3, 4):
+            raise ValueError(f"image array must be [H, W, 3], got {list(a.shape)}")
+        a = a[..., :3]
+    if a.dtype == np.uint8:
+        return np.ascontiguousarray(a)
+    a = np.nan_to_num(a.astype(np.float32), nan=0.0)
+    return (np.clip(a, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+
+def write_gif(path: PathLike, frames: List[ImageLike], fps: float = 8.0) -> Path:
+    """Animated GIF of ``frames`` (each an image), looping; written atomically."""
+    from PIL import Image
+
+    if not frames:
+        raise ValueError("frames must be a non-empty list of images")
+    ims = [Image.fromarray(to_uint8(f)) for f in frames]
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        ims[0].save(
+            tmp,
+            format="GIF",
+            save_all=True,
+            append_images=ims[1:],
+            duration=int(1000 / max(fps, 0.1)),
+            loop=0,
+        )
+    return path
+

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from icomma_plugin import visualize as viz
+from icomma_plugin import pictures as viz
 from icomma_plugin.io.video import video_info
 from tests.helpers.tools import compose, localize_tool
 
@@ -122,12 +122,12 @@ def test_curves_beside_the_paper(tmp_path):
         ("curves_rotation", "r20-40", "icomma", "success_1deg_0.01"): 0.6,
         ("r0-20", "icomma", "success_5deg_0.05"): PaperValue(None, "Fig. 4", "n/a"),
     }
-    assert viz._paper_number(paper, "r0-20", "icomma", "success_1deg_0.01") == 0.85
+    assert viz.plots._paper_number(paper, "r0-20", "icomma", "success_1deg_0.01") == 0.85
     assert (
-        viz._paper_number(paper, "r20-40", "icomma", "success_1deg_0.01") == 0.6
+        viz.plots._paper_number(paper, "r20-40", "icomma", "success_1deg_0.01") == 0.6
     )  # protocol-keyed
-    assert viz._paper_number(paper, "r0-20", "icomma", "success_5deg_0.05") is None
-    assert viz._paper_number(lambda iv, m, k: PaperValue(0.5, "x"), "a", "b", "c") == 0.5
+    assert viz.plots._paper_number(paper, "r0-20", "icomma", "success_5deg_0.05") is None
+    assert viz.plots._paper_number(lambda iv, m, k: PaperValue(0.5, "x"), "a", "b", "c") == 0.5
     p = viz.plot_curves_vs_paper(tmp_path / "c.png", summary, paper)
     with Image.open(p) as im:
         assert im.size[0] > 500
