@@ -13,7 +13,6 @@ import logging
 import os
 import random
 import sys
-from pathlib import Path
 from typing import Any, Callable, Iterator, Optional, Tuple, TypeVar
 
 import numpy as np
@@ -102,41 +101,26 @@ def container(node) -> Any:
     return OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
 
 
-def build_matcher(mcfg) -> Tuple[Any, Optional[str]]:
-    """Build the matcher of the matcher group (``_target_: make_matcher``).
+def build_matcher(mcfg, key: str = "matcher") -> Tuple[Any, Optional[str]]:
+    """Build the matcher of the matcher group mounted at ``key``.
 
-    LoFTR's checkpoint is checked here so the error names the key.
+    A thin call of ``icomma_plugin.matchers.matcher_from_config`` (as the batch workers build
+    theirs, from the same plain mapping).
 
     Returns:
-        (matcher, name); (None, None) for ``none`` or a removed group.
+        (matcher, its name); (None, None) for ``none`` or a removed group.
 
     Raises:
-        UserError: LoFTR without a checkpoint file.
+        UserError: a bad group, naming the key (``matcher.checkpoint: ...`` for LoFTR without
+            its checkpoint file, ``matcher._target_: cannot import ...``).
     """
-    from hydra.utils import instantiate
+    from icomma_plugin.matchers import matcher_from_config, matcher_name
 
-    if mcfg is None:
-        return None, None
-    d = container(mcfg)
-    name = d.get("name")
-    if not name or name == "none":
-        return None, None
-    if name == "loftr":
-        ck = d.get("checkpoint")
-        if not ck:
-            raise UserError(
-                "matcher=loftr needs a local checkpoint file: set matcher.checkpoint=/path/to/"
-                "outdoor_ds.ckpt (LoFTR weights are not shipped or downloaded); or pick another "
-                "matcher, e.g. matcher=xfeat"
-            )
-        if not Path(str(ck)).expanduser().is_file():
-            raise UserError(f"matcher.checkpoint: file not found: {ck}")
-    if "_target_" not in d:
-        from icomma_plugin.matchers import make_matcher
-
-        d.pop("name")
-        return make_matcher(name, **d), name
-    return instantiate(d, _convert_="all"), name
+    try:
+        matcher = matcher_from_config(container(mcfg), key)
+    except ValueError as e:
+        raise UserError(str(e)) from e
+    return (None, None) if matcher is None else (matcher, matcher_name(matcher))
 
 
 def build_optimizer(ocfg, key: str = "optimizer"):

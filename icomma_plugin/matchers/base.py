@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Any, Dict, Optional, Tuple
+from typing import Any, ClassVar, Dict, Mapping, Optional, Tuple
 
 import torch
 
@@ -180,8 +180,16 @@ def check_image(image: Any, name: str) -> torch.Tensor:
 class Matcher:
     """Base class of every matcher. Subclasses implement `_match` on detached, clamped images.
 
+    What a matcher is and needs are class attributes, read by `available_matchers()` (a new
+    matcher sets them; see docs/MATCHERS.md, "Adding a matcher"):
+
     Attributes:
-        name: registry name.
+        name: the matcher's name (records, messages; a built-in's key in `BUILTIN_MATCHERS`).
+        weight_ids: ids of `weights.WEIGHT_FILES` it loads by default (packaged weights).
+        python_modules: import name -> PyPI name of the modules it imports (looked up, not
+            imported, e.g. ``{"cv2": "opencv-python-headless"}``).
+        required_arguments: argument -> what to pass, for arguments it cannot be built without
+            (LoFTR's ``checkpoint``).
         supports_image_gradient: with `differentiable=True`, `kpts0` carries gradients back to
             `image0` (through `refine.refine_render_keypoints`, the LoFTR-fine-style step).
         min_confidence: matches below this confidence are dropped.
@@ -193,6 +201,9 @@ class Matcher:
     """
 
     name: str = "base"
+    weight_ids: ClassVar[Tuple[str, ...]] = ()
+    python_modules: ClassVar[Mapping[str, str]] = {}
+    required_arguments: ClassVar[Mapping[str, str]] = {}
     supports_image_gradient: bool = True
     #: `extract` / `match_features` work (keypoints and descriptors can be computed once per image
     #: and reused, e.g. the query's across the iterations of a localization).

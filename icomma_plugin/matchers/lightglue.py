@@ -101,6 +101,7 @@ def pad_to_multiple(image: torch.Tensor, multiple: int) -> torch.Tensor:
 
 class _LightGlueMatcher(Matcher):
     features = ""
+    python_modules = {"kornia": "kornia"}
     supports_features = True
 
     def __init__(self, max_keypoints: int = 1024, filter_threshold: float = 0.1,
@@ -150,6 +151,7 @@ class AlikedLightGlueMatcher(_LightGlueMatcher):
     """
 
     name = "aliked_lightglue"
+    weight_ids = ("aliked-n16", "aliked_lightglue")
     features = "aliked"
 
     def __init__(
@@ -194,6 +196,7 @@ class DiskLightGlueMatcher(_LightGlueMatcher):
     """
 
     name = "disk_lightglue"
+    weight_ids = ("disk", "disk_lightglue")
     features = "disk"
 
     def __init__(self, max_keypoints: int = 1024, window: int = 5, filter_threshold: float = 0.1,

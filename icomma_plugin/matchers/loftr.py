@@ -29,7 +29,8 @@ CHECKPOINT_HELP = (
     "(github.com/zju3dv/LoFTR, README 'Download the pretrained weights', Google Drive folder "
     "'weights'), or kornia's loftr_outdoor.ckpt, and pass its path: "
     "matcher.checkpoint=/path/to/outdoor_ds.ckpt "
-    "(Python: make_matcher('loftr', checkpoint='/path/to/outdoor_ds.ckpt'))"
+    "(Python: make_matcher('loftr', checkpoint='/path/to/outdoor_ds.ckpt')); or pick another "
+    "matcher, e.g. matcher=xfeat"
 )
 
 
@@ -51,12 +52,17 @@ class LoFTRMatcher(Matcher):
     """
 
     name = "loftr"
+    python_modules = {"kornia": "kornia"}
+    required_arguments = {
+        "checkpoint": "a user-supplied LoFTR checkpoint file: "
+                      "matcher.checkpoint=/path/to/outdoor_ds.ckpt (never downloaded)",
+    }
 
     def __init__(self, checkpoint: Optional[str] = None, resize: Optional[Sequence[int]] = None,
                  temp_bug_fix: bool = False, coarse_threshold: float = 0.2, **kwargs):
         super().__init__(**kwargs)
         if checkpoint is None or (isinstance(checkpoint, str) and not checkpoint.strip()):
-            raise ValueError(f"checkpoint is required. {CHECKPOINT_HELP}")
+            raise ValueError(f"checkpoint is required: {CHECKPOINT_HELP}")
         if not isinstance(checkpoint, (str, Path)):
             raise ValueError(
                 f"checkpoint must be a path, got {type(checkpoint).__name__}. {CHECKPOINT_HELP}"

@@ -44,6 +44,7 @@ class SiftMatcher(Matcher):
     """
 
     name = "sift"
+    python_modules = {"cv2": "opencv-python-headless"}
 
     def __init__(self, ratio: float = 0.8, max_keypoints: int = 0, contrast_threshold: float = 0.04,
                  mutual: bool = False, **kwargs):
@@ -92,6 +93,7 @@ class OrbMatcher(Matcher):
     """
 
     name = "orb"
+    python_modules = {"cv2": "opencv-python-headless"}
 
     def __init__(
         self, max_keypoints: int = 5000, max_distance: int = 64, fast_threshold: int = 10, **kwargs

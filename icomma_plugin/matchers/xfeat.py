@@ -45,6 +45,8 @@ class XFeatMatcher(Matcher):
     """
 
     name = "xfeat"
+    weight_ids = ("xfeat",)  # LighterGlue's are optional: without them, mutual NN (glue=None)
+    python_modules = {"kornia": "kornia"}
     supports_features = True
 
     def __init__(
@@ -114,3 +116,21 @@ class XFeatMatcher(Matcher):
         cos = sim[idx0, best1]
         ok &= cos > self.min_cossim
         return Matches(k0[ok].float(), k1[best1[ok]].float(), cos[ok].float().clamp(0.0, 1.0))
+
+
+class XFeatMnnMatcher(XFeatMatcher):
+    """XFeat keypoints matched by mutual nearest neighbours: `XFeatMatcher` with `glue=False`.
+
+    Args:
+        **kwargs: the arguments of `XFeatMatcher` but `glue` (False here).
+    """
+
+    name = "xfeat_mnn"
+
+    def __init__(self, **kwargs):
+        if kwargs.get("glue") not in (None, False):
+            raise ValueError(f"glue must be False or absent for xfeat_mnn (XFeat with mutual "
+                             f"nearest neighbours), got {kwargs['glue']!r}; use xfeat for "
+                             "LighterGlue")
+        kwargs["glue"] = False
+        super().__init__(**kwargs)
