@@ -34,7 +34,8 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from ..camera import Intrinsics
-from .problem import ProblemError, _is_rigid
+from ..pose.convert import as_rigid
+from .problem import ProblemError
 
 __all__ = [
     "PhotoList",
@@ -226,23 +227,14 @@ class PoseTable:
 
 def _matrix(v, what: str) -> np.ndarray:
     try:
-        a = np.asarray(v, np.float64)
+        n = np.size(np.asarray(v, np.float64))
     except (TypeError, ValueError):
         raise ProblemError(f"{what}: not a numeric matrix") from None
-    if a.size == 12:
-        a = np.vstack([a.reshape(3, 4), [0.0, 0.0, 0.0, 1.0]])
-    elif a.size == 16:
-        a = a.reshape(4, 4)
-    else:
+    if n not in (12, 16):
         raise ProblemError(
-            f"{what}: expected a 4x4 (or 3x4) camera-to-world matrix, got {a.size} numbers"
+            f"{what}: expected a 4x4 (or 3x4) camera-to-world matrix, got {n} numbers"
         )
-    if not _is_rigid(a):
-        raise ProblemError(
-            f"{what}: not a rigid camera-to-world matrix (rotation not orthonormal with "
-            "det +1, or last row not 0 0 0 1)"
-        )
-    return a
+    return as_rigid(np.reshape(np.asarray(v, np.float64), (-1, 4)), what, ProblemError)
 
 
 def read_poses_file(path, what: str) -> PoseTable:

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from ..camera import Intrinsics
-from ..pose.convert import cameras_extent, perturb_pose, rigid_problem
+from ..pose.convert import as_rigid, cameras_extent, perturb_pose
 from ..localization.types import Query
 
 logger = logging.getLogger(__name__)
@@ -74,10 +74,6 @@ class Problem:
         return out
 
 
-def _is_rigid(T: np.ndarray) -> bool:
-    return rigid_problem(T) is None
-
-
 def load_c2w_file(path, what: str) -> np.ndarray:
     """A 4x4 (or 3x4) camera-to-world from a text or .npy file; ProblemError naming ``what``."""
     p = Path(str(path)).expanduser()
@@ -89,20 +85,12 @@ def load_c2w_file(path, what: str) -> np.ndarray:
         raise ProblemError(
             f"{what}: cannot read a 4x4 matrix from {p} ({type(e).__name__}: {e})"
         ) from None
-    arr = np.asarray(arr, np.float64)
-    if arr.size == 16:
-        arr = arr.reshape(4, 4)
-    elif arr.size == 12:
-        arr = np.vstack([arr.reshape(3, 4), [0, 0, 0, 1]])
-    else:
+    if np.size(arr) not in (12, 16):
         raise ProblemError(
-            f"{what}: {p} must hold a 4x4 (or 3x4) camera-to-world matrix, got {arr.size} numbers"
+            f"{what}: {p} must hold a 4x4 (or 3x4) camera-to-world matrix, got {np.size(arr)} "
+            "numbers"
         )
-    if not _is_rigid(arr):
-        raise ProblemError(
-            f"{what}: {p} is not a rigid camera-to-world matrix (rotation not orthonormal "
-            "with det +1, or last row not 0 0 0 1)"
-        )
+    arr = as_rigid(np.reshape(arr, (-1, 4)), f"{what}: {p}", ProblemError)
     return arr
 
 

@@ -19,6 +19,7 @@ from typing import List, Sequence, Union
 import numpy as np
 
 from ..camera import Intrinsics
+from ..pose.convert import rigid_problem
 from .atomic import write_text_atomic
 
 log = logging.getLogger(__name__)
@@ -29,7 +30,6 @@ __all__ = ["CameraEntry", "read_cameras_json", "write_cameras_json", "entry_to_i
            "find_entry"]
 
 # Tolerance on R^T R = I for a stored rotation (upstream stores float64 reprs: ~1e-15).
-_ORTHO_TOL = 1e-4
 # Largest accepted image side: far above any camera, small enough that sizes and focal ratios
 # stay exact floats; a larger width/height is a corrupt field.
 _MAX_SIDE = 1 << 20
@@ -132,17 +132,12 @@ def _parse_entry(e, i: int, path) -> CameraEntry:
                     for r in rot)):
         raise ValueError(f"{where}: field 'rotation' must be a 3x3 nested list of finite numbers, "
                          f"got {_short(rot)}")
-    R = np.array(rot, dtype=np.float64)
-    if np.abs(R).max() > 2.0:  # not a rotation, and R^T R could overflow
-        raise ValueError(f"{where}: field 'rotation' is not a rotation matrix "
-                         f"(entry of magnitude {np.abs(R).max():.3g})")
-    err = float(np.abs(R.T @ R - np.eye(3)).max())
-    if err > _ORTHO_TOL or np.linalg.det(R) < 0:
-        raise ValueError(f"{where}: field 'rotation' is not a rotation matrix "
-                         f"(|R^T R - I| = {err:.2e}, det = {np.linalg.det(R):.4f})")
     c2w = np.eye(4)
-    c2w[:3, :3] = R
+    c2w[:3, :3] = rot
     c2w[:3, 3] = pos
+    problem = rigid_problem(c2w)
+    if problem is not None:
+        raise ValueError(f"{where}: field 'rotation' is not a rotation matrix ({problem})")
     return CameraEntry(e["id"], e["img_name"], e["width"], e["height"], c2w,
                        float(e["fx"]), float(e["fy"]))
 

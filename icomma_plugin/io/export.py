@@ -38,7 +38,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from ..camera import Intrinsics
-from ..pose.convert import invert_rigid, opencv_to_opengl_c2w
+from ..pose.convert import as_rigid, invert_rigid, opencv_to_opengl_c2w
 from .atomic import write_text_atomic
 from .cameras_json import CameraEntry, entry_to_intrinsics, write_cameras_json
 
@@ -57,7 +57,6 @@ FORMATS: Dict[str, Optional[str]] = {
 }
 
 # Tolerance on R^T R = I of an exported pose (as cameras_json's reader).
-_ORTHO_TOL = 1e-4
 
 
 @dataclass(frozen=True, eq=False)
@@ -85,23 +84,7 @@ class NamedPose:
 
 
 def _rigid_c2w(c2w: Any, what: str) -> np.ndarray:
-    try:
-        m = np.array(c2w, dtype=np.float64)  # a copy: the caller's array may change later
-    except (TypeError, ValueError) as e:
-        raise ValueError(f"{what} must be a numeric 4x4 matrix: {e}") from None
-    if m.shape == (3, 4):
-        m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
-    if m.shape != (4, 4):
-        raise ValueError(f"{what} must have shape [4, 4] (or [3, 4]), got {list(m.shape)}")
-    if not np.all(np.isfinite(m)):
-        raise ValueError(f"{what} has non-finite entries")
-    R = m[:3, :3]
-    err = float(np.abs(R.T @ R - np.eye(3)).max())
-    if err > _ORTHO_TOL or np.linalg.det(R) <= 0:
-        raise ValueError(f"{what}: rotation part is not a rotation (|R^T R - I| = {err:.2e}, "
-                         f"det = {np.linalg.det(R):.4f})")
-    if np.abs(m[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-6:
-        raise ValueError(f"{what}: last row must be [0, 0, 0, 1], got {m[3].tolist()}")
+    m = as_rigid(c2w, what)  # a copy: the caller's array may change later
     m.setflags(write=False)
     return m
 

@@ -2,7 +2,7 @@
 
 Conventions are stated once in `icomma_plugin/pose/se3.py` (and docs/CONTRACTS.md).
 """
-from .se3 import hat, se3_exp, se3_inverse, se3_log, so3_exp, so3_left_jacobian, so3_log, vee
+from .se3 import hat, se3_exp, se3_log, so3_exp, so3_left_jacobian, so3_log, vee
 
 __all__ = [
     "hat",
@@ -12,5 +12,4 @@ __all__ = [
     "so3_left_jacobian",
     "se3_exp",
     "se3_log",
-    "se3_inverse",
 ]

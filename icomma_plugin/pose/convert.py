@@ -18,9 +18,9 @@ ArrayLike = Union[np.ndarray, torch.Tensor]
 GeneratorLike = Union[None, int, np.random.Generator, torch.Generator]
 
 __all__ = [
+    "RIGID_ATOL",
+    "as_rigid",
     "invert_rigid",
-    "c2w_to_w2c",
-    "w2c_to_c2w",
     "opengl_to_opencv_c2w",
     "opencv_to_opengl_c2w",
     "look_at_c2w",
@@ -69,11 +69,17 @@ def invert_rigid(T: ArrayLike) -> ArrayLike:
     return out
 
 
-def rigid_problem(T, atol: float = 1e-4) -> Optional[str]:
-    """Why ``T`` is not a rigid ``[4, 4]`` transform, or None when it is.
+#: Largest ``|R R^T - I|`` of a rotation that is accepted as one, everywhere a pose is read:
+#: JSON files store rotations orthonormal to about float32 precision, and text files with 4-6
+#: decimals to about 1e-4. One tolerance, so that a pose one reader accepts no other refuses.
+RIGID_ATOL = 1e-3
 
-    Within ``atol``: JSON files store rotations orthonormal to about float32 precision. Callers
-    raise their own error type with this reason, naming their argument or file.
+
+def rigid_problem(T) -> Optional[str]:
+    """Why ``T`` is not a rigid ``[4, 4]`` transform (within `RIGID_ATOL`), or None when it is.
+
+    Callers raise their own error type with this reason, naming their argument or file; most
+    use :func:`as_rigid`.
     """
     A = _to_np64(T) if isinstance(T, (np.ndarray, torch.Tensor)) else None
     if A is None:
@@ -83,23 +89,37 @@ def rigid_problem(T, atol: float = 1e-4) -> Optional[str]:
     if not np.all(np.isfinite(A)):
         return "it contains NaN or infinite values"
     R = A[:3, :3]
+    if np.abs(R).max() > 2.0:  # no rotation has such an entry (and R R^T could overflow)
+        return (f"its rotation part is not a rotation (an entry of magnitude "
+                f"{np.abs(R).max():.3g})")
     err = float(np.abs(R @ R.T - np.eye(3)).max())
-    if err > atol or np.linalg.det(R) < 0:
-        return (f"its rotation is not orthonormal with det +1 (max |R R^T - I| = {err:.2g}, "
-                f"det = {np.linalg.det(R):.4f})")
+    if err > RIGID_ATOL or np.linalg.det(R) < 0:
+        return (f"its rotation part is not a rotation: not orthonormal with det +1 (max "
+                f"|R R^T - I| = {err:.2g}, det = {np.linalg.det(R):.4f})")
     if not np.allclose(A[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
         return f"its last row must be [0, 0, 0, 1], got {A[3].tolist()}"
     return None
 
 
-def c2w_to_w2c(c2w: ArrayLike) -> ArrayLike:
-    """Camera-to-world -> world-to-camera (``invert_rigid``)."""
-    return invert_rigid(c2w)
+def as_rigid(T, what: str, error: type = ValueError) -> np.ndarray:
+    """``T`` (4x4, or 3x4 completed with ``0 0 0 1``) as a float64 numpy copy, if it is rigid.
 
+    The one pose check of the project (tolerance `RIGID_ATOL`).
 
-def w2c_to_c2w(w2c: ArrayLike) -> ArrayLike:
-    """World-to-camera -> camera-to-world (``invert_rigid``)."""
-    return invert_rigid(w2c)
+    Raises:
+        error: (ValueError unless given) naming ``what``, with the reason.
+    """
+    try:
+        A = _to_np64(T) if isinstance(T, torch.Tensor) else np.array(T, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise error(f"{what} must be a numeric 4x4 matrix, got {type(T).__name__}") from None
+    if A.shape == (3, 4):
+        A = np.vstack([A, [0.0, 0.0, 0.0, 1.0]])
+    problem = rigid_problem(A)
+    if problem is not None:
+        raise error(f"{what} must be a rigid 4x4 transform (orthonormal rotation, det +1, last "
+                    f"row 0 0 0 1): {problem}")
+    return np.array(A, dtype=np.float64, copy=True)
 
 
 def opengl_to_opencv_c2w(c2w: ArrayLike) -> ArrayLike:

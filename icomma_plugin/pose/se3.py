@@ -29,7 +29,6 @@ __all__ = [
     "so3_left_jacobian_inv",
     "se3_exp",
     "se3_log",
-    "se3_inverse",
 ]
 
 # Below theta^2 < _SMALL the Taylor branch is used. Truncation error of the series below is
@@ -246,14 +245,3 @@ def se3_log(T: torch.Tensor) -> torch.Tensor:
     phi = so3_log(T[..., :3, :3])
     rho = (so3_left_jacobian_inv(phi) @ T[..., :3, 3:4]).squeeze(-1)
     return torch.cat([rho, phi], dim=-1)
-
-
-def se3_inverse(T: torch.Tensor) -> torch.Tensor:
-    """Inverse of a rigid transform ``[..., 4, 4]`` via ``[R^T, -R^T t]``.
-
-    Differentiable; ``pose.convert.invert_rigid`` for tensors.
-    """
-    from .convert import invert_rigid
-
-    _check_last(T, "T", (4, 4))
-    return invert_rigid(T)

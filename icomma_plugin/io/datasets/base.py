@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from icomma_plugin.camera import Intrinsics
-from icomma_plugin.pose.convert import cameras_extent, invert_rigid, rigid_problem
+from icomma_plugin.pose.convert import as_rigid, cameras_extent, invert_rigid
 
 logger = logging.getLogger(__name__)
 
@@ -204,31 +204,6 @@ def _background_array(background: BackgroundLike) -> np.ndarray:
     return bg
 
 
-def invert_rigid_np(T: np.ndarray) -> np.ndarray:
-    """Inverse of a rigid 4x4 transform (``pose.convert.invert_rigid``)."""
-    return invert_rigid(np.asarray(T, dtype=np.float64))
-
-
-def check_pose(c2w: Any, what: str) -> np.ndarray:
-    """A 4x4 (or 3x4) camera-to-world as float64 4x4; DatasetError naming ``what`` otherwise."""
-    c2w = np.asarray(c2w, dtype=np.float64)
-    if c2w.shape == (3, 4):
-        c2w = np.vstack([c2w, [0.0, 0.0, 0.0, 1.0]])
-    if c2w.shape != (4, 4):
-        raise DatasetError(
-            f"{what}: expected a 4x4 (or 3x4) camera-to-world matrix, got shape {c2w.shape}"
-        )
-    problem = rigid_problem(c2w, atol=1e-3)
-    if problem is not None:
-        part = (
-            "rotation part of the camera-to-world matrix is not a rotation"
-            if "rotation" in problem
-            else "camera-to-world matrix is not rigid"
-        )
-        raise DatasetError(f"{what}: the {part}: {problem}")
-    return c2w
-
-
 @dataclass(eq=False)
 class ViewImage:
     """A loaded view image (`View.load_image`).
@@ -279,7 +254,7 @@ class View:
     distortion_model: str = "opencv"
 
     def __post_init__(self):
-        self.c2w = check_pose(self.c2w, f"view {self.name!r}")
+        self.c2w = as_rigid(self.c2w, f"view {self.name!r}: its camera-to-world", DatasetError)
         self.image_path = Path(self.image_path)
         if self.split not in SPLITS:
             raise ValueError(f"View.split must be one of {SPLITS}, got {self.split!r}")
@@ -294,7 +269,7 @@ class View:
         As 3DGS; exact also for the float32-rounded rotations of JSON files, which are rigid only
         to ~1e-7.
         """
-        w2c = np.linalg.inv(self.c2w)
+        w2c = invert_rigid(self.c2w)
         w2c[3] = (0.0, 0.0, 0.0, 1.0)
         return w2c
 

@@ -42,6 +42,7 @@ from typing import Dict, List, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from icomma_plugin.camera import Intrinsics
+from icomma_plugin.pose.convert import invert_rigid
 
 from .base import (
     DatasetError,
@@ -50,7 +51,6 @@ from .base import (
     View,
     background_of,
     holdout_split,
-    invert_rigid_np,
     is_image_file,
     name_matches,
     read_name_list,
@@ -568,7 +568,7 @@ def read_colmap(path: PathLike, images: str = "images", eval: bool = True, llffh
     test: List[View] = []
     for (im, image_path), t in zip(entries, is_test):
         intr, dist = intr_cache[im.camera_id]
-        c2w = invert_rigid_np(colmap_w2c(im.qvec, im.tvec))
+        c2w = invert_rigid(colmap_w2c(im.qvec, im.tvec))
         v = View(
             name=im.name,
             intrinsics=intr,

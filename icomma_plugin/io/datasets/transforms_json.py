@@ -47,6 +47,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from icomma_plugin.camera import Intrinsics
+from icomma_plugin.pose.convert import as_rigid
 
 from .base import (
     IMAGE_EXTENSIONS,
@@ -56,7 +57,6 @@ from .base import (
     SceneData,
     View,
     background_of,
-    check_pose,
     holdout_split,
     image_size,
     name_matches,
@@ -145,7 +145,7 @@ def frame_pose(frame: Dict[str, Any], where: str) -> np.ndarray:
     if m.shape not in ((4, 4), (3, 4)):
         raise DatasetError(f"{where}: key 'transform_matrix' must be 4x4 (or 3x4), got shape "
                            f"{m.shape}")
-    c2w = check_pose(m, f"{where}: key 'transform_matrix'").copy()
+    c2w = as_rigid(m, f"{where}: key 'transform_matrix'", DatasetError)
     c2w[:3, 1:3] *= -1.0  # OpenGL (y up, z back) -> OpenCV (y down, z forward)
     return c2w
 

@@ -214,11 +214,11 @@ def test_bad_input_names_what_is_wrong(tmp_path):
         as_named_poses("frame.png")
     sheared = np.eye(4)
     sheared[0, 1] = 0.1
-    with pytest.raises(ValueError, match="'x.png'.*not a rotation"):
+    with pytest.raises(ValueError, match="'x.png'.*not orthonormal"):
         NamedPose("x.png", sheared, intr)
     with pytest.raises(ValueError, match=r"shape \[4, 4\]"):
         NamedPose("x.png", np.eye(3), intr)
-    with pytest.raises(ValueError, match="non-finite"):
+    with pytest.raises(ValueError, match="NaN or infinite"):
         NamedPose("x.png", np.full((4, 4), np.nan), intr)
     with pytest.raises(ValueError, match="name must be"):
         NamedPose("", np.eye(4), intr)
@@ -251,3 +251,28 @@ def test_lego_views_round_trip(lego_root, tmp_path):
     _write_images(tmp_path / "cm" / "images", as_named_poses(views))
     back = read_colmap(tmp_path / "cm", eval=False).train
     _assert_same(as_named_poses(views), {v.name: (v.c2w, v.intrinsics) for v in back}, tol=1e-6)
+
+
+def test_one_pose_tolerance_everywhere(tmp_path):
+    # A rotation orthonormal to 4e-4 (a pose typed with 4 decimals) is accepted by every reader
+    # and by the export alike; one at 5e-3 by none (pose.convert.RIGID_ATOL).
+    from icomma_plugin.app.inputs import read_poses_file
+    from icomma_plugin.pose.convert import RIGID_ATOL, as_rigid
+
+    intr = Intrinsics(48, 32, 40.0, 40.0)
+    for err, ok in ((0.2 * RIGID_ATOL, True), (5 * RIGID_ATOL, False)):
+        c2w = np.eye(4)
+        c2w[0, 0] = 1.0 + err
+        text = tmp_path / f"poses_{ok}.txt"
+        text.write_text("a.png " + " ".join(f"{v:.6f}" for v in c2w.ravel()) + "\n")
+        checks = [
+            lambda: as_rigid(c2w, "c2w"),
+            lambda: NamedPose("a.png", c2w, intr),
+            lambda: read_poses_file(text, "data.init.poses_file"),
+        ]
+        for check in checks:
+            if ok:
+                check()
+            else:
+                with pytest.raises(ValueError, match="orthonormal"):
+                    check()

@@ -5,7 +5,6 @@ import pytest
 import torch
 
 from icomma_plugin.pose.convert import (
-    c2w_to_w2c,
     invert_rigid,
     look_at_c2w,
     opencv_to_opengl_c2w,
@@ -15,7 +14,6 @@ from icomma_plugin.pose.convert import (
     rotation_about_axis,
     rotation_error_deg,
     translation_error,
-    w2c_to_c2w,
 )
 from icomma_plugin.pose.se3 import se3_exp
 
@@ -27,15 +25,21 @@ def _random_rigid(seed=0, n=None):
 
 
 def test_invert_rigid_numpy_and_torch():
-    T = _random_rigid(0, 5)
-    assert np.allclose(invert_rigid(T), np.linalg.inv(T), atol=1e-12)
-    Tt = torch.from_numpy(T).float().requires_grad_()
+    # Against two independent constructions: the general matrix inverse, and exp(-xi) for
+    # T = exp(xi) (batched, float64).
+    xi = torch.randn(2, 3, 6, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    T = se3_exp(xi)
+    assert torch.allclose(invert_rigid(T), se3_exp(-xi), atol=1e-12)
+    assert torch.allclose(invert_rigid(T) @ T, torch.eye(4, dtype=torch.float64).expand(2, 3, 4, 4))
+    Tn = _random_rigid(0, 5)
+    assert np.allclose(invert_rigid(Tn), np.linalg.inv(Tn), atol=1e-12)
+    assert isinstance(invert_rigid(Tn), np.ndarray)
+    Tt = torch.from_numpy(Tn).float().requires_grad_()
     inv = invert_rigid(Tt)
     assert inv.dtype == torch.float32
     assert torch.allclose(inv @ Tt, torch.eye(4).expand(5, 4, 4), atol=1e-5)
     inv.sum().backward()
     assert torch.isfinite(Tt.grad).all()
-    assert np.allclose(w2c_to_c2w(c2w_to_w2c(T)), T, atol=1e-12)
 
 
 def test_camera_looking_at_origin_opencv():
@@ -43,7 +47,7 @@ def test_camera_looking_at_origin_opencv():
     # origin 4 units straight ahead.
     c2w = np.eye(4)
     c2w[:3, 3] = [0, 0, -4]
-    w2c = c2w_to_w2c(c2w)
+    w2c = invert_rigid(c2w)
     assert np.allclose(w2c @ [0, 0, 0, 1], [0, 0, 4, 1])
     # The same pose from look_at with world "up" = -y: image y points along +y (down).
     la = look_at_c2w([0, 0, -4], [0, 0, 0], up=[0, -1, 0])
@@ -57,7 +61,7 @@ def test_look_at_general():
     c2w = look_at_c2w([3.0, -2.0, 1.5], [0.1, 0.2, -0.3], up=[0, 0, 1])
     R = c2w[:3, :3]
     assert np.allclose(R.T @ R, np.eye(3)) and np.isclose(np.linalg.det(R), 1.0)
-    x_cam = c2w_to_w2c(c2w) @ [0.1, 0.2, -0.3, 1]
+    x_cam = invert_rigid(c2w) @ [0.1, 0.2, -0.3, 1]
     assert np.allclose(x_cam[:2], 0, atol=1e-12) and x_cam[2] > 0
     # World up (+z) appears towards the top of the image (negative camera y).
     up_cam = R.T @ [0, 0, 1]
@@ -73,7 +77,7 @@ def test_opengl_blender_pose_converted():
     c2w_cv = opengl_to_opencv_c2w(c2w_gl)
     assert np.allclose(c2w_cv[:3, :3], np.diag([1.0, -1.0, -1.0]))
     assert np.allclose(c2w_cv[:3, 3], [0, 0, 4])
-    w2c = c2w_to_w2c(c2w_cv)
+    w2c = invert_rigid(c2w_cv)
     assert np.allclose(w2c @ [0, 0, 0, 1], [0, 0, 4, 1])  # origin in front, on the axis
     assert (w2c @ [0, 1, 0, 1])[1] < 0  # world +y (Blender up here) is up in the image
     assert np.allclose(opencv_to_opengl_c2w(c2w_cv), c2w_gl)

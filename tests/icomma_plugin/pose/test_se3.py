@@ -7,7 +7,6 @@ from torch.autograd import gradcheck
 from icomma_plugin.pose.se3 import (
     hat,
     se3_exp,
-    se3_inverse,
     se3_log,
     so3_exp,
     so3_left_jacobian,
@@ -93,13 +92,12 @@ def test_log_exactly_pi():
     assert torch.isfinite(g).all()
 
 
-def test_batched_shapes_and_inverse():
-    xi = torch.randn(2, 3, 6, dtype=torch.float64)
+def test_batched_shapes():
+    xi = 0.5 * torch.randn(2, 3, 6, generator=torch.Generator().manual_seed(0),
+                           dtype=torch.float64)  # rotations well below pi: log inverts exp
     T = se3_exp(xi)
     assert T.shape == (2, 3, 4, 4)
-    assert se3_log(T).shape == (2, 3, 6)
-    assert torch.allclose(se3_inverse(T) @ T, torch.eye(4, dtype=torch.float64).expand(2, 3, 4, 4))
-    assert torch.allclose(se3_exp(-xi), se3_inverse(T))
+    assert torch.allclose(se3_log(T), xi, atol=1e-10)
 
 
 @pytest.mark.parametrize("angle", [0.0, 1e-4, 0.03, 0.7, 2.5, math.pi - 1e-3])
