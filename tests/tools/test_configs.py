@@ -6,8 +6,10 @@ YAML defaults do not drift from the code's, and only tools/ imports Hydra.
 from __future__ import annotations
 
 import dataclasses
+import sys
 
 import pytest
+import torch
 
 from icomma_plugin.localize import LocalizerConfig, RobustConfig
 from icomma_plugin.matchers import Matcher, available_matchers
@@ -45,18 +47,118 @@ def test_every_optimizer_builds_its_config(option):
         assert isinstance(built, LocalizerConfig) and built.use_matching == (option == "icomma")
 
 
+def _matches(matcher, image0, image1):
+    m = matcher.match(image0, image1)
+    return m.kpts0.numpy().tobytes(), m.kpts1.numpy().tobytes(), m.confidence.numpy().tobytes()
+
+
 @pytest.mark.parametrize("option", _options("matcher"))
-def test_every_matcher_builds_or_says_why_not(option):
+def test_every_matcher_builds_or_says_why_not(option, no_network, one_torch_thread):
+    """Each option builds the class it names, the same through the tools and Hydra's instantiate.
+
+    An option whose weights or modules are missing here is skipped with the reason (the weights
+    packages are pinned in requirements-weights.txt); none and loftr are checked as such.
+    """
+    from hydra.utils import instantiate
+
+    from icomma_plugin.matchers import matcher_from_config
+
     common = _tools_common()
     node = compose([f"matcher={option}"]).matcher
     if option == "none":
         assert common.build_matcher(node) == (None, None)
-    elif option == "loftr":  # needs a user checkpoint: a one-line error naming the key
-        with pytest.raises(ValueError, match="matcher.checkpoint"):
+        assert matcher_from_config(common.container(node)) is None
+        return
+    if option == "loftr":  # needs a user checkpoint: a one-line error naming the key
+        with pytest.raises(ValueError, match=r"^matcher\.checkpoint: .*outdoor_ds\.ckpt"):
             common.build_matcher(node)
-    elif available_matchers().get(option) is None:
-        matcher, name = common.build_matcher(node)
-        assert isinstance(matcher, Matcher) and name == option
+        return
+    reason = available_matchers()[option]
+    if reason is not None:
+        pytest.skip(f"matcher={option} cannot be built here: {reason}")
+    matcher, name = common.build_matcher(node)
+    assert isinstance(matcher, Matcher) and name == option
+    assert f"{type(matcher).__module__}.{type(matcher).__name__}" == node._target_
+    by_hydra = instantiate(node)
+    assert type(by_hydra) is type(matcher)
+    from tests.icomma_plugin.test_matchers import texture
+
+    pair = texture(128, 160), texture(128, 160, (3.0, -2.0))
+    assert _matches(by_hydra, *pair) == _matches(matcher, *pair)
+
+
+def test_matcher_overrides_reach_the_class():
+    common = _tools_common()
+    sift, _ = common.build_matcher(compose(["matcher=sift", "+matcher.ratio=0.6"]).matcher)
+    assert sift.ratio == 0.6
+    with pytest.raises(ValueError, match=r"^matcher\.ratio: ratio must be in"):
+        common.build_matcher(compose(["matcher=sift", "+matcher.ratio=1.5"]).matcher)
+    with pytest.raises(ValueError, match=r"^matcher\.checkpoint: checkpoint '/nonexistent/x.ckpt'"):
+        common.build_matcher(compose(["matcher=loftr", "matcher.checkpoint=/nonexistent/x.ckpt"])
+                             .matcher)
+    with pytest.raises(ValueError, match=r"^matcher\._target_: cannot import icomma_no_such"):
+        common.build_matcher(compose(["matcher=sift", "matcher._target_=icomma_no_such.M"])
+                             .matcher)
+
+
+#: A matcher in one module: a grid of image1 matched to the same points moved by `shift`.
+SHIFT_MATCHER_MODULE = '''
+import torch
+
+from icomma_plugin.matchers import Matcher, Matches
+
+
+class ShiftMatcher(Matcher):
+    name = "shift"
+
+    def __init__(self, shift=(0.0, 0.0), step=12, **kwargs):
+        super().__init__(**kwargs)
+        self.shift = torch.tensor([float(v) for v in shift])
+        self.step = int(step)
+
+    def _match(self, image0, image1):
+        h, w = image1.shape[1:]
+        ys, xs = torch.meshgrid(torch.arange(16, h - 16, self.step),
+                                torch.arange(16, w - 16, self.step), indexing="ij")
+        kpts1 = torch.stack([xs.reshape(-1), ys.reshape(-1)], -1).float()
+        return Matches(kpts1 + self.shift, kpts1, torch.ones(len(kpts1)))
+'''
+
+
+def test_a_new_matcher_is_one_module_and_one_yaml(tmp_path, monkeypatch, one_torch_thread):
+    """A matcher module and its yaml, nothing else: the tools and Hydra build and run it.
+
+    Nothing in the package or conf/ is edited: the module is on sys.path, the yaml on the config
+    search path; the tools, matcher_from_config and Hydra's instantiate build the same matcher.
+    """
+    from hydra.utils import instantiate
+
+    from icomma_plugin.matchers import matcher_from_config
+    from tests.icomma_plugin.test_matchers import texture
+
+    module = "icomma_test_shift_matcher"
+    (tmp_path / f"{module}.py").write_text(SHIFT_MATCHER_MODULE)
+    (tmp_path / "conf" / "matcher").mkdir(parents=True)
+    (tmp_path / "conf" / "matcher" / "shift.yaml").write_text(
+        f"_target_: {module}.ShiftMatcher\nshift: [2, -1]\nstep: 12\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, module, raising=False)
+    node = compose([f"hydra.searchpath=[file://{tmp_path / 'conf'}]", "matcher=shift"]).matcher
+    matcher, name = _tools_common().build_matcher(node)
+    assert name == "shift" and type(matcher).__module__ == module
+    query = texture(128, 128)
+    render = texture(128, 128, (2.4, -1.3)).requires_grad_(True)
+    m = matcher.match(render, query)
+    assert len(m) == 64 and torch.equal(m.kpts0 - m.kpts1, torch.tensor([2.0, -1.0]).expand(64, 2))
+    # the base class gives it the differentiable refinement: the true sub-pixel shift, gradients
+    md = matcher.match(render, query, differentiable=True)
+    assert float((md.kpts0.detach() - md.kpts1 - torch.tensor([2.4, -1.3])).abs().max()) < 0.1
+    md.kpts0.sum().backward()
+    assert float(render.grad.abs().sum()) > 0
+    for other in (matcher_from_config(_tools_common().container(node)), instantiate(node)):
+        assert type(other) is type(matcher) and torch.equal(other.shift, matcher.shift)
+    monkeypatch.delitem(sys.modules, module)
 
 
 @pytest.mark.parametrize("option", _options("renderer"))
