@@ -130,9 +130,15 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument(
         "--evaluate",
         action="store_true",
-        help="fit nothing: print train / test PSNR (valid pixels) of the model "
-        "folder -m on its dataset (-s, default: its cfg_args source_path; -r "
-        "likewise)",
+        help="fit nothing: print train / test PSNR (valid pixels; with and without exposure) of "
+        "the model folder -m on its dataset (-s, default: its cfg_args source_path; -r "
+        "likewise) and write a grid of held-out photos beside their renders (--grid)",
+    )
+    p.add_argument(
+        "--grid",
+        default=None,
+        help="--evaluate: the PNG of held-out photos | renders | differences (default: "
+        "MODEL/eval_test_grid.png; 'none': no picture)",
     )
     return p.parse_args(argv)
 
@@ -173,12 +179,14 @@ def evaluate(args: argparse.Namespace) -> int:
     """--evaluate: PSNR of an existing model folder, printed as JSON."""
     from icomma_plugin.fit import evaluate_model_folder
 
+    grid = args.grid if args.grid is not None else str(Path(args.model) / "eval_test_grid.png")
     try:
         res = evaluate_model_folder(
             args.model,
             args.source,
             None if args.resolution == -1 else args.resolution,
             backend=args.backend,
+            grid=None if grid.lower() == "none" else grid,
         )
     except ValueError as e:
         log.error("%s", e)

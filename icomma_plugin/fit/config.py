@@ -57,6 +57,24 @@ class FitConfig:
     num_sweep_points: int = 20_000
     max_init_points: int = 200_000  # a bigger dataset cloud is subsampled
     init_opacity: float = 0.1
+    # far field (photographed captures only): this many points on a shell beyond the cameras,
+    # coloured by the photos (init.far_field_points); its radius is the LLFF far bound, else
+    # far_field_factor x the largest camera distance from the scene centre. 0: none.
+    far_field_points: int = 10_000
+    far_field_factor: float = 2.0
+    # size thresholds of densification and pruning (percent_dense, 0.1 x extent) grow with a
+    # Gaussian's distance from the cameras' centre beyond the extent (room-scale scenes)
+    distance_scaled_thresholds: bool = True
+    # per-photo exposure (exposure.py; upstream --train_test_exp): None = on for photographed
+    # captures, off for synthetic object renders
+    exposure: Optional[bool] = None
+    exposure_lr_init: float = 1e-2
+    exposure_lr_final: float = 1e-3
+    # coarse-to-fine: where the coarse levels end, as fractions of the run, coarsest first:
+    # (0.1, 0.3) trains at 1/4 size until 10 %, at 1/2 until 30 %, at full size after; (0.3,)
+    # at 1/2 until 30 %; () at full size throughout. A level that would make an image side
+    # shorter than 32 px is trained at the next finer one.
+    coarse_to_fine: Tuple[float, ...] = ()
     # rendering / data
     backend: str = "auto"
     random_background: bool = False
@@ -76,6 +94,7 @@ class FitConfig:
             "num_random_points": 1,
             "max_init_points": 1,
             "num_sweep_points": 1,
+            "far_field_points": 0,
             "densify_from_iter": 0,
             "densify_until_iter": 0,
             "eval_interval": 0,
@@ -102,6 +121,19 @@ class FitConfig:
             raise ValueError(
                 f"FitConfig.backend must be auto|reference|cpu|cuda, got {self.backend!r}"
             )
+        if not (isinstance(self.far_field_factor, (int, float)) and self.far_field_factor > 1.0):
+            raise ValueError(f"FitConfig.far_field_factor must be > 1 (beyond the cameras), got "
+                             f"{self.far_field_factor!r}")
+        if self.exposure not in (None, True, False):
+            raise ValueError(f"FitConfig.exposure must be None (auto), True or False, got "
+                             f"{self.exposure!r}")
+        self.coarse_to_fine = tuple(float(f) for f in self.coarse_to_fine)
+        if len(self.coarse_to_fine) > 2 or any(
+                not 0.0 <= f <= 1.0 for f in self.coarse_to_fine) or list(
+                self.coarse_to_fine) != sorted(self.coarse_to_fine):
+            raise ValueError(f"FitConfig.coarse_to_fine must be at most 2 increasing fractions in "
+                             f"[0, 1] (where the coarse levels end, coarsest first), got "
+                             f"{self.coarse_to_fine!r}")
         self.save_iterations = tuple(int(i) for i in self.save_iterations)
         for i in self.save_iterations:
             if i < 1:
@@ -133,6 +165,7 @@ class FitConfig:
         """The fields as a JSON-friendly dict (``save_iterations`` as a list)."""
         d = asdict(self)
         d["save_iterations"] = list(self.save_iterations)
+        d["coarse_to_fine"] = list(self.coarse_to_fine)
         return d
 
     @classmethod

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from dataclasses import dataclass
 from typing import Optional, Sequence, Tuple
 
 import numpy as np
@@ -123,6 +124,7 @@ def plane_sweep_points(
     near_frac: float = 0.25,
     far_frac: float = 2.5,
     min_contrast: float = 0.02,
+    bounds: Optional[Sequence[Tuple[float, float]]] = None,
 ) -> Tuple[np.ndarray, np.ndarray]:
     """Initial points for a posed capture without a point cloud: a coarse plane sweep.
 
@@ -148,6 +150,8 @@ def plane_sweep_points(
         near_frac: the nearest depth, in units of the camera's distance to `center`.
         far_frac: the farthest depth, in the same units.
         min_contrast: the ray's median cost must exceed this (a uniform region has no depth).
+        bounds: per view (near, far) depth bounds (LLFF); when given, the hypotheses span
+            0.9 near .. far of each view instead of `near_frac` .. `far_frac`.
 
     Returns:
         (xyz [n, 3] float32, rgb [n, 3] float32 in [0, 1]).
@@ -177,7 +181,10 @@ def plane_sweep_points(
         rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
         R, t = w2c[:3, :3], w2c[:3, 3]
         d_c = max(float(np.linalg.norm(centres[r] - c)), 1e-3 * half_extent)
-        inv = np.linspace(1.0 / (near_frac * d_c), 1.0 / (far_frac * d_c), depths)
+        near, far = near_frac * d_c, far_frac * d_c
+        if bounds is not None and bounds[r][0] > 0 and bounds[r][1] > bounds[r][0]:
+            near, far = 0.9 * bounds[r][0], bounds[r][1]
+        inv = np.linspace(1.0 / near, 1.0 / far, depths)
         X = ((rays[:, None, :] / inv[None, :, None]) - t) @ R  # [P, D, 3] world (R^T (x - t))
         cos = axes @ axes[r]
         dist = np.linalg.norm(centres - centres[r], axis=1)
@@ -238,3 +245,163 @@ def plane_sweep_points(
         xyz = np.concatenate([xyz, fill])
         rgb = np.concatenate([rgb, np.full((len(fill), 3), 0.5)])
     return xyz.astype(np.float32), np.clip(rgb, 0.0, 1.0).astype(np.float32)
+
+
+def fibonacci_sphere(n: int) -> np.ndarray:
+    """n nearly evenly spread unit vectors [n, 3] (golden-angle spiral)."""
+    if n < 1:
+        raise ValueError(f"n (number of directions) must be >= 1, got {n!r}")
+    k = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * k / n
+    r = np.sqrt(np.clip(1.0 - z * z, 0.0, None))
+    phi = k * math.pi * (3.0 - math.sqrt(5.0))
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def far_field_points(
+    views, center: Sequence[float], radius: float, n: int, max_views: int = 24,
+) -> Tuple[np.ndarray, np.ndarray]:
+    """Points on a sphere of `radius` around `center`, coloured by the photos that see them.
+
+    The background of a capture (walls, the room behind the object) lies beyond the cameras,
+    where no plane sweep or random box reaches; a shell of Gaussians there lets the fit explain
+    it from the first step instead of growing fog in front of it. Each of `n` directions is
+    projected into up to `max_views` training views (evenly spaced); its colour is the median of
+    the (3x3-blurred) pixels of the views where it lands on a valid pixel, in front of the camera.
+    Directions seen by no view are dropped.
+
+    Args:
+        views: FitView-like objects (`image [3, H, W]`, `intrinsics`, `w2c [4, 4]`, `valid`).
+        center: the shell's centre (world).
+        radius: its radius; must exceed every camera's distance to `center`.
+        n: directions on the sphere.
+        max_views: views sampled for the colours.
+
+    Returns:
+        (xyz [m, 3] float32, rgb [m, 3] float32 in [0, 1]), m <= n.
+    """
+    c = np.asarray(center, np.float64)
+    if not (math.isfinite(radius) and radius > 0):
+        raise ValueError(f"radius must be a positive finite number, got {radius!r}")
+    pick = np.unique(np.linspace(0, len(views) - 1, min(max_views, len(views))).round().astype(int))
+    xyz = c + radius * fibonacci_sphere(n)
+    samples = np.full((len(pick), n, 3), np.nan)
+    for row, i in enumerate(pick):
+        K, w2c, img, valid = _view_arrays(views[i])
+        xc = xyz @ w2c[:3, :3].T + w2c[:3, 3]
+        z = xc[:, 2]
+        zs = np.where(z > 1e-6, z, 1.0)
+        u = K[0, 0] * xc[:, 0] / zs + K[0, 2]
+        v = K[1, 1] * xc[:, 1] / zs + K[1, 2]
+        H, W = img.shape[1:]
+        inside = (z > 1e-6) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+        if valid is not None:
+            inside &= valid[np.clip(np.rint(v), 0, H - 1).astype(int),
+                            np.clip(np.rint(u), 0, W - 1).astype(int)]
+        if not inside.any():
+            continue
+        blurred = torch.nn.functional.avg_pool2d(img[None], 3, 1, 1, count_include_pad=False)[0]
+        col = _sample(blurred, u[inside], v[inside]).numpy().T
+        samples[row, inside] = col
+    seen = np.isfinite(samples[:, :, 0]).any(axis=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        rgb = np.nanmedian(samples[:, seen], axis=0)
+    return xyz[seen].astype(np.float32), np.clip(rgb, 0.0, 1.0).astype(np.float32)
+
+
+@dataclass
+class InitCloud:
+    """The fit's initial points: xyz [N, 3], rgb [N, 3] in [0, 1], where they came from.
+
+    source: "dataset" (the capture's cloud), "views" (plane sweep), "random_box" (uniform in the
+    camera box) or "random" (upstream's Blender cube); far_points: how many of the N (the last
+    ones) lie on the far-field shell; centre / radius: that shell's.
+    """
+
+    xyz: np.ndarray
+    rgb: np.ndarray
+    source: str
+    far_points: int = 0
+    centre: Optional[Tuple[float, float, float]] = None
+    radius: Optional[float] = None
+
+
+def image_has_alpha(path) -> bool:
+    """Whether an image file carries an alpha channel (read from its header)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return im.mode in ("RGBA", "LA", "PA", "RGBa", "La") or "transparency" in im.info
+    except Exception:  # noqa: BLE001 - unreadable here: the loader will say why
+        return False
+
+
+def is_object_render(scene) -> bool:
+    """A synthetic object on a transparent background (NeRF-synthetic), not a photographed scene.
+
+    True for a Blender-layout dataset whose images have an alpha channel: it keeps upstream's
+    random cube and gets no far field (its background is the flat colour it is composited on).
+    """
+    views = scene.train or scene.test
+    return scene.source == "blender" and bool(views) and image_has_alpha(views[0].image_path)
+
+
+def far_field_radius(scene, centre: np.ndarray, factor: float) -> float:
+    """Radius of the far-field shell around `centre`.
+
+    With LLFF depth bounds: the 90th percentile of the views' far bounds; without: `factor` x
+    the largest camera distance to `centre`. At least 1.2 x that distance (the shell encloses
+    every camera).
+    """
+    views = scene.train or scene.test
+    dist = max(float(np.linalg.norm(v.campos - centre)) for v in views)
+    far = [v.bounds[1] for v in views if v.bounds is not None]
+    radius = float(np.percentile(far, 90)) if far else factor * dist
+    return max(radius, 1.2 * dist, 1e-6)
+
+
+def initial_points(scene, train, config) -> InitCloud:
+    """The initial cloud of a fit: wherever the capture has points, else made from the photos.
+
+    - a synthetic object render (`is_object_render`): upstream's random cube;
+    - a capture with a point cloud (COLMAP, LLFF with a sparse model beside it, a
+      transforms.json `ply_file_path`): that cloud, subsampled to `config.max_init_points`;
+    - any other capture (LLFF, transforms.json or a Blender layout of photos, without points): a
+      plane sweep over the training views in the camera box (`config.box_init == "views"`) or
+      uniform random points in that box;
+    then, for every photographed capture, `config.far_field_points` on a shell beyond the
+    cameras (`far_field_points`, `far_field_radius`).
+    """
+    from ..io.datasets.transforms_json import camera_box
+
+    if is_object_render(scene):
+        xyz, rgb = random_cube_points(config.num_random_points, config.random_points_half_extent,
+                                      config.seed)
+        return InitCloud(xyz, rgb, "random")
+    box = scene.init_box
+    if box is None:
+        centre, half = camera_box([v.c2w for v in scene.train])
+        box = (tuple(float(c) for c in centre), half)
+    centre, half = np.asarray(box[0], np.float64), float(box[1])
+    if scene.points is not None and len(scene.points) > 0 and scene.init_box is None:
+        colors = scene.colors if scene.colors is not None else np.full_like(scene.points, 0.5)
+        xyz, rgb = subsample_points(np.asarray(scene.points), np.asarray(colors),
+                                    config.max_init_points, config.seed)
+        source = "dataset"
+    elif config.box_init == "views" and len(train) >= 2:
+        bounds = [v.bounds for v in scene.train]
+        xyz, rgb = plane_sweep_points(train, centre, half, config.num_sweep_points, config.seed,
+                                      bounds=bounds if all(b is not None for b in bounds) else None)
+        source = "views"
+    else:
+        xyz, rgb = random_cube_points(config.num_random_points, half, config.seed)
+        xyz, source = xyz + centre.astype(np.float32), "random_box"
+    xyz, rgb = np.asarray(xyz, np.float32), np.asarray(rgb, np.float32)
+    if config.far_field_points <= 0:
+        return InitCloud(xyz, rgb, source)
+    radius = far_field_radius(scene, centre, config.far_field_factor)
+    fxyz, frgb = far_field_points(train, centre, radius, config.far_field_points)
+    return InitCloud(np.concatenate([xyz, fxyz]), np.concatenate([rgb, frgb]), source,
+                     far_points=len(fxyz), centre=tuple(float(c) for c in centre), radius=radius)

@@ -5,10 +5,12 @@
 
 Writes (icomma_plugin.io.model_folder.write_model_folder): cfg_args, cameras.json (test then
 train, original sizes), input.ply (the init cloud), point_cloud/iteration_N/point_cloud.ply at
-the configured save iterations and the last one, plus metrics.json (test PSNR, iterations,
-Gaussian count, seconds, resolution). The folder is built in a hidden staging folder beside the
-target and renamed into place at the end, so a model folder is never half-written, and an
-existing one is replaced only with `overwrite=True`.
+the configured save iterations and the last one, exposure.json when per-photo exposures were
+fitted (upstream's file: {image name: 3x4}; renders never use it), plus metrics.json (train and
+test PSNR with and without exposure, iterations, Gaussian count, seconds, resolution, init).
+The folder is built in a hidden staging folder beside the target and renamed into place at the
+end, so a model folder is never half-written, and an existing one is replaced only with
+`overwrite=True`.
 
 Resolution (upstream `-r`): -1 (auto: native size, widths above 1600 scaled to 1600), 1, 2, 4, 8
 (divide the size), any other positive int (target width). `downscale` (a positive float factor)
@@ -30,8 +32,9 @@ import torch
 
 from ..io.atomic import write_json_atomic
 from .config import FitConfig
-from .init import model_from_points, plane_sweep_points, random_cube_points, subsample_points
-from .trainer import FitResult, FitView, ProgressFn, Trainer
+from .evaluate import evaluate_views
+from .init import InitCloud, initial_points, is_object_render, model_from_points
+from .trainer import FitResult, FitView, ProgressFn, Trainer, render_state
 
 log = logging.getLogger(__name__)
 
@@ -171,6 +174,42 @@ def _staging_path(final: Path) -> Path:
     return final.parent / f".{final.name}.partial"
 
 
+def _check_paths(source_path: PathLike, model_path: PathLike, overwrite: bool):
+    """(dataset folder, model folder) resolved; ValueError naming the bad argument."""
+    if source_path is None or str(source_path) == "":
+        raise ValueError("source_path must be a dataset folder, got an empty value")
+    src = Path(source_path).expanduser().resolve()
+    if not src.is_dir():
+        raise ValueError(
+            f"source_path must be an existing dataset folder, got {str(source_path)!r} "
+            f"({'not a folder' if src.exists() else 'does not exist'})"
+        )
+    if model_path is None or str(model_path) == "":
+        raise ValueError("model_path must be a folder path, got an empty value")
+    final = Path(model_path).expanduser().resolve()
+    if final.exists() and not overwrite:
+        raise ModelFolderExistsError(
+            f"model_path {str(final)!r} already exists; pass overwrite=True "
+            "(--overwrite) to replace it"
+        )
+    return src, final
+
+
+def _read_scene(src: Path, white_background: Optional[bool], dataset_kwargs: Optional[dict]):
+    """The dataset, white for Blender scenes unless told (the NeRF convention)."""
+    from ..io.datasets import detect_dataset_kind, read_dataset
+
+    kind = detect_dataset_kind(src)
+    if white_background is None:
+        white_background = kind == "blender"
+    kwargs = dict(dataset_kwargs or {})
+    kwargs.setdefault("white_background", bool(white_background))
+    scene = read_dataset(src, kind=kind, **kwargs)
+    if not scene.train:
+        raise ValueError(f"source_path {str(src)!r}: the dataset has no training views")
+    return scene
+
+
 def fit_scene(
     source_path: PathLike,
     model_path: PathLike,
@@ -188,37 +227,15 @@ def fit_scene(
     """Read the dataset at `source_path`, fit, and write the model folder `model_path`.
 
     white_background: None picks white for Blender/NeRF-synthetic scenes (the NeRF convention),
-    black otherwise.
+    black otherwise. The initial points are `init.initial_points`'; per-photo exposures are
+    fitted when `config.exposure` says so (None: for photographed captures).
     """
-    from ..io.datasets import detect_dataset_kind, read_dataset
     from ..io.model_folder import write_model_folder
 
     t_total = time.perf_counter()
     config = config or FitConfig()
-    if source_path is None or str(source_path) == "":
-        raise ValueError("source_path must be a dataset folder, got an empty value")
-    src = Path(source_path).expanduser().resolve()
-    if not src.is_dir():
-        raise ValueError(
-            f"source_path must be an existing dataset folder, got {str(source_path)!r} "
-            f"({'not a folder' if src.exists() else 'does not exist'})"
-        )
-    if model_path is None or str(model_path) == "":
-        raise ValueError("model_path must be a folder path, got an empty value")
-    final = Path(model_path).expanduser().resolve()
-    if final.exists() and not overwrite:
-        raise ModelFolderExistsError(
-            f"model_path {str(final)!r} already exists; pass overwrite=True "
-            "(--overwrite) to replace it"
-        )
-    kind = detect_dataset_kind(src)
-    if white_background is None:
-        white_background = kind == "blender"
-    kwargs = dict(dataset_kwargs or {})
-    kwargs.setdefault("white_background", bool(white_background))
-    scene = read_dataset(src, kind=kind, **kwargs)
-    if not scene.train:
-        raise ValueError(f"source_path {str(src)!r}: the dataset has no training views")
+    src, final = _check_paths(source_path, model_path, overwrite)
+    scene = _read_scene(src, white_background, dataset_kwargs)
     # validate the resolution before loading anything heavy
     w0 = scene.train[0].intrinsics.width
     resolution_scale(resolution, downscale, w0)
@@ -234,33 +251,17 @@ def fit_scene(
     )
     test_idx = _subset(len(scene.test), config.eval_views)
     test = views_to_fit([scene.test[i] for i in test_idx], resolution, downscale, bg, device=dev)
-    W, H = train[0].intrinsics.width, train[0].intrinsics.height
-    log.info("images at %dx%d; %d test views for evaluation", W, H, len(test))
+    log.info("images at %dx%d; %d test views for evaluation", train[0].intrinsics.width,
+             train[0].intrinsics.height, len(test))
 
-    # initial point cloud
-    if scene.init_box is not None:  # the reader's points are a random placeholder
-        centre, half = scene.init_box
-        if config.box_init == "views":
-            xyz, rgb = plane_sweep_points(train, centre, half, config.num_sweep_points,
-                                          config.seed)
-            init_source = "views"
-        else:
-            xyz, rgb = random_cube_points(config.num_random_points, half, config.seed)
-            xyz = xyz + np.asarray(centre, np.float32)
-            init_source = "random_box"
-    elif scene.points is not None and len(scene.points) > 0:
-        xyz, rgb = np.asarray(scene.points), np.asarray(scene.colors if scene.colors is not None
-                                                         else np.full_like(scene.points, 0.5))
-        xyz, rgb = subsample_points(xyz, rgb, config.max_init_points, config.seed)
-        init_source = "dataset"
-    else:
-        xyz, rgb = random_cube_points(
-            config.num_random_points, config.random_points_half_extent, config.seed
-        )
-        init_source = "random"
-    init = model_from_points(xyz, rgb, config.sh_degree, config.init_opacity, device=dev)
+    t_init = time.perf_counter()
+    cloud = initial_points(scene, train, config)
+    init = model_from_points(cloud.xyz, cloud.rgb, config.sh_degree, config.init_opacity,
+                             device=dev)
+    seconds_init = time.perf_counter() - t_init
     extent = scene.scene_radius()
-    log.info("init: %d points (%s); scene extent %.3f", init.num_gaussians, init_source, extent)
+    log.info("init: %d points (%s, %d far field, %.1f s); scene extent %.3f", init.num_gaussians,
+             cloud.source, cloud.far_points, seconds_init, extent)
 
     cfg = {
         "data_device": "cpu",
@@ -278,40 +279,72 @@ def fit_scene(
         shutil.rmtree(staging)
 
     def on_save(iteration, model):
-        write_model_folder(staging, model, cfg, cameras, iteration, input_points=(xyz, rgb))
+        write_model_folder(staging, model, cfg, cameras, iteration,
+                           input_points=(cloud.xyz, cloud.rgb))
         log.info("saved iteration %d (%d Gaussians)", iteration, model.num_gaussians)
 
+    exposure = config.exposure if config.exposure is not None else not is_object_render(scene)
     trainer = Trainer(init, train, extent, config, background=bg, test=test, progress=progress,
-                      on_save=on_save, progress_every=progress_every)
+                      on_save=on_save, progress_every=progress_every,
+                      scene_centre=scene.scene_center(), exposure=exposure)
     result = trainer.run()
-    train_psnr = trainer.evaluate(train)
-    log.info("final: train PSNR %.2f dB over %d views", train_psnr, len(train))
-    metrics = {
-        "test_psnr": result.test_psnr,
-        "train_psnr": train_psnr,
-        "train_views": len(train),
-        "test_views": result.test_views,
+    metrics = _fit_metrics(trainer, result, train, test, cloud)
+    metrics.update({
         "test_views_total": len(scene.test),
-        "iterations": result.iterations,
-        "num_gaussians": result.num_gaussians,
-        "seconds_train": round(result.seconds_train, 2),
-        "seconds_cpu": None if result.seconds_cpu is None else round(result.seconds_cpu, 2),
-        "seconds_total": None,
-        "resolution": [W, H],
         "white_background": bool(scene.white_background),
-        "init": {"source": init_source, "points": int(len(xyz))},
         "scene_extent": extent,
         "backend": _backend_name(config.backend, dev),
-        "threads": torch.get_num_threads(),
-        "timings": {k: round(v, 2) for k, v in result.timings.items()},
-        "history": result.history,
+        "seconds_init": round(seconds_init, 2),
         "config": config.to_dict(),
-    }
+    })
+    if trainer.exposure is not None:
+        write_json_atomic(staging / "exposure.json",
+                          trainer.exposure.to_json([v.name for v in train]))
     metrics["seconds_total"] = round(time.perf_counter() - t_total, 2)
     write_json_atomic(staging / "metrics.json", metrics)
     _publish(staging, final, overwrite)
     log.info("model folder written: %s", final)
     return SceneFitResult(model_path=final, fit=result, metrics=metrics)
+
+
+def _fit_metrics(trainer: Trainer, result: FitResult, train, test, cloud: InitCloud) -> Dict:
+    """metrics.json's measurements: PSNRs (evaluate.py's figures), counts, seconds, init."""
+    def render(v):
+        return render_state(trainer.state, v, trainer.background, trainer.config.backend).color
+
+    with torch.no_grad():
+        exposures = None
+        if trainer.exposure is not None:
+            exposures = {v.name: trainer.exposure.matrix(i) for i, v in enumerate(train)}
+        tr = evaluate_views(render, train, exposures)["mean"]
+        te = evaluate_views(render, test)["mean"] if test else {}
+    log.info("final: train PSNR %.2f dB (%s with exposure) over %d views", tr["full"],
+             f"{tr['exposure']:.2f}" if "exposure" in tr else "-", len(train))
+    if te:
+        log.info("final: test PSNR %.2f dB; right halves %.2f dB, %.2f dB with the exposure of "
+                 "the left half", te["full"], te["right"], te["right_exposure"])
+    return {
+        "test_psnr": result.test_psnr,
+        "test_psnr_right_half": te.get("right"),
+        "test_psnr_right_half_exposure": te.get("right_exposure"),
+        "train_psnr": tr["full"],
+        "train_psnr_exposure": tr.get("exposure"),
+        "train_views": len(train),
+        "test_views": result.test_views,
+        "iterations": result.iterations,
+        "num_gaussians": result.num_gaussians,
+        "seconds_train": round(result.seconds_train, 2),
+        "seconds_cpu": None if result.seconds_cpu is None else round(result.seconds_cpu, 2),
+        "seconds_per_step": round(result.seconds_train / max(result.iterations, 1), 4),
+        "seconds_total": None,
+        "resolution": [train[0].intrinsics.width, train[0].intrinsics.height],
+        "init": {"source": cloud.source, "points": int(len(cloud.xyz)),
+                 "far_field_points": cloud.far_points, "far_field_radius": cloud.radius},
+        "exposure": trainer.exposure is not None,
+        "threads": torch.get_num_threads(),
+        "timings": {k: round(v, 2) for k, v in result.timings.items()},
+        "history": result.history,
+    }
 
 
 def _backend_name(backend: str, device: torch.device) -> str:
@@ -343,55 +376,3 @@ def _publish(staging: Path, final: Path, overwrite: bool) -> None:
         os.replace(staging, final)
 
 
-def evaluate_model_folder(model_path: PathLike, source_path: Optional[PathLike] = None,
-                          resolution: Optional[int] = None, backend: str = "auto",
-                          iteration: Optional[int] = None) -> Dict:
-    """Train and test PSNR of a model folder on its dataset, on valid pixels (as `fit_scene`).
-
-    Args:
-        model_path: a model folder (upstream layout).
-        source_path: the dataset; None: `source_path` of its cfg_args.
-        resolution: upstream `-r`; None: the cfg_args `resolution`.
-        backend: rasterizer backend.
-        iteration: the saved iteration (None: the last).
-
-    Returns:
-        {"train_psnr", "test_psnr" (None without test views), "train_views", "test_views",
-        "iteration", "num_gaussians", "resolution" [W, H], "per_view" {name: dB}}.
-    """
-    from ..io.datasets import read_dataset
-    from ..io.model_folder import load_model_folder
-    from ..render import render
-    from .losses import psnr
-
-    folder = load_model_folder(model_path, iteration)
-    src = source_path if source_path is not None else folder.cfg.get("source_path")
-    if not src:
-        raise ValueError(f"model folder {model_path}: cfg_args has no source_path; pass "
-                         "source_path")
-    res = folder.cfg.get("resolution", -1) if resolution is None else resolution
-    white = bool(folder.cfg.get("white_background", False))
-    scene = read_dataset(src, white_background=white)
-    bg = (1.0, 1.0, 1.0) if white else (0.0, 0.0, 0.0)
-    bg_t = torch.tensor(bg)
-    per_view: Dict[str, float] = {}
-    means = {}
-    size = None
-    for split, views in (("train", scene.train), ("test", scene.test)):
-        vals = []
-        for fv in views_to_fit(views, res, None, bg):
-            out = render(folder.model, fv.intrinsics, fv.w2c, bg_t, backend=backend)
-            vals.append(psnr(out.color, fv.image, fv.valid))
-            per_view[fv.name] = vals[-1]
-            size = [fv.intrinsics.width, fv.intrinsics.height]
-        means[split] = float(np.mean(vals)) if vals else None
-    return {
-        "train_psnr": means["train"],
-        "test_psnr": means["test"],
-        "train_views": len(scene.train),
-        "test_views": len(scene.test),
-        "iteration": folder.iteration,
-        "num_gaussians": folder.model.num_gaussians,
-        "resolution": size,
-        "per_view": per_view,
-    }

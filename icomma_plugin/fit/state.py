@@ -265,8 +265,24 @@ class GaussianTrainState:
         return out
 
     @torch.no_grad()
+    def size_factor(self, centre: Optional[torch.Tensor], scene_extent: float) -> torch.Tensor:
+        """Per Gaussian [P], max(1, distance to `centre` / `scene_extent`) (1 without a centre).
+
+        The size thresholds of densification (``percent_dense * extent``) and pruning
+        (``0.1 * extent``) are multiplied by it, so that they are about the same angle seen from
+        the cameras everywhere: a wall or sky Gaussian far beyond the cameras is not split or
+        pruned for a world size that is small where it stands.
+        """
+        means = self.params["means"].detach()
+        if centre is None:
+            return torch.ones(means.shape[0], dtype=means.dtype, device=means.device)
+        d = torch.linalg.vector_norm(means - centre.to(means), dim=1)
+        return torch.clamp(d / scene_extent, min=1.0)
+
+    @torch.no_grad()
     def densify_and_clone(self, grads: torch.Tensor, grad_threshold: float, scene_extent: float,
-                          budget: Optional[int] = None) -> int:
+                          budget: Optional[int] = None,
+                          size_factor: Optional[torch.Tensor] = None) -> int:
         """Upstream `densify_and_clone`: copy the small Gaussians with large gradients.
 
         Small: largest scale <= ``percent_dense * scene_extent``.
@@ -276,12 +292,16 @@ class GaussianTrainState:
             grad_threshold: clone where ``grads >= grad_threshold``.
             scene_extent: the scene's scale.
             budget: clone at most this many (those with the largest gradients); None: all.
+            size_factor: [P] multiplier of the size threshold (`size_factor`); None: 1.
 
         Returns:
             The number of Gaussians added.
         """
+        limit = self.percent_dense * scene_extent
+        if size_factor is not None:
+            limit = limit * size_factor
         selected = grads >= grad_threshold
-        selected &= self.scales().max(dim=1).values <= self.percent_dense * scene_extent
+        selected &= self.scales().max(dim=1).values <= limit
         if budget is not None:
             selected = self._budget_mask(selected, grads, budget)
         n = int(selected.sum())
@@ -291,7 +311,8 @@ class GaussianTrainState:
 
     @torch.no_grad()
     def densify_and_split(self, grads: torch.Tensor, grad_threshold: float, scene_extent: float,
-                          N: int = 2, budget: Optional[int] = None) -> int:
+                          N: int = 2, budget: Optional[int] = None,
+                          size_factor: Optional[torch.Tensor] = None) -> int:
         """Upstream `densify_and_split`: replace each large Gaussian with large gradients by N.
 
         The new ones are sampled from the old one's distribution, with scales / (0.8 N).
@@ -302,6 +323,7 @@ class GaussianTrainState:
             scene_extent: the scene's scale; large: largest scale > ``percent_dense * extent``.
             N: Gaussians made from each.
             budget: add at most this many Gaussians; None: no limit.
+            size_factor: [P] multiplier of the size threshold (`size_factor`); None: 1.
 
         Returns:
             The number of Gaussians split.
@@ -309,8 +331,11 @@ class GaussianTrainState:
         P = self.num_gaussians
         padded = torch.zeros(P, dtype=grads.dtype, device=grads.device)
         padded[: grads.shape[0]] = grads
+        limit = self.percent_dense * scene_extent
+        if size_factor is not None:
+            limit = limit * size_factor
         selected = padded >= grad_threshold
-        selected &= self.scales().max(dim=1).values > self.percent_dense * scene_extent
+        selected &= self.scales().max(dim=1).values > limit
         if budget is not None:
             selected = self._budget_mask(selected, padded, budget // max(N - 1, 1))
         n = int(selected.sum())
@@ -343,18 +368,30 @@ class GaussianTrainState:
         scene_extent: float,
         max_screen_size: Optional[float],
         max_gaussians: Optional[int] = None,
+        centre: Optional[torch.Tensor] = None,
     ) -> Dict[str, int]:
-        """Upstream `densify_and_prune` with an optional cap on the Gaussian count."""
+        """Upstream `densify_and_prune` with an optional cap on the Gaussian count.
+
+        With `centre` (the cameras' centre), the size thresholds grow with the distance from it
+        beyond `scene_extent` (`size_factor`).
+        """
         grads = self.mean_grads()
         budget = None if max_gaussians is None else max(0, max_gaussians - self.num_gaussians)
-        n_clone = self.densify_and_clone(grads, grad_threshold, scene_extent, budget)
+        factor = None if centre is None else self.size_factor(centre, scene_extent)
+        n_clone = self.densify_and_clone(grads, grad_threshold, scene_extent, budget, factor)
         if budget is not None:
             budget = max(0, budget - n_clone)
-        n_split = self.densify_and_split(grads, grad_threshold, scene_extent, budget=budget)
+        if factor is not None:
+            factor = self.size_factor(centre, scene_extent)  # the clones' too
+        n_split = self.densify_and_split(grads, grad_threshold, scene_extent, budget=budget,
+                                         size_factor=factor)
         remove = (self.opacities() < min_opacity).squeeze(1)
         if max_screen_size:
             big_vs = self.max_radii2D > max_screen_size
-            big_ws = self.scales().max(dim=1).values > 0.1 * scene_extent
+            limit = 0.1 * scene_extent
+            if centre is not None:
+                limit = limit * self.size_factor(centre, scene_extent)
+            big_ws = self.scales().max(dim=1).values > limit
             remove = remove | big_vs | big_ws
         n_prune = int(remove.sum())
         if n_prune:

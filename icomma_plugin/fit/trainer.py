@@ -25,6 +25,7 @@ from gaussian_renderer_pose import (
 from ..camera import Intrinsics
 from ..gaussians import GaussianModel
 from .config import FitConfig
+from .exposure import ExposureState
 from .losses import photometric_loss_and_grad, psnr
 from .state import GaussianTrainState, expon_lr
 
@@ -71,6 +72,29 @@ class FitView:
                 )
         if self.valid is not None and not bool(self.valid.any()):
             raise ValueError(f"FitView {self.name!r}: valid mask has no valid pixel")
+
+    def downsampled(self, factor: int) -> "FitView":
+        """This view at 1/`factor` of its size (area-averaged image, scaled intrinsics).
+
+        A pixel of the valid mask stays valid only if all of its source pixels were.
+        """
+        if factor == 1:
+            return self
+        intr = self.intrinsics.scaled(1.0 / factor)
+        size = (intr.height, intr.width)
+
+        def area(t):
+            if t is None:
+                return None
+            return torch.nn.functional.interpolate(t[None], size=size, mode="area")[0]
+
+        valid = area(self.valid)
+        if valid is not None:
+            valid = (valid >= 0.999).to(self.valid.dtype)
+            if not bool(valid.any()):
+                valid = None
+        return FitView(self.name, area(self.image).contiguous(), intr, self.w2c,
+                       alpha=area(self.alpha), valid=valid)
 
     def matrices(self, dtype: torch.dtype, device: torch.device):
         """Rasterizer matrices (cached; the pose is fixed during fitting)."""
@@ -136,7 +160,25 @@ class Trainer:
         progress: Optional[ProgressFn] = None,
         on_save: Optional[SaveFn] = None,
         progress_every: int = 10,
+        scene_centre: Optional[Sequence[float]] = None,
+        exposure: bool = False,
     ):
+        """Set up the optimisation.
+
+        Args:
+            init: the initial Gaussians.
+            train: the training views.
+            scene_extent: the scene's scale (upstream: 1.1 x the cameras' radius).
+            config: every constant of the fit.
+            background: the RGB the renders are composited over.
+            test: views to measure test PSNR on.
+            progress: called every `progress_every` iterations with (iteration, total, info).
+            on_save: called with (iteration, model) at the save iterations and at the end.
+            progress_every: see `progress`.
+            scene_centre: the cameras' centre; with `config.distance_scaled_thresholds`, the
+                size thresholds of densification grow with the distance from it.
+            exposure: optimise an affine colour transform per training view (`ExposureState`).
+        """
         if not train:
             raise ValueError("train must contain at least one view, got none")
         if not (
@@ -189,12 +231,36 @@ class Trainer:
         pixels = sum(v.intrinsics.width * v.intrinsics.height for v in self.train_views)
         self.max_gaussians = min(config.max_gaussians, max(1, int(
             config.max_gaussians_per_pixel * pixels / len(self.train_views))))
+        self.centre = None
+        if scene_centre is not None and config.distance_scaled_thresholds:
+            self.centre = torch.as_tensor(scene_centre, dtype=self.dtype, device=self.device)
+        self.exposure = ExposureState(len(self.train_views), config.exposure_lr_init,
+                                      config.exposure_lr_final, self.max_steps, self.dtype,
+                                      self.device) if exposure else None
+        self._levels: Dict[int, List[FitView]] = {1: self.train_views}
+        self.timings["exposure"] = 0.0
 
     # ------------------------------------------------------------------ helpers
-    def _next_view(self) -> FitView:
+    def _next_index(self) -> int:
         if not self._stack:
             self._stack = torch.randperm(len(self.train_views), generator=self.rng).tolist()
-        return self.train_views[self._stack.pop()]
+        return self._stack.pop()
+
+    def downsample_factor(self, iteration: int) -> int:
+        """The image size divisor at `iteration` (`FitConfig.coarse_to_fine`)."""
+        ends = self.config.coarse_to_fine
+        t = iteration / self.config.iterations
+        level = next((k for k, end in enumerate(ends) if t <= end), len(ends))
+        factor = 2 ** (len(ends) - level)
+        small = min(min(v.intrinsics.width, v.intrinsics.height) for v in self.train_views)
+        while factor > 1 and small // factor < 32:
+            factor //= 2
+        return factor
+
+    def _view_at(self, index: int, factor: int) -> FitView:
+        if factor not in self._levels:
+            self._levels[factor] = [v.downsampled(factor) for v in self.train_views]
+        return self._levels[factor][index]
 
     def _update_lr(self, iteration: int) -> None:
         c = self.config
@@ -220,7 +286,8 @@ class Trainer:
         self._update_lr(it)
         if it % c.sh_increase_interval == 0:
             st.oneup_sh_degree()
-        view = self._next_view()
+        index = self._next_index()
+        view = self._view_at(index, self.downsample_factor(it))
         bg = (
             torch.rand(3, dtype=self.dtype, device=self.device)
             if c.random_background
@@ -236,7 +303,14 @@ class Trainer:
         if c.random_background and view.alpha is not None:
             gt = gt + (bg - self.background).view(3, 1, 1) * (1.0 - view.alpha)  # re-composite
         # loss and its image gradient in closed form (no autograd graph for L1 / SSIM)
-        loss, dloss = photometric_loss_and_grad(out.color.detach(), gt, c.lambda_dssim, view.valid)
+        color = out.color.detach()
+        if self.exposure is not None:
+            shown = self.exposure.apply(index, color)
+            loss, dshown = photometric_loss_and_grad(shown, gt, c.lambda_dssim, view.valid)
+            dloss = self.exposure.backward(index, color, dshown)
+        else:
+            shown = color
+            loss, dloss = photometric_loss_and_grad(color, gt, c.lambda_dssim, view.valid)
         t2 = time.perf_counter()
         out.color.backward(dloss)
         t3 = time.perf_counter()
@@ -254,6 +328,7 @@ class Trainer:
                         self.extent,
                         size,
                         self.max_gaussians,
+                        centre=self.centre,
                     )
                     log.debug("iteration %d densify: %s", it, d)
                 if it % c.opacity_reset_interval == 0 or (
@@ -265,9 +340,13 @@ class Trainer:
             t5 = time.perf_counter()
             st.step()
             st.zero_grad()
-            tm["adam"] += time.perf_counter() - t5
+            t6 = time.perf_counter()
+            tm["adam"] += t6 - t5
+            if self.exposure is not None:
+                self.exposure.step(it)
+                tm["exposure"] += time.perf_counter() - t6
             if it % self.progress_every == 0 or it == c.iterations:
-                info["psnr"] = psnr(out.color, gt, view.valid)
+                info["psnr"] = psnr(shown, gt, view.valid)
         tm["render"] += t1 - t0
         tm["loss"] += t2 - t1
         tm["backward"] += t3 - t2

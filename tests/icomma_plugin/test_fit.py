@@ -599,7 +599,10 @@ def test_fit_scene_on_transforms_json_capture(tmp_path):
     cfg = FitConfig.scaled_schedule(40, sh_degree=1, num_sweep_points=300)
     res = fit_scene(tmp_path, tmp_path / "model", cfg)
     m = res.metrics
-    assert m["init"] == {"source": "views", "points": 300}
+    init = m["init"]
+    assert init["source"] == "views" and init["points"] == 300 + init["far_field_points"]
+    assert init["far_field_points"] > 1000 and init["far_field_radius"] > 3.0  # beyond the ring
+    assert m["exposure"] is True and (tmp_path / "model" / "exposure.json").is_file()
     assert m["train_views"] == 7 and m["test_views"] == 2
     assert math.isfinite(m["train_psnr"]) and math.isfinite(m["test_psnr"])
     assert m["seconds_cpu"] > 0 and m["white_background"] is False
@@ -609,6 +612,9 @@ def test_fit_scene_on_transforms_json_capture(tmp_path):
     ev = evaluate_model_folder(tmp_path / "model")
     assert ev["test_psnr"] == pytest.approx(m["test_psnr"], abs=1e-3)
     assert ev["train_psnr"] == pytest.approx(m["train_psnr"], abs=1e-3)
+    assert ev["train_psnr_exposure"] == pytest.approx(m["train_psnr_exposure"], abs=1e-3)
+    assert ev["test_psnr_right_half_exposure"] == pytest.approx(
+        m["test_psnr_right_half_exposure"], abs=1e-3)
     assert ev["resolution"] == [32, 32] and set(ev["per_view"]) >= {"v0", "v8"}
 
 

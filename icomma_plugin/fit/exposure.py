@@ -1,0 +1,133 @@
+"""Per-photo exposure: an affine colour transform per training photo (upstream `--train_test_exp`).
+
+Upstream 3DGS (2024) optimises, for every training image, a 3x4 matrix `E = [A | b]` applied to
+the render before the loss: `render'(c) = sum_k A[c, k] render(k) + b[c]`, initialised to the
+identity, Adam with a learning rate decaying log-linearly from 1e-2 to 1e-3 over the run. The
+scene is then free of each photo's exposure and white balance; the exposures are written beside
+the model (`exposure.json`, {image name: 3x4 list}, as upstream) and never applied to renders at
+localization time, so the model folder stays upstream-compatible.
+
+Here the loss gradient with respect to the render is computed in closed form (no autograd
+graph), so `ExposureState.backward` takes d loss / d render' and returns d loss / d render,
+accumulating d loss / d E:
+    d render = A^T d render',  d A = sum_pixels d render' render^T,  d b = sum_pixels d render'.
+After each step the exposures are recentred (mean A = I, mean b = 0 over the photos): the
+scene's own colours are those of the average photo, which is what a localization render
+compares with.
+
+Held-out photos have no exposure of their own: `fit_affine_colour` fits one by least squares on
+a region (upstream fits it on the left half of each test image and measures on the right half).
+"""
+from __future__ import annotations
+
+from typing import Dict, Optional, Sequence
+
+import torch
+
+from .state import expon_lr
+
+
+class ExposureState:
+    """One affine colour transform [3, 4] per training photo, with its own Adam."""
+
+    def __init__(self, num_views: int, lr_init: float = 1e-2, lr_final: float = 1e-3,
+                 max_steps: int = 30_000, dtype: torch.dtype = torch.float32,
+                 device: Optional[torch.device] = None):
+        if isinstance(num_views, bool) or not isinstance(num_views, int) or num_views < 1:
+            raise ValueError(f"num_views must be a positive int, got {num_views!r}")
+        if not (lr_init > 0 and lr_final > 0):
+            raise ValueError(f"lr_init and lr_final must be > 0, got {lr_init!r}, {lr_final!r}")
+        eye = torch.eye(3, 4, dtype=dtype, device=device)
+        self.params = torch.nn.Parameter(eye.repeat(num_views, 1, 1).contiguous())
+        self.lr_init, self.lr_final, self.max_steps = float(lr_init), float(lr_final), max_steps
+        self.optimizer = torch.optim.Adam([self.params], lr=self.lr_init, eps=1e-15)
+        self._touched = torch.zeros(num_views, dtype=torch.bool)
+
+    @property
+    def num_views(self) -> int:
+        """The number of photos."""
+        return int(self.params.shape[0])
+
+    def matrix(self, index: int) -> torch.Tensor:
+        """The [3, 4] transform of photo `index` (detached)."""
+        return self.params.detach()[index]
+
+    @torch.no_grad()
+    def apply(self, index: int, image: torch.Tensor) -> torch.Tensor:
+        """`image` [3, H, W] through photo `index`'s transform."""
+        return apply_affine_colour(self.params.detach()[index], image)
+
+    @torch.no_grad()
+    def backward(self, index: int, image: torch.Tensor, grad_out: torch.Tensor) -> torch.Tensor:
+        """d loss / d image from d loss / d (transformed image); accumulates d loss / d E."""
+        E = self.params.detach()[index]
+        A = E[:, :3]
+        g = grad_out.reshape(3, -1)
+        x = image.reshape(3, -1)
+        grad = torch.zeros_like(self.params) if self.params.grad is None else self.params.grad
+        grad[index, :, :3] += g @ x.T
+        grad[index, :, 3] += g.sum(dim=1)
+        self.params.grad = grad
+        self._touched[index] = True
+        return (A.T @ g).reshape(image.shape)
+
+    @torch.no_grad()
+    def step(self, iteration: int) -> None:
+        """One Adam step at `iteration`'s learning rate, then recentre; clears the gradient."""
+        if self.params.grad is None:
+            return
+        for group in self.optimizer.param_groups:
+            group["lr"] = expon_lr(iteration, self.lr_init, self.lr_final, self.max_steps)
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        self.recentre()
+
+    @torch.no_grad()
+    def recentre(self) -> None:
+        """Mean transform over the photos := identity (fixes the scene-vs-exposure gauge)."""
+        eye = torch.eye(3, 4, dtype=self.params.dtype, device=self.params.device)
+        self.params -= self.params.mean(dim=0, keepdim=True) - eye
+
+    def to_json(self, names: Sequence[str]) -> Dict[str, list]:
+        """{image name: 3x4 nested list}, upstream's exposure.json."""
+        if len(names) != self.num_views:
+            raise ValueError(f"names must hold {self.num_views} image names, got {len(names)}")
+        E = self.params.detach().cpu().double()
+        return {str(n): E[i].tolist() for i, n in enumerate(names)}
+
+
+def apply_affine_colour(E: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
+    """`A image + b` per pixel for E = [A | b] [3, 4] and image [3, H, W]."""
+    return (E[:, :3] @ image.reshape(3, -1) + E[:, 3:]).reshape(image.shape)
+
+
+@torch.no_grad()
+def fit_affine_colour(render: torch.Tensor, photo: torch.Tensor,
+                      mask: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Least-squares E = [A | b] [3, 4] with A render + b ~ photo over the pixels of `mask`.
+
+    Args:
+        render: [3, H, W] rendered image.
+        photo: [3, H, W] photo.
+        mask: [1, H, W] in {0, 1} (1 = use the pixel) or None (every pixel).
+
+    Returns:
+        [3, 4] float64 transform (the identity when fewer than 16 pixels are usable).
+    """
+    if render.shape != photo.shape or render.ndim != 3 or render.shape[0] != 3:
+        raise ValueError(f"render and photo must both be [3, H, W], got {list(render.shape)} and "
+                         f"{list(photo.shape)}")
+    X = render.reshape(3, -1).double()
+    Y = photo.reshape(3, -1).double()
+    if mask is not None:
+        keep = mask.reshape(-1) > 0.5
+        X, Y = X[:, keep], Y[:, keep]
+    if X.shape[1] < 16:
+        return torch.eye(3, 4, dtype=torch.float64)
+    Xh = torch.cat([X, torch.ones_like(X[:1])], dim=0)  # [4, N]
+    # ridge towards the identity keeps a flat region from giving a degenerate matrix
+    lam = 1e-4 * X.shape[1]
+    eye = torch.eye(3, 4, dtype=torch.float64)
+    lhs = Xh @ Xh.T + lam * torch.eye(4, dtype=torch.float64)
+    rhs = Xh @ Y.T + lam * eye.T
+    return torch.linalg.solve(lhs, rhs).T
