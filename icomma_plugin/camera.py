@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Optional
+from typing import Any, Dict, Optional
 
 import torch
 from .checks import check_int, check_real
@@ -71,6 +71,35 @@ class Intrinsics:
         cx = None if self.cx is None else (self.cx + 0.5) * sx - 0.5
         cy = None if self.cy is None else (self.cy + 0.5) * sy - 0.5
         return replace(self, width=w, height=h, fx=self.fx * sx, fy=self.fy * sy, cx=cx, cy=cy)
+
+    def scale_to_side(self, side: int, enlarge: bool = False) -> float:
+        """The scale that brings the longer image side to ``side`` px.
+
+        Never above 1 unless ``enlarge``: the one rule of the project for a working resolution
+        given as a side length.
+        """
+        s = float(side) / max(self.width, self.height)
+        return s if enlarge else min(1.0, s)
+
+    def to_json(self) -> Dict[str, Any]:
+        """The one JSON encoding of intrinsics: size, focal lengths and the principal point [px].
+
+        The principal point is always written out (``cx_px``, ``cy_px``), so a reader needs no
+        convention for a missing one.
+        """
+        return {"width": self.width, "height": self.height, "fx": float(self.fx),
+                "fy": float(self.fy), "cx": self.cx_px, "cy": self.cy_px}
+
+    @classmethod
+    def from_json(cls, d: Dict[str, Any]) -> "Intrinsics":
+        """Intrinsics from :meth:`to_json`'s mapping (``cx``/``cy`` may be absent or None)."""
+        if not isinstance(d, dict):
+            raise ValueError(f"intrinsics must be a mapping, got {type(d).__name__}")
+        missing = [k for k in ("width", "height", "fx", "fy") if k not in d]
+        if missing:
+            raise ValueError(f"intrinsics lacks {missing}; got keys {sorted(d)}")
+        return cls(int(d["width"]), int(d["height"]), float(d["fx"]), float(d["fy"]),
+                   d.get("cx"), d.get("cy"))
 
     def K(self, dtype=torch.float64, device=None) -> torch.Tensor:
         """3x3 calibration matrix."""

@@ -9,11 +9,26 @@ passes a number check.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import numbers
-from typing import Any, Iterable, Optional, Sequence, Tuple
+from typing import Any, Dict, Iterable, Mapping, Optional, Sequence, Tuple, Union
 
-__all__ = ["check_bool", "check_choice", "check_int", "check_pair", "check_real", "is_real"]
+__all__ = [
+    "HYDRA_KEYS",
+    "check_bool",
+    "check_choice",
+    "check_int",
+    "check_pair",
+    "check_real",
+    "check_tensor",
+    "config_from_dict",
+    "is_real",
+]
+
+#: Keys Hydra's instantiate reads; a config group composed with ``_target_`` still builds with
+#: :func:`config_from_dict`.
+HYDRA_KEYS = ("_target_", "_convert_", "_recursive_", "_partial_")
 
 
 def is_real(value: Any) -> bool:
@@ -103,3 +118,79 @@ def check_pair(value: Any, name: str, lo: Optional[float] = None, hi: Optional[f
         )
         raise ValueError(f"{name} must be {what}, got {value!r}")
     return float(value[0]), float(value[1])
+
+
+def check_tensor(value: Any, name: str, shape: Optional[Sequence[Union[int, str]]] = None, *,
+                 floating: bool = False, finite: bool = False, optional: bool = False):
+    """``value`` when it is a torch tensor of ``shape`` (kornia's ``KORNIA_CHECK_SHAPE`` style).
+
+    Args:
+        value: the tensor.
+        name: the argument's name, for the message.
+        shape: the sizes, an int for a fixed size or a letter for a free one; the same letter
+            must have the same size everywhere (``(3, "H", "W")``, ``(1, "H", "W")``).
+        floating: it must have a floating-point dtype.
+        finite: no NaN or infinity.
+        optional: None passes.
+
+    Raises:
+        ValueError: naming ``name``, what was expected and what was given.
+    """
+    import torch
+
+    if value is None and optional:
+        return None
+    want = "" if shape is None else " of shape [" + ", ".join(str(d) for d in shape) + "]"
+    kind = "a floating-point tensor" if floating else "a torch tensor"
+    if not isinstance(value, torch.Tensor):
+        raise ValueError(f"{name} must be {kind}{want}, got {type(value).__name__}")
+    if shape is not None:
+        sizes: Dict[str, int] = {}
+        ok = value.ndim == len(shape)
+        for d, n in zip(shape, value.shape if ok else ()):
+            if isinstance(d, str):
+                ok = ok and sizes.setdefault(d, int(n)) == int(n)
+            else:
+                ok = ok and int(d) == int(n)
+        if not ok:
+            raise ValueError(f"{name} must be {kind}{want}, got shape {list(value.shape)}")
+    if floating and not value.is_floating_point():
+        raise ValueError(f"{name} must be {kind}{want}, got dtype {value.dtype}")
+    if finite and not bool(torch.isfinite(value).all()):
+        raise ValueError(f"{name} contains NaN or infinite values")
+    return value
+
+
+def config_from_dict(cls, d: Optional[Mapping[str, Any]], where: Optional[str] = None):
+    """A config dataclass ``cls`` from a plain (nested) mapping: the one way configs are read.
+
+    Hydra's keys (`HYDRA_KEYS`) are dropped; nested dataclass fields are built from mappings;
+    lists become tuples; an int given for a float field becomes a float.
+
+    Raises:
+        ValueError: ``d`` is not a mapping, or has keys ``cls`` does not know (the message names
+            ``where`` and lists the known keys); the dataclass's own checks.
+    """
+    where = where or cls.__name__
+    if d is None:
+        d = {}
+    if not isinstance(d, Mapping):
+        raise ValueError(f"{where} must be a mapping, got {type(d).__name__}")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    d = {k: v for k, v in d.items() if k not in HYDRA_KEYS}
+    unknown = sorted(set(d) - set(fields))
+    if unknown:
+        raise ValueError(f"unknown {where} keys {unknown}; known keys: {sorted(fields)}")
+    kw = {}
+    for k, v in d.items():
+        f = fields[k]
+        default = (f.default_factory() if f.default_factory is not dataclasses.MISSING
+                   else f.default)
+        if dataclasses.is_dataclass(default) and isinstance(v, Mapping):
+            v = config_from_dict(type(default), v, f"{where}.{k}")
+        elif isinstance(v, list):
+            v = tuple(v)
+        elif isinstance(default, float) and isinstance(v, int) and not isinstance(v, bool):
+            v = float(v)
+        kw[k] = v
+    return cls(**kw)

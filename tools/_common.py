@@ -24,6 +24,7 @@ __all__ = [
     "UserError",
     "build_matcher",
     "build_optimizer",
+    "check_backend",
     "choose_threads",
     "container",
     "run_or_exit",
@@ -66,6 +67,15 @@ def torch_threads(requested: Optional[int] = None) -> Iterator[int]:
         yield torch.get_num_threads()
     finally:
         torch.set_num_threads(before)
+
+
+def check_backend(backend: str) -> str:
+    """``backend`` (the renderer group's), when this machine can run it; UserError otherwise."""
+    if backend == "cuda" and not torch.cuda.is_available():
+        raise UserError(
+            "renderer=cuda: no CUDA device is available here (use renderer=auto or cpu)"
+        )
+    return backend
 
 
 def seed_everything(seed: int) -> None:

@@ -26,23 +26,20 @@ default seed (1010) is held out from the benchmark's (0). Start k uses query ``k
 The paper's method runs the first ``--paper-starts`` starts (it costs ~35 s a start at 200 px),
 so the ratio is also given paired over those starts.
 
-``--render-path both`` runs every start twice, with the prepared render path
-(``icomma_plugin.render.prepare_scene``, the library's) and with the ``plain`` one (the render
-path before issue 10: activations and NaN scans on every render), in alternating order, and
-reports their time ratio and the largest difference of the final poses (0 when the renders are
-bit-identical). ``--render-repeats`` adds a per-render table (forward, forward + pose backward)
-of the two paths and of the backend function alone at a test pose (CPU ms).
+Every start goes through the scene's ``Localizer`` (built once per scene and method, its
+candidate index built before the timings). ``--render-repeats`` adds a per-render table (forward,
+forward + pose backward) of a render as the localizer makes it and of the backend function alone
+at a test pose (CPU ms).
 
 Examples:
     python tools/bench_localize.py --threads 1                              # everything
     python tools/bench_localize.py --quick --scenes demo --threads 1        # a quick look
-    python tools/bench_localize.py --scenes lego200 --methods robust --render-path both --threads 1
+    python tools/bench_localize.py --scenes lego200 --methods robust --threads 1
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import datetime
 import os
 import platform
@@ -52,7 +49,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, Iterator, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -63,7 +60,6 @@ if str(REPO) not in sys.path:
 
 SCENES = ("lego200", "lego400", "demo")
 METHODS = ("robust", "icomma")
-RENDER_PATHS = ("prepared", "plain")
 STAGES = ("render", "backward", "matcher", "pnp", "verify", "candidates", "other", "total")
 SUCCESS = (5.0, 0.05)  # deg, world units (the time table's threshold)
 DEFAULT_MODEL = "~/.cache/icomma/scenes/lego_200"
@@ -151,7 +147,7 @@ def machine_info() -> Dict[str, Any]:
 # ----------------------------------------------------------------------------------------------
 def load_scene(name: str, args) -> "Any":
     """A ``BenchScene`` for ``name`` (lego200, lego400 or demo)."""
-    from icomma_plugin.benchmark.scene import BenchScene, Query, load_model_folder_scene
+    from icomma_plugin.benchmark.scene import BenchQuery, BenchScene, load_model_folder_scene
 
     if name in ("lego200", "lego400"):
         model = Path(args.model).expanduser()
@@ -164,7 +160,7 @@ def load_scene(name: str, args) -> "Any":
             model, dataset=args.dataset, num_queries=args.queries, image_scale=scale
         )
         want = 200 if name == "lego200" else 400
-        got = sc.queries[0].intrinsics.width
+        got = sc.queries[0].query.intrinsics.width
         if got != want:
             log(f"note: {name}: the queries are {got} px wide (dataset {sc.info['dataset']})")
         return sc
@@ -173,14 +169,7 @@ def load_scene(name: str, args) -> "Any":
     p = load_problem(
         {"kind": "demo", "path": args.demo_path, "width": args.demo_size, "height": args.demo_size}
     )
-    q = Query(
-        name="demo_query",
-        rgb=p.query.rgb,
-        alpha=None,
-        intrinsics=p.query.intrinsics,
-        gt_c2w=np.asarray(p.gt_c2w, np.float64),
-        index=0,
-    )
+    q = BenchQuery(p.query, np.asarray(p.gt_c2w, np.float64), 0)
     return BenchScene(
         model=p.model,
         queries=[q],
@@ -188,7 +177,7 @@ def load_scene(name: str, args) -> "Any":
         translation_scale=1.0,
         translation_unit="world",
         scene_radius=float(p.scene_scale or 1.0),
-        cameras_c2w=p.candidate_c2ws(),
+        cameras_c2w=[e.c2w for e in p.cameras],
         info={"kind": "demo", **p.info},
     )
 
@@ -241,88 +230,6 @@ def sample_starts(
 
 
 # ----------------------------------------------------------------------------------------------
-# Render paths
-# ----------------------------------------------------------------------------------------------
-def _plain_render(self, w2c, scale: float = 1.0):
-    """``LocalizationState.render`` as it was before issue 10 (the baseline of docs/SPEED.md).
-
-    The raw model on every call, so the activations, the SH concatenation and the rasterizer's
-    NaN/Inf scans of every Gaussian tensor run on every render.
-    """
-    from icomma_plugin.render import render
-
-    if isinstance(w2c, np.ndarray):
-        w2c = torch.as_tensor(w2c, dtype=torch.float64)
-    dev, dt = self.model.device, self.model.dtype
-    with self.timed("render"):
-        return render(
-            self.model,
-            self.intrinsics_at(scale),
-            w2c.to(device=dev, dtype=dt),
-            self.bg,
-            backend=self.backend,
-            sh_degree=self.sh_degree,
-            antialiasing=self.antialiasing,
-        )
-
-
-@contextlib.contextmanager
-def render_path(name: str) -> Iterator[None]:
-    """Localizations inside the block render with ``name`` ("prepared": the library's, "plain")."""
-    if name == "prepared":
-        yield
-        return
-    from icomma_plugin.localization.state import LocalizationState
-
-    original = LocalizationState.render
-    LocalizationState.render = _plain_render
-    try:
-        yield
-    finally:
-        LocalizationState.render = original
-
-
-@contextlib.contextmanager
-def cpu_stage_seconds(into: Dict[str, float]) -> Iterator[None]:
-    """Also count process CPU seconds per stage inside the block.
-
-    ``LocalizationState.timed(kind)`` adds the CPU seconds of its block to ``into[kind]``, less
-    those of timed blocks nested in it, as the library does with wall time (a loaded machine
-    inflates wall time; with one thread the CPU time is the work).
-    """
-    from icomma_plugin.localization.state import LocalizationState
-
-    original = LocalizationState.timed
-    nested: List[float] = []
-
-    @contextlib.contextmanager
-    def timed(self, kind: str):
-        c = time.process_time()
-        nested.append(0.0)
-        try:
-            with original(self, kind):
-                yield
-        finally:
-            spent = time.process_time() - c
-            into[kind] = into.get(kind, 0.0) + spent - nested.pop()
-            if nested:
-                nested[-1] += spent
-
-    LocalizationState.timed = timed
-    try:
-        yield
-    finally:
-        LocalizationState.timed = original
-
-
-def _with_other(seconds: Dict[str, float], total: float) -> Dict[str, float]:
-    out = {k: float(seconds.get(k, 0.0)) for k in STAGES[:-2]}
-    out["other"] = max(0.0, total - sum(out.values()))
-    out["total"] = total
-    return out
-
-
-# ----------------------------------------------------------------------------------------------
 # One localization
 # ----------------------------------------------------------------------------------------------
 def method_config(method: str, args):
@@ -334,84 +241,53 @@ def method_config(method: str, args):
     return LocalizerConfig(max_iterations=args.paper_max_iterations)
 
 
-def run_start(scene, st: Start, method: str, path: str, matcher, args) -> Dict[str, Any]:
-    """Localize from one start with ``method`` and render ``path``.
+def run_start(scene, st: Start, method: str, cfg, matcher, args) -> Dict[str, Any]:
+    """Localize from one start with ``method`` (its config ``cfg``) through the scene's Localizer.
 
     Returns:
         The record of the run: wall and CPU time, stage seconds, final errors, success and
         verdict (or the error it raised).
     """
-    from icomma_plugin.localize import localize
-
-    cfg = method_config(method, args)
-    candidates = (
-        scene.candidate_set(st.query, matcher, cfg, args.backend) if method == "robust" else None
-    )
     q = st.query
+    localizer = scene.localizer(matcher, cfg, args.backend, cache_dir=False)
     torch.manual_seed(int(np.random.SeedSequence(list(st.seed)).generate_state(1)[0]))
-    cpu_stages: Dict[str, float] = {}
     rec: Dict[str, Any] = {
         "start": st.index,
-        "query": q.name,
+        "name": q.name,
         "query_index": q.index,
         "pose_index": st.pose_index,
         "seed": list(st.seed),
-        "init_rot_deg": st.rot_deg,
-        "init_trans": st.trans_world,
+        "init_rot_err_deg": st.rot_deg,
+        "init_trans_err": st.trans_world,
         "method": method,
-        "render_path": path,
     }
     c0, t0 = time.process_time(), time.perf_counter()
     try:
-        with render_path(path), cpu_stage_seconds(cpu_stages):
-            res = localize(
-                scene.model,
-                q.rgb,
-                q.intrinsics,
-                np.linalg.inv(st.init_c2w),
-                matcher,
-                cfg,
-                gt_w2c=np.linalg.inv(q.gt_c2w),
-                query_alpha=q.alpha,
-                query_valid=q.valid,
-                backend=args.backend,
-                bg=scene.bg,
-                cameras_c2w=scene.cameras_c2w,
-                candidate_set=candidates,
-                query_name=q.name,
-                model_side=scene.model_side,  # as tools/localize.py and the benchmark do
-            )
+        res = localizer.localize(q.query, st.init_c2w, q.gt_c2w)
     except Exception as e:  # a run that raises is a failed run (recorded), not the end of all
-        log(f"start {st.index} ({method}, {path}) raised {type(e).__name__}: {e}")
-        rec.update(
-            error=f"{type(e).__name__}: {e}",
-            success=False,
-            verdict=None,
-            final_rot_deg=None,
-            final_trans=None,
-            iterations=None,
-            wall_s=time.perf_counter() - t0,
-            cpu_s=time.process_time() - c0,
-        )
+        log(f"start {st.index} ({method}) raised {type(e).__name__}: {e}")
+        rec.update(error=f"{type(e).__name__}: {e}", success=False, status=None,
+                   rot_err_deg=None, trans_err=None, iterations=None,
+                   wall_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0)
         return rec
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    rot, trans = res.final_rotation_error_deg, res.final_translation_error
+    rot, trans = res.rot_err_deg, res.trans_err
     return {
         **rec,
         "error": None,
         "wall_s": wall,
         "cpu_s": cpu,
         "stage_seconds": {k: float(res.stage_seconds.get(k, 0.0)) for k in STAGES},
-        "stage_cpu_seconds": _with_other(cpu_stages, cpu),
+        "stage_cpu_seconds": {k: float(res.stage_cpu_seconds.get(k, 0.0)) for k in STAGES},
         "iterations": res.iterations,
         "stop_reason": res.stop_reason,
-        "verdict": None if res.verdict is None else res.verdict.status,
-        "final_rot_deg": rot,
-        "final_trans": trans,
+        "status": res.verdict.status,
+        "rot_err_deg": rot,
+        "trans_err": trans,
         "success": bool(
             rot is not None and trans is not None and rot < SUCCESS[0] and trans < SUCCESS[1]
         ),
-        "w2c": res.w2c.tolist(),
+        "c2w": res.c2w.tolist(),
     }
 
 
@@ -421,8 +297,8 @@ def run_start(scene, st: Start, method: str, path: str, matcher, args) -> Dict[s
 def render_timings(scene, repeats: int, backend: str) -> Dict[str, Any]:
     """Median CPU ms of a render at the first query's true pose.
 
-    Forward (no grad) and forward + pose backward, for the plain and the prepared path as
-    ``LocalizationState`` calls them, and for the backend function alone on the prepared tensors
+    Forward (no grad) and forward + pose backward, as ``LocalizationState`` calls them on the
+    prepared scene (``prepared``), and for the backend function alone on the same tensors
     (``kernel``: no camera matrices, no checks; the rest of a render's time is the Python around
     it).
     """
@@ -430,13 +306,13 @@ def render_timings(scene, repeats: int, backend: str) -> Dict[str, Any]:
     from gaussian_renderer_pose import _dispatch
 
     from icomma_plugin.localization.state import LocalizationState
-    from icomma_plugin.localization.types import Query as LQuery
+    from icomma_plugin.pose.convert import invert_rigid
     from icomma_plugin.pose.se3 import se3_exp
     from icomma_plugin.render import prepare_scene
 
-    q = scene.queries[0]
-    state = LocalizationState(scene.model, LQuery(q.rgb, q.intrinsics), scene.bg, backend=backend)
-    w2c = torch.as_tensor(np.linalg.inv(q.gt_c2w), dtype=torch.float64)
+    q = scene.queries[0].query
+    state = LocalizationState(scene.model, q, scene.bg, backend=backend)
+    w2c = torch.as_tensor(invert_rigid(scene.queries[0].gt_c2w), dtype=torch.float64)
     out: Dict[str, Any] = {
         "gaussians": state.model.num_gaussians,
         "sh_degree": state.model.sh_degree,
@@ -494,18 +370,17 @@ def render_timings(scene, repeats: int, backend: str) -> Dict[str, Any]:
             kernel_call(False)
 
     calls = {"fwd": fwd, "fwd+bwd": fwd_bwd}
-    for path in ("plain", "prepared", "kernel", "plain", "prepared", "kernel"):  # interleaved
-        with render_path("prepared" if path == "kernel" else path):
-            for mode, fn in calls.items():
-                if path == "kernel":
-                    fn = kernel_fwd if mode == "fwd" else (lambda: kernel_call(True))
-                fn()  # warm-up (and the prepared scene's one-off preparation)
-                ts = []
-                for _ in range(repeats):
-                    c = time.process_time()
-                    fn()
-                    ts.append((time.process_time() - c) * 1e3)
-                out.setdefault(f"{path}/{mode}", []).extend(ts)
+    for path in ("prepared", "kernel", "prepared", "kernel"):  # interleaved
+        for mode, fn in calls.items():
+            if path == "kernel":
+                fn = kernel_fwd if mode == "fwd" else (lambda: kernel_call(True))
+            fn()  # warm-up (and the prepared scene's one-off preparation)
+            ts = []
+            for _ in range(repeats):
+                c = time.process_time()
+                fn()
+                ts.append((time.process_time() - c) * 1e3)
+            out.setdefault(f"{path}/{mode}", []).extend(ts)
     for k in [k for k in out if "/" in k]:
         out[k] = statistics.median(out[k])
     return out
@@ -520,52 +395,40 @@ def _median(vals) -> Optional[float]:
 
 
 def summarize(records: List[Dict[str, Any]]) -> List[Dict[str, Any]]:
-    """One row per scene x method x render path: medians of the finished runs, rates of all."""
+    """One row per scene x method: medians of the finished runs, rates of all."""
     rows = []
-    keys = sorted(
-        {(r["scene"], r["method"], r["render_path"]) for r in records},
-        key=lambda k: (SCENES.index(k[0]), METHODS.index(k[1]), RENDER_PATHS.index(k[2])),
-    )
-    for scene, method, path in keys:
-        every = [
-            r
-            for r in records
-            if (r["scene"], r["method"], r["render_path"]) == (scene, method, path)
-        ]
+    keys = sorted({(r["scene"], r["method"]) for r in records},
+                  key=lambda k: (SCENES.index(k[0]), METHODS.index(k[1])))
+    for scene, method in keys:
+        every = [r for r in records if (r["scene"], r["method"]) == (scene, method)]
         rs = [r for r in every if not r.get("error")]  # timings: the runs that finished
         rows.append(
             {
                 "scene": scene,
                 "method": method,
-                "render_path": path,
                 "n": len(every),
                 "errors": len(every) - len(rs),
                 "wall_s": _median(r["wall_s"] for r in rs),
                 "cpu_s": _median(r["cpu_s"] for r in rs),
                 "stages": {k: _median(r["stage_seconds"][k] for r in rs) for k in STAGES},
                 "stages_cpu": {k: _median(r["stage_cpu_seconds"][k] for r in rs) for k in STAGES},
-                "final_rot_deg": _median(r["final_rot_deg"] for r in rs),
-                "final_trans": _median(r["final_trans"] for r in rs),
+                "rot_err_deg": _median(r["rot_err_deg"] for r in rs),
+                "trans_err": _median(r["trans_err"] for r in rs),
                 "success": sum(r["success"] for r in every) / len(every),
-                "ok": sum(r["verdict"] == "ok" for r in every) / len(every),
+                "ok": sum(r["status"] == "ok" for r in every) / len(every),
                 "iterations": _median(r["iterations"] for r in rs),
             }
         )
     return rows
 
 
-def _paired(records, scene, key_a, key_b, field="wall_s") -> Tuple[Optional[float], int]:
-    """Median over the starts run by both (method, path) keys of a / b, and how many."""
-    a = {
-        r["start"]: r[field]
-        for r in records
-        if r["scene"] == scene and (r["method"], r["render_path"]) == key_a and not r.get("error")
-    }
-    b = {
-        r["start"]: r[field]
-        for r in records
-        if r["scene"] == scene and (r["method"], r["render_path"]) == key_b and not r.get("error")
-    }
+def _paired(records, scene, method_a, method_b, field="wall_s") -> Tuple[Optional[float], int]:
+    """Median over the starts run by both methods of a / b, and how many."""
+    def of(method):
+        return {r["start"]: r[field] for r in records
+                if (r["scene"], r["method"]) == (scene, method) and not r.get("error")}
+
+    a, b = of(method_a), of(method_b)
     common = sorted(set(a) & set(b))
     return (_median(a[k] / b[k] for k in common if b[k] > 0), len(common))
 
@@ -575,61 +438,18 @@ def _ratio(a: Optional[float], b: Optional[float]) -> Optional[float]:
 
 
 def ratios(records: List[Dict[str, Any]], rows: List[Dict[str, Any]]) -> List[Dict[str, Any]]:
-    """paper/default per scene and path; plain/prepared per scene and method (same run)."""
+    """paper / default per scene (same run, paired over the same starts)."""
     out = []
-    by = {(r["scene"], r["method"], r["render_path"]): r for r in rows}
+    by = {(r["scene"], r["method"]): r for r in rows}
     for scene in SCENES:
-        for path in RENDER_PATHS:
-            a, b = by.get((scene, "icomma", path)), by.get((scene, "robust", path))
-            if a and b:
-                pr, n = _paired(records, scene, ("icomma", path), ("robust", path))
-                pc, _ = _paired(records, scene, ("icomma", path), ("robust", path), "cpu_s")
-                out.append(
-                    {
-                        "scene": scene,
-                        "what": f"paper / default ({path})",
-                        "of_medians": _ratio(a["wall_s"], b["wall_s"]),
-                        "paired_median": pr,
-                        "paired_n": n,
-                        "paired_cpu_median": pc,
-                    }
-                )
-        for method in METHODS:
-            a, b = by.get((scene, method, "plain")), by.get((scene, method, "prepared"))
-            if a and b:
-                pr, n = _paired(records, scene, (method, "plain"), (method, "prepared"))
-                pc, _ = _paired(records, scene, (method, "plain"), (method, "prepared"), "cpu_s")
-                pose = _pose_difference(records, scene, method)
-                out.append(
-                    {
-                        "scene": scene,
-                        "what": f"plain / prepared ({method})",
-                        "of_medians": _ratio(a["wall_s"], b["wall_s"]),
-                        "paired_median": pr,
-                        "paired_n": n,
-                        "paired_cpu_median": pc,
-                        "max_pose_diff": pose,
-                    }
-                )
+        a, b = by.get((scene, "icomma")), by.get((scene, "robust"))
+        if a and b:
+            pr, n = _paired(records, scene, "icomma", "robust")
+            pc, _ = _paired(records, scene, "icomma", "robust", "cpu_s")
+            out.append({"scene": scene, "what": "paper / default",
+                        "of_medians": _ratio(a["wall_s"], b["wall_s"]), "paired_median": pr,
+                        "paired_n": n, "paired_cpu_median": pc})
     return out
-
-
-def _pose_difference(records, scene, method) -> Optional[float]:
-    """Largest |w2c_plain - w2c_prepared| entry over the starts run with both paths."""
-    a = {
-        r["start"]: np.asarray(r["w2c"])
-        for r in records
-        if (r["scene"], r["method"], r["render_path"]) == (scene, method, "plain")
-        and not r.get("error")
-    }
-    b = {
-        r["start"]: np.asarray(r["w2c"])
-        for r in records
-        if (r["scene"], r["method"], r["render_path"]) == (scene, method, "prepared")
-        and not r.get("error")
-    }
-    common = set(a) & set(b)
-    return max(float(np.abs(a[k] - b[k]).max()) for k in common) if common else None
 
 
 def _f(v, digits=2, unit="") -> str:
@@ -650,7 +470,6 @@ def markdown(result: Dict[str, Any]) -> str:
     header = [
         "scene",
         "method",
-        "render path",
         "n",
         "wall s",
         "CPU s",
@@ -686,13 +505,12 @@ def markdown(result: Dict[str, Any]) -> str:
                 [
                     r["scene"],
                     name(r),
-                    r["render_path"],
                     str(r["n"]),
                     _f(r["wall_s"]),
                     _f(r["cpu_s"]),
                     str(r.get("errors", 0)),
-                    _f(r["final_rot_deg"], 3),
-                    _f(r["final_trans"], 4),
+                    _f(r["rot_err_deg"], 3),
+                    _f(r["trans_err"], 4),
                     f"{100 * r['success']:.0f} %",
                     f"{100 * r['ok']:.0f} %",
                     _f(r["iterations"], 0),
@@ -706,14 +524,14 @@ def markdown(result: Dict[str, Any]) -> str:
             "",
             f"Breakdown by stage ({title} seconds, medians):",
             "",
-            "| scene | method | render path | " + " | ".join(STAGES) + " |",
-            "|" + "---|" * (3 + len(STAGES)),
+            "| scene | method | " + " | ".join(STAGES) + " |",
+            "|" + "---|" * (2 + len(STAGES)),
         ]
         for r in result["rows"]:
             lines.append(
                 "| "
                 + " | ".join(
-                    [r["scene"], name(r), r["render_path"], *[_f(r[key][k]) for k in STAGES]]
+                    [r["scene"], name(r), *[_f(r[key][k]) for k in STAGES]]
                 )
                 + " |"
             )
@@ -721,9 +539,8 @@ def markdown(result: Dict[str, Any]) -> str:
         lines += [
             "",
             "| scene | ratio | of the medians (wall) | median of paired ratios (wall) | "
-            "paired CPU | "
-            "starts paired | max pose difference |",
-            "|---|---|---|---|---|---|---|",
+            "paired CPU | starts paired |",
+            "|---|---|---|---|---|---|",
         ]
         for q in result["ratios"]:
             lines.append(
@@ -736,7 +553,6 @@ def markdown(result: Dict[str, Any]) -> str:
                         _x(q["paired_median"]),
                         _x(q.get("paired_cpu_median")),
                         str(q["paired_n"]),
-                        "—" if q.get("max_pose_diff") is None else f"{q['max_pose_diff']:.1e}",
                     ]
                 )
                 + " |"
@@ -747,9 +563,9 @@ def markdown(result: Dict[str, Any]) -> str:
             "Per render at the first query's true pose (CPU ms, median), as LocalizationState "
             "calls it:",
             "",
-            "| scene | Gaussians | SH degree | image | plain fwd | prepared fwd | ratio | "
-            "kernel fwd | plain fwd+bwd | prepared fwd+bwd | ratio | kernel fwd+bwd |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|",
+            "| scene | Gaussians | SH degree | image | fwd | kernel fwd | fwd+bwd | "
+            "kernel fwd+bwd |",
+            "|---|---|---|---|---|---|---|---|",
         ]
         for name, t in result["render_timings"].items():
             lines.append(
@@ -760,13 +576,9 @@ def markdown(result: Dict[str, Any]) -> str:
                         f"{t['gaussians']:,}",
                         str(t["sh_degree"]),
                         f"{t['image'][0]}x{t['image'][1]}",
-                        _f(t["plain/fwd"], 1),
                         _f(t["prepared/fwd"], 1),
-                        _f(t["plain/fwd"] / t["prepared/fwd"]) + "x",
                         _f(t.get("kernel/fwd"), 1),
-                        _f(t["plain/fwd+bwd"], 1),
                         _f(t["prepared/fwd+bwd"], 1),
-                        _f(t["plain/fwd+bwd"] / t["prepared/fwd+bwd"]) + "x",
                         _f(t.get("kernel/fwd+bwd"), 1),
                     ]
                 )
@@ -845,16 +657,10 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--backend", default="auto")
     ap.add_argument("--paper-max-iterations", type=int, default=500)
     ap.add_argument(
-        "--render-path",
-        default="prepared",
-        choices=("prepared", "plain", "both"),
-        help="prepared (the library's), plain (before issue 10) or both, alternating per start",
-    )
-    ap.add_argument(
         "--render-repeats",
         type=int,
         default=0,
-        help="add per-render timings of both paths, this many repeats (0: none)",
+        help="add per-render timings, this many repeats (0: none)",
     )
     ap.add_argument(
         "--threads",
@@ -900,7 +706,6 @@ def _main(args) -> int:
     out_dir = args.out or Path("outputs") / "bench_localize" / datetime.datetime.now().strftime(
         "%Y-%m-%d_%H-%M-%S"
     )
-    paths = list(RENDER_PATHS) if args.render_path == "both" else [args.render_path]
     matcher = make_matcher(args.matcher)
     result: Dict[str, Any] = {
         "machine": machine_info(),
@@ -922,7 +727,7 @@ def _main(args) -> int:
         write_text_atomic(out_dir / "results.md", markdown(result))
 
     try:
-        _run(args, result, out_dir, paths, matcher, save)
+        _run(args, result, matcher, save)
     except (ValueError, FileNotFoundError) as e:  # bad input: one line, no traceback
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -934,7 +739,7 @@ def _main(args) -> int:
     return 0
 
 
-def _run(args, result: Dict[str, Any], out_dir: Path, paths: List[str], matcher, save) -> None:
+def _run(args, result: Dict[str, Any], matcher, save) -> None:
     """Run every scene x method x start of ``args`` into ``result["records"]``.
 
     ``save`` is called after each start.
@@ -943,19 +748,15 @@ def _run(args, result: Dict[str, Any], out_dir: Path, paths: List[str], matcher,
         t = time.perf_counter()
         scene = load_scene(scene_name, args)
         starts = sample_starts(scene, args.starts, args.seed, args.rot, args.trans)
-        if (
-            "robust" in args.methods
-        ):  # the candidate views: built once per scene, outside the timings
-            from icomma_plugin.localize import RobustConfig
-
+        configs = {m: method_config(m, args) for m in args.methods}
+        q0 = scene.queries[0].query
+        if "robust" in args.methods:  # the candidate views: built once per scene, not timed
             tc = time.perf_counter()
-            scene.candidate_set(scene.queries[0], matcher, RobustConfig(), args.backend)
-            result["blocks"][f"{scene_name}/candidate_set_s"] = time.perf_counter() - tc
-        log(
-            f"[{scene_name}] {scene.model.num_gaussians} Gaussians, {len(scene.queries)} queries "
-            f"at {scene.queries[0].intrinsics.width}x{scene.queries[0].intrinsics.height} "
-            f"({time.perf_counter() - t:.1f} s)"
-        )
+            scene.localizer(matcher, configs["robust"], args.backend, cache_dir=False
+                            ).candidate_index(q0.intrinsics, configs["robust"].candidates)
+            result["blocks"][f"{scene_name}/candidate_index_s"] = time.perf_counter() - tc
+        log(f"[{scene_name}] {scene.model.num_gaussians} Gaussians, {len(scene.queries)} queries "
+            f"at {q0.intrinsics.width}x{q0.intrinsics.height} ({time.perf_counter() - t:.1f} s)")
         if args.render_repeats:
             result["render_timings"][scene_name] = render_timings(
                 scene, args.render_repeats, args.backend
@@ -965,17 +766,15 @@ def _run(args, result: Dict[str, Any], out_dir: Path, paths: List[str], matcher,
             block = {"load_before": load_average()}
             result["blocks"][f"{scene_name}/{method}"] = block
             for st in starts[:n]:
-                order = paths if st.index % 2 == 0 else paths[::-1]
-                for path in order:
-                    rec = run_start(scene, st, method, path, matcher, args)
-                    rec["scene"] = scene_name
-                    result["records"].append(rec)
-                    log(
-                        f"[{scene_name}] {method:6s} {path:8s} start {st.index:2d} "
-                        f"({st.rot_deg:4.1f} deg): {rec['wall_s']:6.2f} s, "
-                        f"render {rec.get('stage_seconds', {}).get('render', 0.0):.2f} s, final "
-                        f"{_f(rec['final_rot_deg'], 3)} deg, {rec['verdict']}, load {load1()}"
-                    )
+                rec = run_start(scene, st, method, configs[method], matcher, args)
+                rec["scene"] = scene_name
+                result["records"].append(rec)
+                log(
+                    f"[{scene_name}] {method:6s} start {st.index:2d} "
+                    f"({st.rot_deg:4.1f} deg): {rec['wall_s']:6.2f} s, "
+                    f"render {rec.get('stage_seconds', {}).get('render', 0.0):.2f} s, final "
+                    f"{_f(rec['rot_err_deg'], 3)} deg, {rec['status']}, load {load1()}"
+                )
                 block["load_after"] = load_average()
                 save()
 

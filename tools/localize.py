@@ -12,8 +12,9 @@ r"""Estimate the camera pose of a query image in a trained 3DGS model.
 Outputs go to Hydra's output folder (``hydra.run.dir``): result.json (pose, verdict, errors when
 the truth is known), trace.json / trace.csv, overlay_initial.png, overlay_final.png,
 matches_initial.png, convergence.png (optimisation.gif with ``output.gif=true``). ``main`` returns
-the final rotation error in degrees (the final loss when no ground truth is known), so sweepers
-can minimise it.
+the final rotation error in degrees, so sweepers can minimise it; without a ground truth, the mean
+displacement [px] of the matches that agree with the pose (the verdict's ``mean_px``), infinity
+for a failed pose.
 
 Many photos, or a video, against one model (docs/BATCHES.md):
 
@@ -38,7 +39,7 @@ import logging
 import sys
 import time
 from pathlib import Path
-from typing import Any, Dict
+from typing import Any, Dict, Optional
 
 if __package__:
     from . import _common as common
@@ -50,7 +51,6 @@ else:  # run as a script from a checkout
 
 import hydra  # noqa: E402
 import numpy as np  # noqa: E402
-import torch  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
@@ -81,46 +81,23 @@ def run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
         return _run(cfg, Path(output_dir))
 
 
-def _run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
-    from icomma_plugin.app.output import OutputOptions, write_outputs
-    from icomma_plugin.app.problem import load_problem
-    from icomma_plugin.localize import LocalizerConfig, localize
+def _cache_dir(cfg: DictConfig):
+    """The Localizer's candidate cache folder from the ``cache`` group (False: none)."""
+    c = common.container(cfg.get("cache")) or {}
+    if c.get("enabled") is False:
+        return False
+    return c.get("dir") or None
 
-    output_dir.mkdir(parents=True, exist_ok=True)
-    common.seed_everything(int(cfg.seed))
-    backend = str(cfg.renderer.backend)
-    method_cfg = common.build_optimizer(cfg.optimizer)
-    matcher, _ = common.build_matcher(cfg.get("matcher"))
-    problem = load_problem(common.container(cfg.data), backend)
-    if backend == "cuda":  # the CUDA kernel renders CUDA tensors; library code never moves data
-        if not torch.cuda.is_available():
-            raise common.UserError(
-                "renderer=cuda: no CUDA device is available here (use renderer=auto or cpu)"
-            )
-        problem.model = problem.model.to("cuda")
-    paper = isinstance(method_cfg, LocalizerConfig)
-    if paper and problem.init_c2w is None:
-        raise common.UserError(
-            "data.init=none needs the default optimizer (optimizer=robust): the paper's "
-            "method starts from a given pose"
-        )
-    opts = OutputOptions.from_dict(common.container(cfg.output))
 
-    bar = None
-    if cfg.output.progress:
-        from tqdm import tqdm
+def _step_bar(enabled: bool, total: Optional[int]):
+    """(tqdm bar or None, trace-record hook updating it)."""
+    if not enabled:
+        return None, None
+    from tqdm import tqdm
 
-        bar = tqdm(
-            total=method_cfg.max_iterations if paper else None,
-            desc="localize",
-            unit="step",
-            dynamic_ncols=True,
-            leave=False,
-        )
+    bar = tqdm(total=total, desc="localize", unit="step", dynamic_ncols=True, leave=False)
 
     def hook(rec):
-        if bar is None:
-            return
         post = {"stage": rec.stage.name.lower()}
         if rec.loss is not None:
             post["loss"] = f"{rec.loss:.3g}"
@@ -131,40 +108,34 @@ def _run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
         bar.set_postfix(post, refresh=False)
         bar.update(1)
 
-    init_w2c = None if problem.init_c2w is None else np.linalg.inv(problem.init_c2w)
-    gt_w2c = None if problem.gt_c2w is None else np.linalg.inv(problem.gt_c2w)
+    return bar, hook
+
+
+def _run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
+    from icomma_plugin.app.output import OutputOptions, write_outputs
+    from icomma_plugin.app.problem import load_problem
+
+    output_dir.mkdir(parents=True, exist_ok=True)
+    common.seed_everything(int(cfg.seed))
+    backend = common.check_backend(str(cfg.renderer.backend))
+    method = common.build_optimizer(cfg.optimizer)
+    matcher, _ = common.build_matcher(cfg.get("matcher"))
+    problem = load_problem(common.container(cfg.data), backend)
+    if backend == "cuda":  # the CUDA kernel renders CUDA tensors; library code never moves data
+        problem.model = problem.model.to("cuda")
+    localizer = problem.localizer(matcher, method, backend, _cache_dir(cfg))
+    opts = OutputOptions.from_dict(common.container(cfg.output))
+    bar, hook = _step_bar(bool(cfg.output.progress),
+                          getattr(method, "max_iterations", None) if method.needs_start else None)
     t0 = time.perf_counter()
     try:
-        result = localize(
-            problem.model,
-            problem.query.rgb,
-            problem.query.intrinsics,
-            init_w2c,
-            matcher,
-            method_cfg,
-            gt_w2c=gt_w2c,
-            query_alpha=problem.query.alpha,
-            query_valid=problem.query.valid,
-            backend=backend,
-            bg=problem.bg,
-            progress=hook,
-            model_side=problem.model_side,
-            cameras_c2w=problem.candidate_c2ws(),
-            query_name=problem.name,
-        )
+        result = localizer.localize(problem.query, problem.init_c2w, problem.gt_c2w, hook)
     finally:
         if bar is not None:
             bar.close()
-    return write_outputs(
-        output_dir,
-        problem,
-        result,
-        matcher=matcher,
-        options=opts,
-        backend=backend,
-        config=common.container(cfg),
-        seconds_total=time.perf_counter() - t0,
-    )
+    return write_outputs(output_dir, problem, result, matcher=matcher, options=opts,
+                         backend=backend, config=common.container(cfg),
+                         seconds_total=time.perf_counter() - t0)
 
 
 class _Bar:
@@ -191,21 +162,12 @@ class _Bar:
             self.bar.close()
 
 
-def _run_many(cfg: DictConfig, out: Path) -> Dict[str, Any]:
-    """A batch (data.queries) or a sequence (data.sequence) into ``out``; returns poses.json."""
-    from icomma_plugin.app.batch import (
-        WorkerSetup,
-        export_rows,
-        open_model_folder,
-        plan_batch,
-        run_batch,
-        run_identity,
-    )
-    from icomma_plugin.app.ledger import PosesLedger
+def _worker_setup(cfg: DictConfig, data: Dict[str, Any], out: Path, sequence: bool):
+    """(WorkerSetup, model folder, matcher) of a batch or a sequence; UserError on bad input."""
+    from icomma_plugin.app.batch import WorkerSetup
     from icomma_plugin.app.output import OutputOptions
-    from icomma_plugin.localize import LocalizerConfig
+    from icomma_plugin.app.problem import open_model_folder
 
-    data = common.container(cfg.data)
     if data.get("kind") != "model_folder":
         raise common.UserError(
             "data.queries / data.sequence need a model folder: data=model_folder "
@@ -213,18 +175,32 @@ def _run_many(cfg: DictConfig, out: Path) -> Dict[str, Any]:
         )
     if data.get("queries") and data.get("sequence"):
         raise common.UserError("set data.queries (a batch) or data.sequence (a video), not both")
-    common.seed_everything(int(cfg.seed))
-    backend = str(cfg.renderer.backend)
-    if backend == "cuda" and not torch.cuda.is_available():
-        raise common.UserError(
-            "renderer=cuda: no CUDA device is available here (use renderer=auto or cpu)"
-        )
-    method_cfg = common.build_optimizer(cfg.optimizer)
+    backend = common.check_backend(str(cfg.renderer.backend))
+    method = common.build_optimizer(cfg.optimizer)
     matcher, _ = common.build_matcher(cfg.get("matcher"))
-    if matcher is None and not isinstance(method_cfg, LocalizerConfig):
-        raise common.UserError(
-            "the default optimizer (optimizer=robust) needs a matcher (e.g. matcher=xfeat)"
-        )
+    problem = method.needs(matcher)
+    if problem:
+        raise common.UserError(problem)
+    oc = common.container(cfg.output)
+    mf, white = open_model_folder(data)
+    setup = WorkerSetup(
+        model_path=str(Path(mf.path).resolve()), method=method,
+        matcher=common.container(cfg.get("matcher")), out_dir=str(out), iteration=mf.iteration,
+        white_background=white, backend=backend, resize=data.get("resize"),
+        folders=bool(oc.get("photo_folders")), output=OutputOptions.from_dict(oc),
+        thumbs=bool(oc.get("contact_sheet")) and not sequence,  # the sheet is a batch's
+        thumb_side=int(oc.get("thumb_side") or 192), config=common.container(cfg),
+        seed=int(cfg.seed), cache_dir=_cache_dir(cfg),
+    )
+    return setup, mf, matcher
+
+
+def _run_many(cfg: DictConfig, out: Path) -> Dict[str, Any]:
+    """A batch (data.queries) or a sequence (data.sequence) into ``out``; returns poses.json."""
+    from icomma_plugin.app.batch import export_rows
+
+    data = common.container(cfg.data)
+    common.seed_everything(int(cfg.seed))
     oc = common.container(cfg.output)
     workers = int(cfg.get("workers") or 1)
     shard, num_shards = int(data.get("shard") or 0), int(data.get("num_shards") or 1)
@@ -234,87 +210,24 @@ def _run_many(cfg: DictConfig, out: Path) -> Dict[str, Any]:
         )
     if workers < 1:
         raise common.UserError(f"workers must be a positive integer, got {workers}")
-    mf, white = open_model_folder(data)
     sequence = bool(data.get("sequence"))
-    setup = WorkerSetup(
-        model_path=str(Path(mf.path).resolve()),
-        method=method_cfg,
-        matcher=common.container(cfg.get("matcher")),
-        out_dir=str(out),
-        iteration=mf.iteration,
-        white_background=white,
-        backend=backend,
-        resize=data.get("resize"),
-        folders=bool(oc.get("photo_folders")),
-        output=OutputOptions.from_dict(oc),
-        thumbs=bool(oc.get("contact_sheet")) and not sequence,  # the sheet is a batch's
-        thumb_side=int(oc.get("thumb_side") or 192),
-        config=common.container(cfg),
-        seed=int(cfg.seed),
-    )
+    if sequence and (num_shards > 1 or workers > 1):
+        raise common.UserError("a sequence is tracked frame after frame: data.num_shards and "
+                               "workers must be 1 with data.sequence")
+    if not sequence and workers > 1 and str(cfg.renderer.backend) == "cuda":
+        raise common.UserError("workers > 1 shares one GPU between processes: use workers=1 "
+                               "with renderer=cuda")
+    setup, mf, matcher = _worker_setup(cfg, data, out, sequence)
     bar = _Bar(bool(oc.get("progress")), "frame" if sequence else "photo")
     t0 = time.perf_counter()
     try:
-        if sequence:
-            if num_shards > 1 or workers > 1:
-                raise common.UserError(
-                    "a sequence is tracked frame after frame: data.num_shards and workers "
-                    "must be 1 with data.sequence"
-                )
-            res = _run_sequence(cfg, data, mf, setup, matcher, out, bar)
-        else:
-            if workers > 1 and backend == "cuda":
-                raise common.UserError(
-                    "workers > 1 shares one GPU between processes: use workers=1 with "
-                    "renderer=cuda"
-                )
-            plan, _ = plan_batch(data, mf)
-            ledger = PosesLedger(
-                out,
-                {**run_identity("batch", data, setup.model_path), "config": common.container(cfg)},
-                len(plan.tasks),
-                shard,
-                num_shards,
-            )
-            summ = run_batch(
-                plan,
-                setup,
-                ledger,
-                workers=workers,
-                threads_per_worker=int(cfg.get("threads") or 1),
-                retry_failed=bool(oc.get("retry_failed")),
-                progress=bar,
-                model_folder=mf if workers == 1 else None,
-                matcher=matcher if workers == 1 else None,
-            )
-            res = {
-                "kind": "batch",
-                "done_now": summ.done_now,
-                "skipped": summ.skipped,
-                "photos_per_minute": summ.photos_per_minute,
-                "seconds": summ.seconds,
-            }
-            rows = ledger.all_rows()
-            if setup.thumbs and rows:
-                from icomma_plugin.pictures import contact_sheet
-
-                try:
-                    contact_sheet(out / "contact_sheet.png", rows, out)
-                except Exception as e:  # noqa: BLE001 - a picture never fails the run
-                    log.warning("no contact sheet: %s: %s", type(e).__name__, e)
-            res["rows"] = rows
+        run = _run_sequence if sequence else _run_batch
+        res = run(cfg, data, mf, setup, matcher, out, bar)
     finally:
         bar.close()
-    exports = (
-        export_rows(
-            out,
-            res["rows"],
-            list(oc.get("export") or []),
-            tuple(oc.get("export_verdicts") or ("ok", "uncertain")),
-        )
-        if oc.get("export")
-        else {}
-    )
+    exports = export_rows(out, res["rows"], list(oc.get("export") or []),
+                          tuple(oc.get("export_verdicts") or ("ok", "uncertain"))) \
+        if oc.get("export") else {}
     doc = json.loads((out / "poses.json").read_text())
     doc["summary"] = {k: v for k, v in res.items() if k != "rows"}
     doc["summary"].update(
@@ -323,88 +236,68 @@ def _run_many(cfg: DictConfig, out: Path) -> Dict[str, Any]:
     return doc
 
 
-def _run_sequence(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, Any]:
-    from icomma_plugin.app.batch import BatchWorker, run_identity, start_poses
-    from icomma_plugin.app.inputs import photo_intrinsics, read_poses_file
+def _run_batch(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, Any]:
+    from icomma_plugin.app.batch import plan_batch, run_batch, run_identity
     from icomma_plugin.app.ledger import PosesLedger
+
+    workers = int(cfg.get("workers") or 1)
+    plan, _ = plan_batch(data, mf)
+    ledger = PosesLedger(
+        out, {**run_identity("batch", data, setup.model_path), "config": common.container(cfg)},
+        len(plan.tasks), int(data.get("shard") or 0), int(data.get("num_shards") or 1),
+    )
+    summ = run_batch(plan, setup, ledger, workers=workers,
+                     threads_per_worker=int(cfg.get("threads") or 1),
+                     retry_failed=bool(cfg.output.get("retry_failed")), progress=bar,
+                     model_folder=mf if workers == 1 else None,
+                     matcher=matcher if workers == 1 else None)
+    rows = ledger.all_rows()
+    if setup.thumbs and rows:
+        from icomma_plugin.pictures import contact_sheet
+
+        try:
+            contact_sheet(out / "contact_sheet.png", rows, out)
+        except Exception as e:  # noqa: BLE001 - a picture never fails the run
+            log.warning("no contact sheet: %s: %s", type(e).__name__, e)
+    return {"kind": "batch", "done_now": summ.done_now, "skipped": summ.skipped,
+            "photos_per_minute": summ.photos_per_minute, "seconds": summ.seconds, "rows": rows}
+
+
+def _run_sequence(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, Any]:
+    from icomma_plugin.app.batch import BatchWorker, run_identity
+    from icomma_plugin.app.inputs import intrinsics_for_photos
+    from icomma_plugin.app.ledger import PosesLedger
+    from icomma_plugin.app.problem import scene_centre_of
     from icomma_plugin.app.tracking import (
         FrameSource,
         TrackingConfig,
+        first_frame_start,
+        sequence_pictures,
+        sequence_truths,
         track,
-        write_tracking_video,
     )
+    from icomma_plugin.checks import config_from_dict
 
-    oc = common.container(cfg.output)
     source = FrameSource.open(data["sequence"], int(data.get("every") or 1), data.get("limit"))
-    table = None
-    g = data.get("gt") or {}
-    for k in ("poses_file", "cameras_json"):
-        if g.get(k) is not None:
-            table = read_poses_file(g[k], f"data.gt.{k}")
-    gt_of = None if table is None else table.get
-    first = "frame_000000" if source.is_video else source.names[0]
-    mode, inits, errs = start_poses(
-        data.get("init"), [first], [None if gt_of is None else gt_of(first)], mf
-    )
-    if errs[0]:
-        raise common.UserError(errs[0])
-    it = data.get("intrinsics") or {}
-    photo_intrinsics(
-        (1000, 1000), dict(it, width=None, height=None), mf.cameras
-    )  # a config error now
-
-    def intrinsics_of(size):
-        return photo_intrinsics(size, it, mf.cameras)
-
+    gt_of = sequence_truths(data)
+    init_c2w = first_frame_start(data, source, mf.cameras, scene_centre_of(mf.model), gt_of)
+    intrinsics_of = intrinsics_for_photos(data.get("intrinsics"), mf.cameras)
     worker = BatchWorker(setup, mf, matcher)
     ledger = PosesLedger(
-        out,
-        {**run_identity("sequence", data, setup.model_path), "config": common.container(cfg)},
+        out, {**run_identity("sequence", data, setup.model_path), "config": common.container(cfg)},
         source.count() or 0,
     )
-    tc = common.container(cfg.get("tracking")) or {}
-    summ = track(
-        worker, source, ledger, intrinsics_of, inits[0], gt_of, TrackingConfig(**tc), progress=bar
-    )
+    tc = config_from_dict(TrackingConfig, common.container(cfg.get("tracking")), "tracking")
+    summ = track(worker, source, ledger, intrinsics_of, init_c2w, gt_of, tc, progress=bar)
     ledger.total = max(ledger.total, len(ledger.all_rows()))
     ledger.flush()
     rows = ledger.all_rows()
-    files = []
-    try:
-        if oc.get("trajectory_plot") and rows:
-            from icomma_plugin.pictures import plot_trajectory
-
-            plot_trajectory(
-                out / "trajectory.png",
-                [None if r.get("c2w") is None else np.asarray(r["c2w"]) for r in rows],
-                [e.c2w for e in mf.cameras],
-                [None if r.get("gt_c2w") is None else np.asarray(r["gt_c2w"]) for r in rows],
-                [r["status"] for r in rows],
-                title=f"{len(rows)} frames of {data['sequence']}",
-            )
-            files.append("trajectory.png")
-        if oc.get("video") and rows:
-            p = write_tracking_video(
-                out / "tracking.mp4",
-                worker,
-                source,
-                rows,
-                intrinsics_of,
-                float(oc.get("video_fps") or 10),
-            )
-            files.append(p.name)
-    except Exception as e:  # noqa: BLE001 - a picture never fails the run
-        log.warning("could not draw every picture: %s: %s", type(e).__name__, e)
-    return {
-        "kind": "sequence",
-        "done_now": summ.done_now,
-        "skipped": summ.skipped,
-        "frames_per_second": summ.frames_per_second,
-        "seconds": summ.seconds,
-        "relocalized": summ.relocalized,
-        "files": files,
-        "rows": rows,
-    }
+    files = sequence_pictures(out, worker, source, rows, intrinsics_of,
+                              common.container(cfg.output), f"{len(rows)} frames of "
+                              f"{data['sequence']}")
+    return {"kind": "sequence", "done_now": summ.done_now, "skipped": summ.skipped,
+            "frames_per_second": summ.frames_per_second, "seconds": summ.seconds,
+            "relocalized": summ.relocalized, "files": files, "rows": rows}
 
 
 def many_summary(doc: Dict[str, Any]) -> str:
@@ -448,21 +341,19 @@ def summary(res: Dict[str, Any], output_dir: Path) -> str:
     def f(v, fmt):
         return "n/a" if v is None else format(v, fmt)
 
-    v = res.get("verdict") or {}
     lines = [
         "=" * 72,
-        f"localisation of {res['query']!r}: {res['method']} ({res['matcher'] or 'compare only'}, "
+        f"localisation of {res['name']!r}: {res['method']} ({res['matcher'] or 'compare only'}, "
         f"backend {res['backend']})",
-        f"  verdict      {str(v.get('status', 'n/a')).upper()}: {v.get('reason', '')}",
+        f"  verdict      {str(res['status']).upper()}: {res['reason']}",
         f"  steps        {res['iterations']}  ({res['stop_reason']})   {res['seconds']:.2f} s",
     ]
-    if res["final_rotation_error_deg"] is not None:
-        rel = res.get("final_translation_error_rel")
-        init_r = res.get("initial_rotation_error_deg")
-        init_t = res.get("initial_translation_error")
+    if res["rot_err_deg"] is not None:
+        rel = res.get("trans_err_rel")
         lines += [
-            f"  rotation     {f(init_r, '8.3f')} deg -> {res['final_rotation_error_deg']:.4f} deg",
-            f"  translation  {f(init_t, '8.4f')}     -> {res['final_translation_error']:.5f}"
+            f"  rotation     {f(res['init_rot_err_deg'], '8.3f')} deg -> "
+            f"{res['rot_err_deg']:.4f} deg",
+            f"  translation  {f(res['init_trans_err'], '8.4f')}     -> {res['trans_err']:.5f}"
             + (
                 ""
                 if rel is None
@@ -470,7 +361,7 @@ def summary(res: Dict[str, Any], output_dir: Path) -> str:
             ),
             f"  success (< 0.5 deg, < 1% scale): {res['success']}",
         ]
-    c = np.asarray(res["estimated_c2w"])
+    c = np.asarray(res["c2w"])
     lines.append("  estimated camera-to-world (OpenCV axes):")
     lines += ["    " + " ".join(f"{x:9.5f}" for x in row) for row in c[:3]]
     lines.append(f"  outputs in {output_dir}")
@@ -482,8 +373,9 @@ def summary(res: Dict[str, Any], output_dir: Path) -> str:
 def main(cfg: DictConfig) -> float:
     """Hydra entry point: run, print the summary, return the number sweepers minimise.
 
-    That is the final rotation error in degrees (the final loss without ground truth); for a
-    batch or a sequence, the failed share of the photos done.
+    That is the final rotation error in degrees (without ground truth: the mean displacement [px]
+    of the matches agreeing with the pose, infinity when it failed); for a batch or a sequence,
+    the failed share of the photos done.
     """
     hc = HydraConfig.get()
     output_dir = Path(hc.runtime.output_dir)
@@ -496,9 +388,10 @@ def main(cfg: DictConfig) -> float:
         return float(doc["counts"].get("failed", 0)) / max(1, int(doc.get("done") or 0))
     res = common.run_or_exit(lambda: run(cfg, output_dir), multirun, log)
     print(summary(res, output_dir))
-    if res["final_rotation_error_deg"] is not None:
-        return float(res["final_rotation_error_deg"])
-    return float(res["final_loss"]) if res["final_loss"] is not None else float("nan")
+    if res["rot_err_deg"] is not None:
+        return float(res["rot_err_deg"])
+    mean_px = (res.get("signals") or {}).get("mean_px")
+    return float(mean_px) if res["status"] != "failed" and mean_px is not None else float("inf")
 
 
 if __name__ == "__main__":

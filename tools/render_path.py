@@ -98,7 +98,7 @@ def main(argv=None) -> int:
     from icomma_plugin.io.cameras_json import entry_to_intrinsics, find_entry
     from icomma_plugin.io.model_folder import load_model_folder
     from icomma_plugin.io.video import write_video
-    from icomma_plugin.localization.candidates import scene_frame
+    from icomma_plugin.pose.views import scene_frame
     from icomma_plugin.render import render
     from icomma_plugin.pictures import save_image, to_uint8
 
@@ -118,7 +118,7 @@ def main(argv=None) -> int:
     )
     intr = intr.scaled(side / max(intr.width, intr.height))
     cams = [np.asarray(e.c2w, np.float64) for e in mf.cameras]
-    centre, radius, up = scene_frame(mf.model, cams)
+    centre, radius, up = scene_frame(mf.model.means.numpy(), cams)
     rel = np.stack([c[:3, 3] - centre for c in cams])
     ups = rel @ up
     flat = rel - np.outer(ups, up)

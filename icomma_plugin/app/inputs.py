@@ -1,57 +1,62 @@
-"""Inputs of batches and sequences: lists of photos, poses files, the intrinsics of each photo.
+"""What a localization is asked to do, read from the tools' ``data`` group.
 
-Poses files give the poses by image name. Bad input raises :class:`~.problem.ProblemError`
-naming the ``data`` key.
+The photos of a batch (``data.queries``), the start pose of each (``data.init``), their truths
+(``data.gt``) and their intrinsics (``data.intrinsics``). Bad input raises :class:`ProblemError`
+(a ValueError) whose message names the ``data`` key.
 
 Photo lists (``data.queries``): a folder (its image files, natural order), a glob
 (``photos/*.jpg``, ``**`` recursive), a list file (one path per line, relative to the list's
 folder, ``#`` comments), a single image, a list of any of these, or a dataset folder (COLMAP,
-Blender, transforms.json, LLFF: its views with their undistortion and ground truth).
-
-Poses files (``data.init.poses_file``, ``data.gt.poses_file``), one camera-to-world (OpenCV
-axes) per image name:
-
-- JSON: ``{"IMG_1.jpg": [[4x4]], ...}`` (or ``{"name": {"c2w": [[4x4]]}}``, or 3x4 matrices);
-  an icomma ``poses.json`` (its rows that have a pose and did not fail); a 3DGS
-  ``cameras.json`` (``img_name`` -> pose);
-- text: one line per image, ``name m00 m01 ... m33`` (16 numbers, row-major; or 12 for 3x4),
-  ``#`` comments. Names may not contain spaces there.
-
-A photo is looked up by its name, then by its file name, then by its stem (no extension).
+Blender, transforms.json, LLFF: its views with their undistortion and ground truth). Poses files
+(``data.init.poses_file``, ``data.gt.poses_file``) are read by ``io.poses_file``.
 """
 
 from __future__ import annotations
 
 import glob
-import json
 import math
 import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
 from ..camera import Intrinsics
-from ..pose.convert import as_rigid
-from .problem import ProblemError
+from ..io.poses_file import PoseTable, read_c2w_file, read_poses_file
+from ..pose.convert import perturb_pose
 
 __all__ = [
+    "DATASET_KINDS",
+    "INIT_KEYS",
+    "INIT_PIVOTS",
     "PhotoList",
     "PhotoMismatch",
-    "PoseTable",
+    "ProblemError",
+    "fit_intrinsics",
+    "init_group",
+    "intrinsics_for_photos",
     "list_photos",
     "natural_key",
+    "perturbed_start",
     "photo_intrinsics",
-    "read_poses_file",
-    "DATASET_KINDS",
+    "start_poses",
+    "truths",
 ]
 
 #: Dataset folders that ``data.queries`` reads as views (a plain cameras.json folder is not one).
 DATASET_KINDS = ("colmap", "blender", "transforms_json", "llff")
+#: The pivots of a perturbed start (``data.init.pivot``).
+INIT_PIVOTS = ("scene_center", "camera", "origin")
+#: The ways of giving start poses (``data.init.<key>``); ``data.init=none`` gives none.
+INIT_KEYS = ("camera", "c2w_file", "rot_deg", "poses_file", "cameras_json")
 
 _GLOB = re.compile(r"[*?\[]")
+
+
+class ProblemError(ValueError):
+    """Bad input in the configuration (the message names the key)."""
 
 
 class PhotoMismatch(ProblemError):
@@ -194,115 +199,155 @@ def _dataset_photos(
     return PhotoList([v.image_path for v in views], [str(v.name) for v in views], views, root)
 
 
-# ---------------------------------------------------------------------------------- poses files
+# ---------------------------------------------------------------------------------- starts
 
 
-class PoseTable:
-    """Camera-to-world poses by image name, looked up by name, file name or stem."""
-
-    def __init__(self, poses: Dict[str, np.ndarray], source: str):
-        self.poses = dict(poses)
-        self.source = source
-        self._by_base: Dict[str, List[str]] = {}
-        self._by_stem: Dict[str, List[str]] = {}
-        for k in self.poses:
-            b = os.path.basename(k)
-            self._by_base.setdefault(b, []).append(k)
-            self._by_stem.setdefault(os.path.splitext(b)[0], []).append(k)
-
-    def __len__(self) -> int:
-        return len(self.poses)
-
-    def get(self, name: str) -> Optional[np.ndarray]:
-        """The pose of ``name``: by name, else by file name, else by stem (when unambiguous)."""
-        if name in self.poses:
-            return self.poses[name]
-        b = os.path.basename(name)
-        for table, key in ((self._by_base, b), (self._by_stem, os.path.splitext(b)[0])):
-            hits = table.get(key, [])
-            if len(hits) == 1:
-                return self.poses[hits[0]]
-        return None
-
-
-def _matrix(v, what: str) -> np.ndarray:
-    try:
-        n = np.size(np.asarray(v, np.float64))
-    except (TypeError, ValueError):
-        raise ProblemError(f"{what}: not a numeric matrix") from None
-    if n not in (12, 16):
+def init_group(ini) -> Optional[Dict[str, Any]]:
+    """The ``data.init`` group as a mapping, or None for ``data.init=none``."""
+    if ini is None:
+        return {}
+    if isinstance(ini, str):
+        if ini.strip().lower() == "none":
+            return None
         raise ProblemError(
-            f"{what}: expected a 4x4 (or 3x4) camera-to-world matrix, got {n} numbers"
+            f"data.init must be a group (camera / c2w_file / rot_deg ...) or none, got {ini!r}"
         )
-    return as_rigid(np.reshape(np.asarray(v, np.float64), (-1, 4)), what, ProblemError)
+    if not isinstance(ini, dict):
+        raise ProblemError(f"data.init must be a group or none, got {type(ini).__name__}")
+    return ini
 
 
-def read_poses_file(path, what: str) -> PoseTable:
-    """The poses of a poses file (module docstring); ProblemError naming ``what`` on bad input."""
-    p = Path(str(path)).expanduser()
-    if not p.is_file():
-        raise ProblemError(f"{what}: file not found: {p}")
+def perturbed_start(gt: np.ndarray, ini: Dict[str, Any], scene_centre) -> np.ndarray:
+    """``gt`` rotated by ``init.rot_deg`` about ``init.pivot`` and moved by ``init.trans``.
+
+    ``scene_centre``: the pivot ``scene_center`` (``scene_centre_of`` a model).
+    """
+    rng = np.random.default_rng(int(ini.get("seed") or 0))
+    pivot = ini.get("pivot") or "scene_center"
+    if pivot not in INIT_PIVOTS:
+        raise ProblemError(f"data.init.pivot must be one of {INIT_PIVOTS}, got {pivot!r}")
+    if pivot == "scene_center":
+        pivot = scene_centre
     try:
-        text = p.read_text()
-    except (OSError, UnicodeDecodeError) as e:
-        raise ProblemError(f"{what}: cannot read {p} ({e})") from None
-    if p.suffix.lower() == ".json" or text.lstrip()[:1] in ("{", "["):
+        return perturb_pose(
+            gt, float(ini["rot_deg"]), float(ini.get("trans") or 0.0), rng, pivot=pivot
+        )
+    except ValueError as e:
+        raise ProblemError(f"data.init: {e}") from None
+
+
+def start_poses(
+    ini_cfg, names: Sequence[str], gts: Sequence[Optional[np.ndarray]], cameras: Sequence[Any],
+    scene_centre: Optional[np.ndarray] = None,
+) -> Tuple[str, List[Optional[np.ndarray]], List[Optional[str]]]:
+    """(mode, start c2w per photo, error per photo) from the ``data.init`` group.
+
+    none (``data.init=none``): no start pose; constant: ``camera`` / ``c2w_file``; per_photo:
+    ``poses_file`` / ``cameras_json`` looked up by name (``missing: none`` searches the candidate
+    views for a photo the file lacks, ``fail`` records it as failed); perturbed: the truth turned
+    by ``rot_deg`` (seed ``seed + index``) about ``pivot`` (``scene_centre`` for
+    ``scene_center``). ``cameras``: the model's ``cameras.json`` entries. The one rule for start
+    poses: single photos, batches and sequences use it.
+    """
+    from ..io.cameras_json import find_entry
+
+    ini = init_group(ini_cfg)
+    n = len(names)
+    if ini is None:
+        return "none", [None] * n, [None] * n
+    chosen = [k for k in INIT_KEYS if ini.get(k) is not None]
+    if len(chosen) != 1:
+        raise ProblemError(
+            "choose exactly one start pose for the photos: data.init.poses_file, "
+            "data.init.cameras_json, data.init.c2w_file, data.init.camera or data.init.rot_deg, or "
+            f"none with data.init=none (got {chosen or 'none of them'})"
+        )
+    key = chosen[0]
+    if key == "camera":
+        if not cameras:
+            raise ProblemError(
+                f"data.init.camera={ini['camera']!r}: the model folder has no cameras.json"
+            )
         try:
-            data = json.loads(text)
-        except json.JSONDecodeError as e:
-            raise ProblemError(f"{what}: {p} is not valid JSON ({e})") from None
-        poses = _json_poses(data, p, what)
-    else:
-        poses = _text_poses(text, p, what)
-    if not poses:
-        raise ProblemError(f"{what}: {p} holds no poses")
-    return PoseTable(poses, str(p))
-
-
-def _json_poses(data, p: Path, what: str) -> Dict[str, np.ndarray]:
-    if isinstance(data, list):  # a 3DGS cameras.json
-        from ..io.cameras_json import read_cameras_json
-
-        try:
-            return {e.img_name: np.asarray(e.c2w, np.float64) for e in read_cameras_json(p)}
+            c2w = np.asarray(find_entry(cameras, ini["camera"]).c2w, np.float64)
         except ValueError as e:
-            raise ProblemError(f"{what}: {e}") from None
-    if not isinstance(data, dict):
-        raise ProblemError(f"{what}: {p} must hold a JSON object of name -> 4x4 c2w")
-    if isinstance(data.get("photos"), list):  # an icomma poses.json
-        out = {}
-        for r in data["photos"]:
-            if isinstance(r, dict) and r.get("c2w") is not None and r.get("status") != "failed":
-                out[str(r["name"])] = _matrix(r["c2w"], f"{what}: {p}: photo {r.get('name')!r}")
-        return out
-    out = {}
-    for k, v in data.items():
-        if isinstance(v, dict):
-            v = v.get("c2w", v.get("transform_matrix"))
-        out[str(k)] = _matrix(v, f"{what}: {p}: entry {k!r}")
+            raise ProblemError(f"data.init.camera: {e}") from None
+        return "constant", [c2w] * n, [None] * n
+    if key == "c2w_file":
+        c2w = read_c2w_file(ini["c2w_file"], "data.init.c2w_file")
+        return "constant", [c2w] * n, [None] * n
+    if key == "rot_deg":
+        out, errs = [], []
+        for i, gt in enumerate(gts):
+            if gt is None:
+                out.append(None)
+                errs.append(
+                    "data.init.rot_deg perturbs the ground truth, which is unknown for this photo "
+                    "(set data.gt.poses_file, or use a dataset folder as data.queries)"
+                )
+                continue
+            sub = dict(ini, seed=int(ini.get("seed") or 0) + i)
+            out.append(perturbed_start(gt, sub, scene_centre))
+            errs.append(None)
+        return "perturbed", out, errs
+    missing = str(ini.get("missing") or "fail")
+    if missing not in ("fail", "none"):
+        raise ProblemError(f"data.init.missing must be fail or none, got {missing!r}")
+    what = f"data.init.{key}"
+    table = read_poses_file(ini[key], what)
+    out, errs = [], []
+    for name in names:
+        c2w = table.get(name)
+        out.append(c2w)
+        errs.append(
+            None
+            if c2w is not None or missing == "none"
+            else f"no start pose for {name!r} in {what} ({table.source}); add it, or set "
+            "data.init.missing=none to search the candidate views"
+        )
+    return "per_photo", out, errs
+
+
+def _truths(gt_cfg, names: Sequence[str], views) -> List[Optional[np.ndarray]]:
+    g = gt_cfg or {}
+    for k in ("camera", "c2w_file"):
+        if g.get(k) is not None:
+            raise ProblemError(
+                f"data.gt.{k} is one pose for one photo; for a batch use data.gt.poses_file "
+                "or data.gt.cameras_json (poses by name)"
+            )
+    table: Optional[PoseTable] = None
+    for k in ("poses_file", "cameras_json"):
+        if g.get(k) is not None:
+            table = read_poses_file(g[k], f"data.gt.{k}")
+    out = []
+    for i, name in enumerate(names):
+        gt = table.get(name) if table is not None else None
+        if gt is None and views is not None:
+            gt = np.asarray(views[i].c2w, np.float64)
+        out.append(gt)
     return out
 
 
-def _text_poses(text: str, p: Path, what: str) -> Dict[str, np.ndarray]:
-    out = {}
-    for n, line in enumerate(text.splitlines(), 1):
-        line = line.split("#", 1)[0].strip()
-        if not line:
-            continue
-        parts = line.split()
-        try:
-            nums = [float(x) for x in parts[1:]]
-        except ValueError:
+def truths(gt_cfg, names: Sequence[str], views) -> List[Optional[np.ndarray]]:
+    """The true pose of each photo (``data.gt``, else the dataset view's), or None."""
+    g = gt_cfg or {}
+    for k in ("camera", "c2w_file"):
+        if g.get(k) is not None:
             raise ProblemError(
-                f"{what}: line {n} of {p}: expected 'name' and 16 (or 12) numbers, got "
-                f"{line[:80]!r}"
-            ) from None
-        if len(nums) not in (12, 16):
-            raise ProblemError(
-                f"{what}: line {n} of {p}: expected 'name' and 16 (or 12) numbers, got "
-                f"{len(nums)} numbers"
+                f"data.gt.{k} is one pose for one photo; for a batch use data.gt.poses_file "
+                "or data.gt.cameras_json (poses by name)"
             )
-        out[parts[0]] = _matrix(nums, f"{what}: line {n} of {p}")
+    table: Optional[PoseTable] = None
+    for k in ("poses_file", "cameras_json"):
+        if g.get(k) is not None:
+            table = read_poses_file(g[k], f"data.gt.{k}")
+    out = []
+    for i, name in enumerate(names):
+        gt = table.get(name) if table is not None else None
+        if gt is None and views is not None and views[i] is not None:
+            gt = np.asarray(views[i].c2w, np.float64)
+        out.append(gt)
     return out
 
 
@@ -354,15 +399,56 @@ def photo_intrinsics(
             src = entry_to_intrinsics(find_entry(cameras, it["camera"]))
         except ValueError as e:
             raise ProblemError(f"data.intrinsics.camera: {e}") from None
-        if (src.width, src.height) == (W, H):
-            return src
-        if not math.isclose(src.width / src.height, W / H, rel_tol=0.01):
-            raise PhotoMismatch(
-                f"the photo is {W}x{H} but data.intrinsics.camera={it['camera']!r} is "
-                f"{src.width}x{src.height} (another aspect ratio)"
-            )
-        return Intrinsics(W, H, src.fx * W / src.width, src.fy * H / src.height)
+        return fit_intrinsics(src, size, f"data.intrinsics.camera={it['camera']!r}")
     raise ProblemError(
         "the photos' intrinsics are unknown: set data.intrinsics.fx (and fy, cx, cy, "
         "width, height) or data.intrinsics.camera (a cameras.json entry)"
     )
+
+
+def fit_intrinsics(src: Intrinsics, size: Tuple[int, int], what: str) -> Intrinsics:
+    """``src`` for a photo of ``size`` (W, H): as is, or scaled when the aspect ratio agrees (1 %).
+
+    Raises:
+        PhotoMismatch: another aspect ratio (naming ``what``).
+    """
+    W, H = size
+    if (src.width, src.height) == (W, H):
+        return src
+    if not math.isclose(src.width / src.height, W / H, rel_tol=0.01):
+        raise PhotoMismatch(
+            f"the photo is {W}x{H} but {what} is {src.width}x{src.height} (another aspect ratio)"
+        )
+    return Intrinsics(W, H, src.fx * W / src.width, src.fy * H / src.height)
+
+
+def intrinsics_for_photos(it: Dict[str, Any], cameras: Sequence[Any]
+                          ) -> Callable[[Tuple[int, int]], Intrinsics]:
+    """``(W, H) -> Intrinsics`` for the photos of a batch or a video (see `photo_intrinsics`).
+
+    The ``data.intrinsics`` group is checked now, without a photo: a missing key or camera is a
+    configuration error at once; a photo of another size or shape fails that photo only
+    (:class:`PhotoMismatch`).
+    """
+    it = it or {}
+    if it.get("fx") is None and it.get("camera") is None:
+        photo_intrinsics((1, 1), it, cameras)  # raises the "intrinsics unknown" error
+    if it.get("camera") is not None:
+        from ..io.cameras_json import find_entry
+
+        if not cameras:
+            raise ProblemError(
+                f"data.intrinsics.camera={it['camera']!r}: the model folder has no cameras.json"
+            )
+        try:
+            find_entry(cameras, it["camera"])
+        except ValueError as e:
+            raise ProblemError(f"data.intrinsics.camera: {e}") from None
+    known: Dict[Tuple[int, int], Intrinsics] = {}
+
+    def of(size: Tuple[int, int]) -> Intrinsics:
+        if size not in known:
+            known[size] = photo_intrinsics(size, it, cameras)
+        return known[size]
+
+    return of

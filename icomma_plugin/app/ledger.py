@@ -15,7 +15,8 @@ reads both; a line cut short by a kill is ignored.
     ledger.close()                              # status "complete" once every photo has a row
 
 A row is a JSON mapping with at least ``index`` (the photo's place in the input order), ``name``
-and ``status`` (``ok | uncertain | failed``); see ``batch.result_row`` for the rest.
+and ``status`` (``ok | uncertain | failed``): the one row schema (``localization.types.ROW_FIELDS``,
+docs/CONTRACTS.md) and the batch's own fields (``batch/records.py``).
 
 Shards (``num_shards > 1``, e.g. the array tasks of a SLURM job): every shard writes its own part
 ``parts/shard-<i>-of-<n>.json`` and then merges all parts into ``poses.json`` under a file lock,
@@ -25,7 +26,6 @@ so whichever shard merges last leaves every shard's rows in ``poses.json``. The 
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import io
 import json
@@ -33,29 +33,21 @@ import logging
 import os
 import time
 from pathlib import Path
-from typing import Any, Dict, Iterator, List, Optional, Sequence
+from typing import Any, Dict, List, Optional, Sequence
 
-from ..io.atomic import write_json_atomic, write_text_atomic
-from ..localization.types import VERDICTS
+from ..io.atomic import file_lock, write_json_atomic, write_text_atomic
+from ..localization.types import ROW_FIELDS, VERDICTS
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["CSV_COLUMNS", "LedgerError", "PosesLedger", "counts_of", "read_poses_json"]
 
-#: Columns of poses.csv (errors are blank when the truth is unknown).
-CSV_COLUMNS = (
-    "index",
-    "name",
-    "verdict",
-    "rot_err_deg",
-    "trans_err",
-    "trans_err_rel",
-    "seconds",
-    "initial_rot_err_deg",
-    "relocalized",
-    "reason",
-    "error",
-)
+#: Columns of poses.csv: the photo's index, the scalar fields of the one row schema
+#: (``localization.types.ROW_FIELDS``; errors are blank when the truth is unknown), and whether a
+#: video frame was relocalized.
+CSV_COLUMNS = ("index",) + tuple(
+    f for f in ROW_FIELDS if f not in ("c2w", "init_c2w", "gt_c2w", "intrinsics")
+) + ("relocalized",)
 
 #: Keys of ``run`` that must agree between a run and the poses.json it resumes.
 RUN_IDENTITY = ("kind", "model_path", "queries", "sequence")
@@ -93,22 +85,6 @@ def read_poses_json(path) -> Dict[str, Any]:
     if not isinstance(doc, dict) or not isinstance(doc.get("photos"), list):
         raise LedgerError(f"{p} is not a poses.json of icomma (no 'photos' list)")
     return doc
-
-
-@contextlib.contextmanager
-def _locked(path: Path) -> Iterator[None]:
-    try:
-        import fcntl
-    except ImportError:  # pragma: no cover - not POSIX
-        yield
-        return
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "a+") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
 
 
 def _fmt(v) -> str:
@@ -292,8 +268,7 @@ class PosesLedger:
         w = csv.writer(buf)
         w.writerow(CSV_COLUMNS)
         for r in rows:
-            vals = {**r, "verdict": r.get("status")}
-            w.writerow([_fmt(vals.get(k)) for k in CSV_COLUMNS])
+            w.writerow([_fmt(r.get(k)) for k in CSV_COLUMNS])
         write_text_atomic(self.csv_path, buf.getvalue())
 
     def _write_merged(self) -> None:
@@ -311,7 +286,7 @@ class PosesLedger:
         part = self._document(mine, status="running")
         part.update({"shard": self.shard, "num_shards": self.num_shards})
         write_json_atomic(self.part_path, part)
-        with _locked(self.out_dir / ".poses.lock"):
+        with file_lock(self.out_dir / ".poses.lock"):
             for p in self._part_paths():  # the other shards' latest rows
                 try:
                     doc = read_poses_json(p)

@@ -19,6 +19,7 @@ from typing import Any, Dict, List, Optional
 import numpy as np
 import torch
 
+from ..pose.convert import invert_rigid
 from ..pose.se3 import se3_exp
 from .problem import Problem
 from ..localization.types import LocalizationResult, TraceRecord
@@ -58,14 +59,13 @@ class OutputOptions:
         return cls(**d)
 
 
-def trace_w2c(rec: TraceRecord, init_w2c: Optional[np.ndarray]) -> Optional[np.ndarray]:
-    """The pose a trace record rendered (from its ``w2c``, or the paper's twist ``xi``)."""
+def trace_w2c(rec: TraceRecord, init_c2w: Optional[np.ndarray]) -> Optional[np.ndarray]:
+    """The pose (w2c) a trace record rendered (its ``w2c``, or the paper's twist ``xi``)."""
     if rec.w2c is not None:
         return np.asarray(rec.w2c, np.float64)
-    if rec.xi is not None and init_w2c is not None:
-        return (
-            se3_exp(torch.tensor(rec.xi, dtype=torch.float64)) @ torch.as_tensor(init_w2c)
-        ).numpy()
+    if rec.xi is not None and init_c2w is not None:
+        init_w2c = torch.as_tensor(invert_rigid(np.asarray(init_c2w, np.float64)))
+        return (se3_exp(torch.tensor(rec.xi, dtype=torch.float64)) @ init_w2c).numpy()
     return None
 
 
@@ -74,58 +74,29 @@ def success_of(result: LocalizationResult, scene_scale: Optional[float]) -> Opti
 
     None without ground truth; without a scene scale only the rotation counts.
     """
-    if result.final_rotation_error_deg is None:
+    if result.rot_err_deg is None:
         return None
-    ok_t = scene_scale is None or result.final_translation_error < SUCCESS_TRANS_REL * scene_scale
-    return bool(result.final_rotation_error_deg < SUCCESS_ROT_DEG and ok_t)
+    ok_t = scene_scale is None or result.trans_err < SUCCESS_TRANS_REL * scene_scale
+    return bool(result.rot_err_deg < SUCCESS_ROT_DEG and ok_t)
 
 
 def result_document(problem: Problem, result: LocalizationResult, *, backend: str,
                     config: Dict[str, Any], seconds_total: float) -> Dict[str, Any]:
-    """The content of ``result.json``."""
+    """The content of ``result.json``: the one row (docs/CONTRACTS.md) and the run's context."""
     from ..io.cameras_json import CameraEntry
 
     intr = problem.query.intrinsics
-    entry = CameraEntry(
-        id=0,
-        img_name=problem.name,
-        width=intr.width,
-        height=intr.height,
-        c2w=result.c2w,
-        fx=float(intr.fx),
-        fy=float(intr.fy),
-    )
-    scale = problem.scene_scale
-    doc = result.to_json(include_trace=False)
-    doc.update(
-        {
-            "query": problem.name,
-            "verdict": None if result.verdict is None else result.verdict.to_json(),
-            "estimated_c2w": result.c2w.tolist(),
-            "camera_entry": entry.to_json(),
-            "initial_c2w": None if problem.init_c2w is None else problem.init_c2w.tolist(),
-            "ground_truth_c2w": None if problem.gt_c2w is None else problem.gt_c2w.tolist(),
-            "scene_scale": scale,
-            "final_translation_error_rel": (
-                None
-                if scale is None or result.final_translation_error is None
-                else result.final_translation_error / scale
-            ),
-            "success": success_of(result, scale),
-            "seconds_total": seconds_total,
-            "backend": backend,
-            "intrinsics": {
-                "width": intr.width,
-                "height": intr.height,
-                "fx": intr.fx,
-                "fy": intr.fy,
-                "cx": intr.cx_px,
-                "cy": intr.cy_px,
-            },
-            "info": problem.info,
-            "config": config,
-        }
-    )
+    entry = CameraEntry(id=0, img_name=problem.name, width=intr.width, height=intr.height,
+                        c2w=result.c2w, fx=float(intr.fx), fy=float(intr.fy))
+    doc = result.to_json(include_trace=False, scene_scale=problem.scene_scale)
+    doc.update({
+        "camera_entry": entry.to_json(),
+        "success": success_of(result, problem.scene_scale),
+        "seconds_total": seconds_total,
+        "backend": backend,
+        "info": problem.info,
+        "config": config,
+    })
     return doc
 
 
@@ -156,7 +127,7 @@ def _render_rgb(problem: Problem, c2w: np.ndarray, backend: str, intr=None) -> t
     from ..render import render
 
     intr = intr or problem.query.intrinsics
-    w2c = torch.as_tensor(np.linalg.inv(c2w), dtype=problem.model.dtype)
+    w2c = torch.as_tensor(invert_rigid(np.asarray(c2w, np.float64)), dtype=problem.model.dtype)
     with torch.no_grad():
         return render(
             problem.model, intr, w2c, problem.bg.to(problem.model.dtype), backend=backend
@@ -185,7 +156,7 @@ def write_outputs(
                           seconds_total=result.seconds if seconds_total is None else seconds_total)
     files = ["result.json"] + write_trace(out_dir, result.trace, opt.trace_format)
     q = problem.query.rgb
-    start_c2w = problem.init_c2w
+    start_c2w = result.init_c2w
     try:
         if opt.overlays or opt.match_lines:
             final_img = _render_rgb(problem, result.c2w, backend)
@@ -214,7 +185,8 @@ def write_outputs(
             )
             scale = problem.scene_scale
             viz.plot_convergence(out_dir / "convergence.png", [r.to_dict() for r in result.trace],
-                                 result.switch_iteration, title, rot_target_deg=SUCCESS_ROT_DEG,
+                                 result.details.get("switch_iteration"), title,
+                                 rot_target_deg=SUCCESS_ROT_DEG,
                                  trans_target=None if scale is None else SUCCESS_TRANS_REL * scale)
             files.append("convergence.png")
         if (opt.gif or opt.mp4) and result.trace:
@@ -223,10 +195,10 @@ def write_outputs(
             for i, rec in enumerate(result.trace):
                 if i % every:
                     continue
-                w2c = trace_w2c(rec, result.init_w2c)
+                w2c = trace_w2c(rec, result.init_c2w)
                 if w2c is None:
                     continue
-                img = _render_rgb(problem, np.linalg.inv(w2c), backend)
+                img = _render_rgb(problem, invert_rigid(w2c), backend)
                 frames.append(viz.overlay_panel(img, q))
             if frames and opt.gif:
                 viz.save_gif(out_dir / "optimisation.gif", frames)

@@ -3,8 +3,8 @@
 The model, the query photo with its intrinsics and masks, the start pose (or none), the ground
 truth when it is known, and the model's cameras (candidate views).
 
-Every bad input raises :class:`ProblemError` (a ValueError) whose message names the key of the
-``data`` group that caused it, so the tools print it as one line.
+Every bad input raises :class:`~.inputs.ProblemError` (a ValueError) whose message names the key
+of the ``data`` group that caused it, so the tools print it as one line.
 """
 from __future__ import annotations
 
@@ -12,32 +12,34 @@ import logging
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 import torch
 
-from ..camera import Intrinsics
-from ..pose.convert import as_rigid, cameras_extent, perturb_pose
+from ..io.poses_file import read_c2w_file
+from ..localization.localizer import Localizer
 from ..localization.types import Query
+from ..pose.convert import cameras_extent
+from .inputs import (
+    ProblemError,
+    fit_intrinsics,
+    init_group,
+    perturbed_start,
+    photo_intrinsics,
+    start_poses,
+    truths,
+)
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "INIT_PIVOTS",
     "Problem",
-    "ProblemError",
-    "load_c2w_file",
     "load_problem",
-    "query_from_view",
+    "open_model_folder",
     "read_query_image",
+    "scene_centre_of",
 ]
-
-INIT_PIVOTS = ("scene_center", "camera", "origin")
-
-
-class ProblemError(ValueError):
-    """Bad input in the problem's configuration (the message names the key)."""
 
 
 @dataclass
@@ -64,38 +66,19 @@ class Problem:
         """The query's name."""
         return self.query.name
 
-    def candidate_c2ws(self) -> List[np.ndarray]:
-        """Camera-to-world of the model's cameras, leaving out any at the query's own pose."""
-        out = []
-        for e in self.cameras:
-            if self.gt_c2w is not None and np.allclose(e.c2w, self.gt_c2w, atol=1e-6):
-                continue
-            out.append(np.asarray(e.c2w, np.float64))
-        return out
-
-
-def load_c2w_file(path, what: str) -> np.ndarray:
-    """A 4x4 (or 3x4) camera-to-world from a text or .npy file; ProblemError naming ``what``."""
-    p = Path(str(path)).expanduser()
-    if not p.is_file():
-        raise ProblemError(f"{what}: file not found: {p}")
-    try:
-        arr = np.load(p) if p.suffix == ".npy" else np.loadtxt(p, ndmin=2)
-    except Exception as e:  # noqa: BLE001 - any parse error is a user error here
-        raise ProblemError(
-            f"{what}: cannot read a 4x4 matrix from {p} ({type(e).__name__}: {e})"
-        ) from None
-    if np.size(arr) not in (12, 16):
-        raise ProblemError(
-            f"{what}: {p} must hold a 4x4 (or 3x4) camera-to-world matrix, got {np.size(arr)} "
-            "numbers"
-        )
-    arr = as_rigid(np.reshape(arr, (-1, 4)), f"{what}: {p}", ProblemError)
-    return arr
+    def localizer(self, matcher, method, backend: str = "auto", cache_dir=None) -> Localizer:
+        """The Localizer of this problem's model, cameras, background and training side."""
+        return Localizer(self.model, matcher, method, cameras=self.cameras, backend=backend,
+                         background=self.bg, model_side=self.model_side, cache_dir=cache_dir)
 
 
 def _bg(white: bool) -> torch.Tensor:
     return torch.ones(3) if white else torch.zeros(3)
+
+
+def scene_centre_of(model) -> np.ndarray:
+    """The pivot ``scene_center`` of a model without cameras: the median of its Gaussians."""
+    return model.means.detach().double().median(0).values.cpu().numpy()
 
 
 def read_query_image(path, bg: torch.Tensor):
@@ -110,21 +93,14 @@ def read_query_image(path, bg: torch.Tensor):
     return rgb.contiguous(), alpha
 
 
-def query_from_view(view, bg: torch.Tensor, scale: float = 1.0) -> Query:
-    """The :class:`Query` of a dataset view at ``scale`` (its undistortion mask included)."""
-    im = view.load_image(scale=scale, background=bg)
-    intr = view.intrinsics if scale == 1.0 else view.intrinsics.scaled(scale)
-    return Query(im.rgb, intr, im.alpha, im.valid, str(view.name))
-
-
 def _get(d: Dict[str, Any], key: str, default=None):
     v = d.get(key, default) if isinstance(d, dict) else default
     return default if v is None else v
 
 
 def _demo(d: Dict[str, Any], backend: str) -> Problem:
-    from .demo_scene import build_demo_scene
     from ..io.cameras_json import read_cameras_json
+    from .demo_scene import build_demo_scene
 
     scene = build_demo_scene(
         d.get("path"),
@@ -138,11 +114,11 @@ def _demo(d: Dict[str, Any], backend: str) -> Problem:
         backend=backend,
     )
     model = scene.load_model()
-    ini = _init_group(d.get("init"))
+    ini = init_group(d.get("init"))
     if ini is None:
         init = None
     elif ini.get("rot_deg") is not None:
-        init = _perturbed(scene.gt_c2w, ini, scene.scene_centre, None)
+        init = perturbed_start(scene.gt_c2w, ini, scene.scene_centre)
     else:
         init = scene.init_c2w  # the stored start pose of the demo
     cams = read_cameras_json(scene.path / "cameras.json")
@@ -182,195 +158,125 @@ def open_model_folder(data: Dict[str, Any]):
     return mf, white
 
 
-def _model_folder(d: Dict[str, Any]) -> Problem:
-    from ..io.cameras_json import entry_to_intrinsics, find_entry
+def _entry(mf, name, what: str):
+    """The model folder's cameras.json entry ``name`` (ProblemError naming ``what``)."""
+    from ..io.cameras_json import find_entry
+
+    if not mf.cameras:
+        raise ProblemError(f"{what}={name!r}: the model folder {mf.path} has no cameras.json")
+    try:
+        return find_entry(mf.cameras, name)
+    except ValueError as e:
+        raise ProblemError(f"{what}: {e}") from None
+
+
+def _dataset(q: Dict[str, Any], mf, white: bool, what: str):
+    """The dataset the model was fitted from (``data.query.dataset`` or cfg_args)."""
     from ..io.datasets import read_dataset
 
-    mf, white = open_model_folder(d)
-    mp = mf.path
-    bg = _bg(white)
-    q = d.get("query") or {}
-
-    def entry(name, what):
-        if not mf.cameras:
-            raise ProblemError(f"{what}={name!r}: the model folder {mp} has no cameras.json")
-        try:
-            return find_entry(mf.cameras, name)
-        except ValueError as e:
-            raise ProblemError(f"{what}: {e}") from None
-
-    def dataset(what):
-        root = q.get("dataset") or mf.cfg.get("source_path")
-        if not root or not Path(str(root)).expanduser().is_dir():
-            raise ProblemError(
-                f"{what} needs the source images: set data.query.dataset (cfg_args source_path "
-                f"{mf.cfg.get('source_path')!r} is not a folder here) or data.query.image"
-            )
-        return read_dataset(Path(str(root)).expanduser(), white_background=white)
-
-    chosen = [k for k in ("image", "camera", "index") if q.get(k) is not None]
-    if not chosen:
+    root = q.get("dataset") or mf.cfg.get("source_path")
+    if not root or not Path(str(root)).expanduser().is_dir():
         raise ProblemError(
-            "choose the query: set data.query.image (a file), data.query.camera (a cameras.json "
-            "name/id) or data.query.index (a dataset view)"
+            f"{what} needs the source images: set data.query.dataset (cfg_args source_path "
+            f"{mf.cfg.get('source_path')!r} is not a folder here) or data.query.image"
         )
-    view = cam = None
-    valid = None
-    if q.get("camera") is not None:
-        cam = entry(q["camera"], "data.query.camera")
-    if q.get("image") is not None:
-        rgb, alpha = read_query_image(q["image"], bg)
-        name = Path(str(q["image"])).stem
-    elif cam is not None:
-        scene = dataset(f"data.query.camera={q['camera']!r}")
-        views = [v for v in scene.train + scene.test
-                 if os.path.splitext(v.name)[0] == os.path.splitext(cam.img_name)[0]]
+    return read_dataset(Path(str(root)).expanduser(), white_background=white)
+
+
+def _query_view(q: Dict[str, Any], mf, white: bool, cam):
+    """The dataset view of ``data.query.camera`` / ``data.query.index``."""
+    if cam is not None:
+        scene = _dataset(q, mf, white, f"data.query.camera={q['camera']!r}")
+        stem = os.path.splitext(cam.img_name)[0]
+        views = [v for v in scene.train + scene.test if os.path.splitext(v.name)[0] == stem]
         if not views:
             raise ProblemError(
                 f"data.query.camera={q['camera']!r}: no view named {cam.img_name!r} in the dataset"
             )
-        view = views[0]
+        return views[0]
+    scene = _dataset(q, mf, white, f"data.query.index={q['index']}")
+    split = q.get("split", "test")
+    if split not in ("train", "test"):
+        raise ProblemError(f"data.query.split must be train or test, got {split!r}")
+    views = getattr(scene, split)
+    if not (0 <= int(q["index"]) < len(views)):
+        raise ProblemError(
+            f"data.query.index={q['index']} out of range: split {split!r} has {len(views)} views"
+        )
+    return views[int(q["index"])]
+
+
+def _query(d: Dict[str, Any], mf, white: bool, bg: torch.Tensor) -> Tuple[Query, Any, Any]:
+    """(query, its dataset view or None, its cameras.json entry or None)."""
+    from ..io.cameras_json import entry_to_intrinsics
+
+    q = d.get("query") or {}
+    if not [k for k in ("image", "camera", "index") if q.get(k) is not None]:
+        raise ProblemError(
+            "choose the query: set data.query.image (a file), data.query.camera (a cameras.json "
+            "name/id) or data.query.index (a dataset view)"
+        )
+    cam = None if q.get("camera") is None else _entry(mf, q["camera"], "data.query.camera")
+    view, valid = None, None
+    if q.get("image") is not None:
+        rgb, alpha = read_query_image(q["image"], bg)
+        name = Path(str(q["image"])).stem
     else:
-        scene = dataset(f"data.query.index={q['index']}")
-        split = q.get("split", "test")
-        if split not in ("train", "test"):
-            raise ProblemError(f"data.query.split must be train or test, got {split!r}")
-        views = getattr(scene, split)
-        if not (0 <= int(q["index"]) < len(views)):
-            raise ProblemError(
-                f"data.query.index={q['index']} out of range: split {split!r} has "
-                f"{len(views)} views"
-            )
-        view = views[int(q["index"])]
-    if view is not None:
+        view = _query_view(q, mf, white, cam)
         im = view.load_image(background=bg)
         rgb, alpha, valid, name = im.rgb, im.alpha, im.valid, view.name
-    H, W = int(rgb.shape[1]), int(rgb.shape[2])
-
+    size = (int(rgb.shape[2]), int(rgb.shape[1]))
     it = d.get("intrinsics") or {}
-    if it.get("fx") is not None:
-        fy = it.get("fy") if it.get("fy") is not None else it["fx"]
-        intr = Intrinsics(
-            W,
-            H,
-            float(it["fx"]),
-            float(fy),
-            None if it.get("cx") is None else float(it["cx"]),
-            None if it.get("cy") is None else float(it["cy"]),
-        )
-    else:
-        src = None
-        if it.get("camera") is not None:
-            src = entry_to_intrinsics(entry(it["camera"], "data.intrinsics.camera"))
-        elif view is not None:
-            src = view.intrinsics
-        elif cam is not None:
-            src = entry_to_intrinsics(cam)
-        if src is None:
-            raise ProblemError(
-                "query intrinsics unknown: set data.intrinsics.fx/fy or data.intrinsics.camera"
-            )
-        if (src.width, src.height) != (W, H):
-            src = Intrinsics(W, H, src.fx * W / src.width, src.fy * H / src.height)
-        intr = src
-
-    g = d.get("gt") or {}
-    gt = None
-    if g.get("camera") is not None:
-        gt = entry(g["camera"], "data.gt.camera").c2w
-    elif g.get("c2w_file") is not None:
-        gt = load_c2w_file(g["c2w_file"], "data.gt.c2w_file")
+    if it.get("fx") is not None or it.get("camera") is not None:
+        intr = photo_intrinsics(size, it, mf.cameras)
     elif view is not None:
-        gt = view.c2w
+        intr = view.intrinsics
     elif cam is not None:
-        gt = cam.c2w
-    gt = None if gt is None else np.asarray(gt, np.float64)
+        intr = fit_intrinsics(entry_to_intrinsics(cam), size, f"data.query.camera={cam.img_name!r}")
+    else:
+        raise ProblemError(
+            "query intrinsics unknown: set data.intrinsics.fx/fy or data.intrinsics.camera"
+        )
+    return Query(rgb.contiguous(), intr, alpha, valid, str(name)), view, cam
 
-    init = _initial_pose(d.get("init"), gt, mf)
-    query = Query(rgb.contiguous(), intr, alpha, valid, str(name))
-    scale = cameras_extent([e.c2w for e in mf.cameras]) if mf.cameras else None
+
+def _truth(d: Dict[str, Any], name: str, view, cam, mf) -> Optional[np.ndarray]:
+    """The query's true pose: ``data.gt``, else its dataset view's or camera's (or None)."""
+    g = d.get("gt") or {}
+    if g.get("camera") is not None:
+        return np.asarray(_entry(mf, g["camera"], "data.gt.camera").c2w, np.float64)
+    if g.get("c2w_file") is not None:
+        return read_c2w_file(g["c2w_file"], "data.gt.c2w_file")
+    gt = truths(g, [name], [view])[0]
+    if gt is None and cam is not None:
+        gt = np.asarray(cam.c2w, np.float64)
+    return gt
+
+
+def _model_folder(d: Dict[str, Any]) -> Problem:
+    mf, white = open_model_folder(d)
+    bg = _bg(white)
+    query, view, cam = _query(d, mf, white, bg)
+    gt = _truth(d, query.name, view, cam, mf)
+    _, inits, errors = start_poses(d.get("init"), [query.name], [gt], mf.cameras,
+                                   scene_centre_of(mf.model))
+    if errors[0]:
+        raise ProblemError(errors[0])
     return Problem(
         model=mf.model,
         query=query,
-        init_c2w=init,
+        init_c2w=inits[0],
         gt_c2w=gt,
         bg=bg,
-        scene_scale=scale,
+        scene_scale=cameras_extent([e.c2w for e in mf.cameras]) if mf.cameras else None,
         cameras=list(mf.cameras or []),
         model_side=mf.training_side(),
         info={
-            "model_path": str(mp),
+            "model_path": str(mf.path),
             "iteration": mf.iteration,
             "num_gaussians": mf.model.num_gaussians,
         },
     )
-
-
-def _init_group(ini) -> Optional[Dict[str, Any]]:
-    """The ``data.init`` group as a mapping, or None for ``data.init=none``."""
-    if ini is None:
-        return {}
-    if isinstance(ini, str):
-        if ini.strip().lower() == "none":
-            return None
-        raise ProblemError(
-            f"data.init must be a group (camera / c2w_file / rot_deg ...) or none, got {ini!r}"
-        )
-    if not isinstance(ini, dict):
-        raise ProblemError(f"data.init must be a group or none, got {type(ini).__name__}")
-    return ini
-
-
-def _perturbed(gt: np.ndarray, ini: Dict[str, Any], scene_centre, mf) -> np.ndarray:
-    """``gt`` rotated by ``init.rot_deg`` about ``init.pivot`` and moved by ``init.trans``."""
-    rng = np.random.default_rng(int(ini.get("seed") or 0))
-    pivot = ini.get("pivot") or "scene_center"
-    if pivot not in INIT_PIVOTS:
-        raise ProblemError(f"data.init.pivot must be one of {INIT_PIVOTS}, got {pivot!r}")
-    if pivot == "scene_center":
-        pivot = (
-            scene_centre
-            if scene_centre is not None
-            else mf.model.means.double().median(0).values.numpy()
-        )
-    try:
-        return perturb_pose(
-            gt, float(ini["rot_deg"]), float(ini.get("trans") or 0.0), rng, pivot=pivot
-        )
-    except ValueError as e:
-        raise ProblemError(f"data.init: {e}") from None
-
-
-def _initial_pose(ini, gt: Optional[np.ndarray], mf) -> Optional[np.ndarray]:
-    """The start pose from the ``data.init`` group: none | camera | c2w_file | rot_deg."""
-    from ..io.cameras_json import find_entry
-
-    ini = _init_group(ini)
-    if ini is None:
-        return None
-    chosen = [k for k in ("camera", "c2w_file", "rot_deg") if ini.get(k) is not None]
-    if len(chosen) != 1:
-        raise ProblemError(
-            "choose exactly one initial pose: data.init.camera, data.init.c2w_file or "
-            f"data.init.rot_deg, or none with data.init=none (got {chosen or 'none of them'})"
-        )
-    if ini.get("camera") is not None:
-        if not mf.cameras:
-            raise ProblemError(
-                f"data.init.camera={ini['camera']!r}: the model folder has no cameras.json"
-            )
-        try:
-            return np.asarray(find_entry(mf.cameras, ini["camera"]).c2w, np.float64)
-        except ValueError as e:
-            raise ProblemError(f"data.init.camera: {e}") from None
-    if ini.get("c2w_file") is not None:
-        return load_c2w_file(ini["c2w_file"], "data.init.c2w_file")
-    if gt is None:
-        raise ProblemError(
-            "data.init.rot_deg perturbs the ground truth, but no ground-truth pose is known "
-            "for this query (use data.query.camera / index, or data.gt.*)"
-        )
-    return _perturbed(gt, ini, None, mf)
 
 
 def load_problem(data: Dict[str, Any], backend: str = "auto") -> Problem:

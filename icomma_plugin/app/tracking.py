@@ -1,8 +1,7 @@
 """Ordered frames (a video file or a folder of frames) tracked one after the other.
 
 Each frame starts from a constant-velocity prediction: the motion between the last two frames
-that did not fail, applied again (as a twist per frame: ``w2c_k = exp((k - j) xi) @ w2c_j`` with
-``xi = log(w2c_j @ inv(w2c_i)) / (j - i)`` for the last good frames ``i < j``). The first frame
+that did not fail, applied again (``predict_c2w``). The first frame
 starts from ``data.init`` (a pose, or none: the candidate views). A frame whose verdict is
 ``failed`` is localized again from the candidate views (no start pose), and the better of the two
 results is kept. Every row is recorded in the ledger after its frame, so a killed run resumes at
@@ -24,12 +23,13 @@ import numpy as np
 import torch
 
 from ..camera import Intrinsics
-from ..pose.se3 import se3_exp, se3_log
-from .batch import BatchWorker, PhotoTask, failure_row, result_row, resize_query
-from .inputs import list_photos
-from .ledger import PosesLedger
-from .problem import ProblemError
+from ..io.poses_file import read_poses_file
 from ..localization.types import Query
+from ..pose.convert import invert_rigid
+from ..pose.se3 import se3_exp, se3_log
+from .batch import BatchWorker, PhotoTask, failure_row, result_row
+from .inputs import ProblemError, list_photos, start_poses
+from .ledger import PosesLedger
 
 logger = logging.getLogger(__name__)
 
@@ -37,7 +37,10 @@ __all__ = [
     "FrameSource",
     "TrackingConfig",
     "TrackingSummary",
-    "predict_w2c",
+    "first_frame_start",
+    "predict_c2w",
+    "sequence_pictures",
+    "sequence_truths",
     "track",
     "write_tracking_video",
 ]
@@ -58,27 +61,29 @@ class TrackingConfig:
     relocalize: bool = True
 
 
-def predict_w2c(
+def predict_c2w(
     history: Sequence[Tuple[int, np.ndarray]], index: int, velocity: bool = True
 ) -> Optional[np.ndarray]:
-    """Start pose (w2c) of frame ``index``, or None.
+    """Start pose (c2w) of frame ``index``, or None.
 
-    From the ``(frame index, w2c)`` of earlier frames that did not fail, oldest first: constant
-    velocity from the last two, or the last one alone.
+    From the ``(frame index, c2w)`` of earlier frames that did not fail, oldest first: constant
+    velocity from the last two (the motion between them, as a twist per frame, applied again:
+    ``c2w_k = c2w_j @ exp((k - j) xi)`` with ``xi = log(inv(c2w_i) @ c2w_j) / (j - i)``), or the
+    last one alone.
     """
     if not history:
         return None
-    j, Tj = history[-1]
-    Tj = np.asarray(Tj, np.float64)
+    j, Cj = history[-1]
+    Cj = np.asarray(Cj, np.float64)
     if not velocity or len(history) < 2:
-        return Tj.copy()
-    i, Ti = history[-2]
+        return Cj.copy()
+    i, Ci = history[-2]
     if j <= i or index <= j:
-        return Tj.copy()
-    delta = torch.as_tensor(Tj @ np.linalg.inv(np.asarray(Ti, np.float64)), dtype=torch.float64)
+        return Cj.copy()
+    # the camera-frame motion from frame i to frame j, per frame
+    delta = torch.as_tensor(invert_rigid(Ci) @ Cj, dtype=torch.float64)
     xi = se3_log(delta) / float(j - i)
-    step = se3_exp(xi * float(index - j)).numpy()
-    out = step @ Tj
+    out = Cj @ se3_exp(xi * float(index - j)).numpy()
     out[3] = (0.0, 0.0, 0.0, 1.0)
     return out
 
@@ -180,7 +185,61 @@ class TrackingSummary:
 
 def _query(rgb: np.ndarray, intr: Intrinsics, name: str, resize: Optional[int]) -> Query:
     t = torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1).float() / 255.0
-    return resize_query(Query(t.contiguous(), intr, None, None, name), resize)
+    return Query(t.contiguous(), intr, None, None, name).resized(resize)
+
+
+class _Tracker:
+    """One tracking run: the history of good poses, and each frame localized from it."""
+
+    def __init__(self, worker: BatchWorker, source: FrameSource, ledger: PosesLedger,
+                 intrinsics_of, init_c2w, gt_of, cfg: TrackingConfig):
+        self.worker, self.source, self.ledger = worker, source, ledger
+        self.intrinsics_of, self.init_c2w = intrinsics_of, init_c2w
+        self.gt_of, self.cfg = gt_of, cfg
+        self.done = ledger.finished()
+        self.history: List[Tuple[int, np.ndarray]] = [
+            (int(r["index"]), np.asarray(r["c2w"], np.float64))
+            for r in sorted(self.done.values(), key=lambda r: r.get("index", 0))
+            if r.get("status") != "failed" and r.get("c2w") is not None
+        ]
+        self.relocalized = 0
+
+    def _localize(self, problem, start: Optional[np.ndarray]):
+        """The frame's result from ``start``; a failed one relocalized from the candidates."""
+        worker = self.worker
+        result = worker.localize(problem, start)
+        if (result.verdict.status == "failed" and start is not None and self.cfg.relocalize
+                and not worker.localizer.method.needs_start):
+            again = worker.localize(problem, None)
+            if _RANK[again.verdict.status] > _RANK["failed"]:
+                self.relocalized += 1
+                return again, True
+        return result, False
+
+    def frame(self, index: int, name: str, rgb: np.ndarray) -> Dict[str, Any]:
+        """Localize one frame and return its row (a failed row for bad input)."""
+        worker = self.worker
+        t_frame = time.perf_counter()
+        start = predict_c2w(self.history, index, self.cfg.velocity)
+        start = self.init_c2w if start is None else start
+        gt = self.gt_of(name) if self.gt_of is not None else None
+        path = self.source.spec if self.source.is_video else str(self.source.paths[index])
+        task = PhotoTask(index, name, path, None, None, start, gt)
+        try:
+            task.intrinsics = self.intrinsics_of((int(rgb.shape[1]), int(rgb.shape[0])))
+            problem = worker.problem(task, _query(rgb, task.intrinsics, name, worker.setup.resize))
+            result, again = self._localize(problem, start)
+            folder, thumb = worker.write_pictures(problem, result, time.perf_counter() - t_frame)
+            row = result_row(task, result, worker.scene_scale, time.perf_counter() - t_frame,
+                             folder, thumb)
+            row["relocalized"] = again
+            row["predicted_c2w"] = None if start is None else np.asarray(start).tolist()
+        except (ValueError, FileNotFoundError) as e:
+            msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+            row = failure_row(task, f"bad input: {msg}", msg, time.perf_counter() - t_frame)
+        if row["status"] != "failed" and row["c2w"] is not None:
+            self.history.append((index, np.asarray(row["c2w"], np.float64)))
+        return row
 
 
 def track(
@@ -196,95 +255,37 @@ def track(
     """Track the frames of ``source`` (module docstring), recording each in ``ledger``.
 
     Args:
-        worker: model, matcher, method and candidate views (``batch.BatchWorker``).
+        worker: model, matcher, method and Localizer (``batch.BatchWorker``).
         source: the frames.
         ledger: the output folder's record; frames it holds are skipped (resume), and their
             poses seed the prediction.
-        intrinsics_of: ``(W, H)`` of a frame -> its intrinsics (``inputs.photo_intrinsics``).
+        intrinsics_of: ``(W, H)`` of a frame -> its intrinsics (``inputs.intrinsics_for_photos``).
         init_c2w: start pose of the first frame (None: candidate views).
         gt_of: frame name -> true c2w (errors only), or None.
         cfg: :class:`TrackingConfig`.
         progress: called after each frame with ``{"row", "counts", "done", "todo"}``.
     """
-    cfg = cfg or TrackingConfig()
-    done = ledger.finished()
-    history: List[Tuple[int, np.ndarray]] = []
-    for r in sorted(done.values(), key=lambda r: r.get("index", 0)):
-        if r.get("status") != "failed" and r.get("c2w") is not None:
-            history.append((int(r["index"]), np.linalg.inv(np.asarray(r["c2w"], np.float64))))
+    tracker = _Tracker(worker, source, ledger, intrinsics_of, init_c2w, gt_of,
+                       cfg or TrackingConfig())
     t0 = time.perf_counter()
     rows: List[Dict[str, Any]] = []
-    skipped = relocs = 0
+    skipped = 0
     total = source.count()
     if progress is not None:
-        progress(
-            {
-                "row": None,
-                "counts": ledger.counts(),
-                "done": 0,
-                "todo": None if total is None else max(0, total - len(done)),
-                "skipped": len(done),
-            }
-        )
-    intr_cache: Dict[Tuple[int, int], Intrinsics] = {}
+        progress({"row": None, "counts": ledger.counts(), "done": 0, "skipped": len(tracker.done),
+                  "todo": None if total is None else max(0, total - len(tracker.done))})
     for index, name, rgb in source:
-        if name in done:
+        if name in tracker.done:
             skipped += 1
             continue
-        t_frame = time.perf_counter()
-        size = (int(rgb.shape[1]), int(rgb.shape[0]))
-        gt = gt_of(name) if gt_of is not None else None
-        pred_w2c = predict_w2c(history, index, cfg.velocity)
-        start = np.linalg.inv(pred_w2c) if pred_w2c is not None else init_c2w
-        task = PhotoTask(
-            index,
-            name,
-            source.spec if source.is_video else str(source.paths[index]),
-            None,
-            None,
-            start,
-            gt,
-        )
-        try:
-            if size not in intr_cache:
-                intr_cache[size] = intrinsics_of(size)
-            task.intrinsics = intr_cache[size]
-            problem = worker.problem(task, _query(rgb, task.intrinsics, name, worker.setup.resize))
-            if start is None and not worker._can_search():
-                raise ProblemError(
-                    "the first frame has no start pose and the paper's method (optimizer=icomma) "
-                    "needs one: give data.init, or use optimizer=robust"
-                )
-            result = worker.localize(problem, start)
-            relocalized = False
-            if (
-                result.verdict is not None
-                and result.verdict.status == "failed"
-                and start is not None
-                and cfg.relocalize
-                and worker._can_search()
-            ):
-                again = worker.localize(problem, None)
-                if again.verdict is not None and _RANK[again.verdict.status] > _RANK["failed"]:
-                    result, relocalized = again, True
-                    relocs += 1
-            folder, thumb = worker.write_pictures(problem, result, time.perf_counter() - t_frame)
-            row = result_row(task, problem, result, time.perf_counter() - t_frame, folder, thumb)
-            row["relocalized"] = relocalized
-            row["predicted_c2w"] = None if start is None else np.asarray(start).tolist()
-        except (ValueError, FileNotFoundError) as e:
-            msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-            row = failure_row(task, f"bad input: {msg}", msg, time.perf_counter() - t_frame)
-        if row["status"] != "failed" and row["c2w"] is not None:
-            history.append((index, np.linalg.inv(np.asarray(row["c2w"], np.float64))))
+        row = tracker.frame(index, name, rgb)
         ledger.record(row)
         rows.append(row)
         if progress is not None:
             progress({"row": row, "counts": ledger.counts(), "done": len(rows), "todo": total})
     ledger.flush()
-    return TrackingSummary(
-        ledger.counts(), len(rows), skipped, time.perf_counter() - t0, relocs, rows
-    )
+    return TrackingSummary(ledger.counts(), len(rows), skipped, time.perf_counter() - t0,
+                           tracker.relocalized, rows)
 
 
 def write_tracking_video(
@@ -304,13 +305,13 @@ def write_tracking_video(
         The path written.
     """
     from ..io.video import write_video
+    from ..pictures import VERDICT_COLOURS, overlay_panel
     from ..render import render
-    from ..pictures import overlay_panel, VERDICT_COLOURS
 
     by_name = {r["name"]: r for r in rows}
     panels = []
     model = worker.model
-    for index, name, rgb in source:
+    for _, name, rgb in source:
         r = by_name.get(name)
         if r is None:
             continue
@@ -318,17 +319,11 @@ def write_tracking_video(
             rgb, intrinsics_of((int(rgb.shape[1]), int(rgb.shape[0]))), name, worker.setup.resize
         )
         if r.get("c2w") is not None:
-            w2c = torch.as_tensor(
-                np.linalg.inv(np.asarray(r["c2w"])), dtype=model.dtype, device=model.device
-            )
+            w2c = torch.as_tensor(invert_rigid(np.asarray(r["c2w"], np.float64)),
+                                  dtype=model.dtype, device=model.device)
             with torch.no_grad():
-                img = render(
-                    model,
-                    q.intrinsics,
-                    w2c,
-                    worker.bg.to(model.dtype),
-                    backend=worker.setup.backend,
-                ).color
+                img = render(model, q.intrinsics, w2c, worker.bg, backend=worker.setup.backend
+                             ).color
             img = img.clamp(0, 1).float().cpu()
         else:
             img = torch.zeros_like(q.rgb)
@@ -336,3 +331,51 @@ def write_tracking_video(
         p[:3] = VERDICT_COLOURS.get(r.get("status"), (128, 128, 128))  # a verdict stripe on top
         panels.append(p)
     return write_video(path, panels, fps=fps)
+
+
+# ---------------------------------------------------------------------------------- the tool's run
+
+
+def first_frame_start(data: Dict[str, Any], source: FrameSource, cameras, scene_centre,
+                      gt_of) -> Optional[np.ndarray]:
+    """The first frame's start pose (``data.init``; ProblemError when it cannot be had)."""
+    first = "frame_000000" if source.is_video else source.names[0]
+    _, inits, errs = start_poses(data.get("init"), [first],
+                                 [None if gt_of is None else gt_of(first)], cameras, scene_centre)
+    if errs[0]:
+        raise ProblemError(errs[0])
+    return inits[0]
+
+
+def sequence_truths(data: Dict[str, Any]) -> Optional[Callable[[str], Optional[np.ndarray]]]:
+    """Frame name -> true c2w from ``data.gt.poses_file`` / ``cameras_json``, or None."""
+    g = data.get("gt") or {}
+    for k in ("poses_file", "cameras_json"):
+        if g.get(k) is not None:
+            return read_poses_file(g[k], f"data.gt.{k}").get
+    return None
+
+
+def sequence_pictures(out: Path, worker: BatchWorker, source: FrameSource, rows, intrinsics_of,
+                      options: Dict[str, Any], title: str) -> List[str]:
+    """trajectory.png and tracking.mp4, as ``options`` (the tool's output group) ask."""
+    files = []
+    try:
+        if options.get("trajectory_plot") and rows:
+            from ..pictures import plot_trajectory
+
+            plot_trajectory(
+                out / "trajectory.png",
+                [None if r.get("c2w") is None else np.asarray(r["c2w"]) for r in rows],
+                [e.c2w for e in worker.cameras],
+                [None if r.get("gt_c2w") is None else np.asarray(r["gt_c2w"]) for r in rows],
+                [r["status"] for r in rows], title=title,
+            )
+            files.append("trajectory.png")
+        if options.get("video") and rows:
+            p = write_tracking_video(out / "tracking.mp4", worker, source, rows, intrinsics_of,
+                                     float(options.get("video_fps") or 10))
+            files.append(p.name)
+    except Exception as e:  # noqa: BLE001 - a picture never fails the run
+        logger.warning("could not draw every picture: %s: %s", type(e).__name__, e)
+    return files

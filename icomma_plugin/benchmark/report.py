@@ -48,10 +48,10 @@ def summarize(spec: ProtocolSpec, records: Sequence[Dict[str, Any]]) -> Dict[str
     L = spec.max_iterations + 1
     for (iv, m), rs in _groups(spec, records).items():
         cell: Dict[str, Any] = {"interval": iv, "method": m, "n": len(rs)}
-        rot = [r.get("final_rot_deg") for r in rs]
-        trans = [r.get("final_trans") for r in rs]
-        cell["mean_init_rot_deg"] = mean_or_none(r.get("init_rot_deg") for r in rs)
-        cell["mean_init_trans"] = mean_or_none(r.get("init_trans") for r in rs)
+        rot = [r.get("rot_err_deg") for r in rs]
+        trans = [r.get("trans_err_rel") for r in rs]
+        cell["mean_init_rot_deg"] = mean_or_none(r.get("init_rot_err_deg") for r in rs)
+        cell["mean_init_trans"] = mean_or_none(r.get("init_trans_err_rel") for r in rs)
         if m == "essential":
             cell["num_failed_estimates"] = sum(1 for x in rot if x is None)
             cell["mean_num_matches"] = mean_or_none(r.get("num_matches") for r in rs)
@@ -74,11 +74,11 @@ def summarize(spec: ProtocolSpec, records: Sequence[Dict[str, Any]]) -> Dict[str
                 ok = success_mask(rot, trans, a, b) if rs else np.zeros(0, bool)
                 cell["success_" + threshold_key(a, b)] = float(ok.mean()) if rs else None
                 if rs and all(
-                    r.get("final_trans_world", None) is not None or r.get("final_rot_deg") is None
+                    r.get("trans_err", None) is not None or r.get("rot_err_deg") is None
                     for r in rs
                 ):
                     # the same threshold read in WORLD units (for papers that do not normalise)
-                    okw = success_mask(rot, [r.get("final_trans_world") for r in rs], a, b)
+                    okw = success_mask(rot, [r.get("trans_err") for r in rs], a, b)
                     cell["success_" + threshold_key(a, b) + "_world_units"] = float(okw.mean())
             if spec.kind in ("curves", "time") and rs and all("curve_rot_deg" in r for r in rs):
                 cell["curves"] = {
@@ -110,10 +110,10 @@ def verdict_stats(records: Sequence[Dict[str, Any]], threshold) -> Dict[str, Any
     the median final rotation error (all runs, and the successes).
     """
     a, b = threshold
-    rot = [r.get("final_rot_deg") for r in records]
-    trans = [r.get("final_trans") for r in records]
+    rot = [r.get("rot_err_deg") for r in records]
+    trans = [r.get("trans_err_rel") for r in records]
     ok = success_mask(rot, trans, a, b) if records else np.zeros(0, bool)
-    verdicts = [r.get("verdict") for r in records]
+    verdicts = [r.get("status") for r in records]
     called = np.array([v == "ok" for v in verdicts], bool)
     out: Dict[str, Any] = {
         f"verdict_{k}": sum(1 for v in verdicts if v == k) for k in ("ok", "uncertain", "failed")
@@ -235,11 +235,17 @@ def markdown(spec: ProtocolSpec, summary: Dict[str, Any], matcher: Optional[str]
         "| interval | method | metric | n | ours | paper | Δ (ours − paper) | paper source |"
     )
     lines.append("|---|---|---|---|---|---|---|---|")
+    missing = 0
     for r in rows:
-        paper_txt = _fmt(r["paper"], r["metric"]) if r["paper"] is not None else NOT_FOUND
+        known = r["paper"] is not None
+        missing += not known
+        paper_txt = _fmt(r["paper"], r["metric"]) if known else "–"
         delta = _fmt(r["delta"], r["metric"]) if r["delta"] is not None else "–"
+        source = r["source"] if known else "–"
         lines.append(f"| {r['interval']} | {r['method']} | {r['metric']} | {r['n']} | "
-                     f"{_fmt(r['ours'], r['metric'])} | {paper_txt} | {delta} | {r['source']} |")
+                     f"{_fmt(r['ours'], r['metric'])} | {paper_txt} | {delta} | {source} |")
+    if missing:
+        lines += ["", f"A – in the paper's columns: {NOT_FOUND} ({missing} of {len(rows)} rows)."]
     lines.append("")
     return "\n".join(lines)
 

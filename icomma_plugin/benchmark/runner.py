@@ -15,7 +15,9 @@ from typing import Any, Callable, Dict, Iterable, List, Optional
 import numpy as np
 import torch
 
-from ..localize import LocalizerConfig, RobustConfig, localize
+from ..localization.icomma import LocalizerConfig
+from ..localization.robust import RobustConfig
+from ..localization.types import blank_row
 from .baselines import essential_matrix_baseline
 from .metrics import time_to_success
 from .protocols import NEEDS_START, ProtocolSpec, is_localizer_method, method_config
@@ -50,43 +52,32 @@ def _round(values: Iterable, digits: int = 6) -> List[Optional[float]]:
 
 
 def _localizer_record(res, scale: float, spec: ProtocolSpec) -> Dict[str, Any]:
-    """Curves (errors after k steps, k = 0..n) and summary of one LocalizationResult."""
-    rot = [r["rot_err_deg"] for r in res.trace] + [res.final_rotation_error_deg]
-    trans_w = [r["trans_err"] for r in res.trace] + [res.final_translation_error]
+    """One LocalizationResult as a benchmark record.
+
+    Its row (the one row schema; translations also in the benchmark's unit: ``*_rel``), its
+    curves (errors after k steps, k = 0..n) and the time to each success threshold.
+    """
+    rot = [r["rot_err_deg"] for r in res.trace] + [res.rot_err_deg]
+    trans_w = [r["trans_err"] for r in res.trace] + [res.trans_err]
     trans = [None if t is None else t / scale for t in trans_w]
     cum = [0.0]
     for r in res.trace:
         cum.append(cum[-1] + float(r["seconds"]))
     tts = {threshold_key(a, b): time_to_success(rot, trans, cum, a, b) for a, b in spec.thresholds}
-    v = res.verdict
-    return {
-        "final_rot_deg": res.final_rotation_error_deg,
-        "final_trans": None
-        if res.final_translation_error is None
-        else res.final_translation_error / scale,
-        "final_trans_world": res.final_translation_error,
-        "iterations": res.iterations,
-        "stop_reason": res.stop_reason,
-        "switch_iteration": res.switch_iteration,
-        "seconds": res.seconds,
-        "stage_seconds": res.stage_seconds,
+    row = res.row(scale)
+    row.update({
+        "hypotheses": len(res.details.get("hypotheses") or []),
         "time_to_success": tts,
-        "match_counts": res.match_counts,
-        "verdict": None if v is None else v.status,
-        "verdict_reason": None if v is None else v.reason,
-        "verdict_signals": None if v is None else v.to_json()["signals"],
-        "hypotheses": len(res.hypotheses),
-        "final_c2w": res.c2w.tolist(),
         "curve_rot_deg": _round(rot),
         "curve_trans": _round(trans),
         "curve_seconds": _round(cum, 5),
-    }
+    })
+    return row
 
 
 def _error_record(exc: BaseException) -> Dict[str, Any]:
     """A run that raised: kept, counted as a failure, with what went wrong."""
-    return {"error": {"type": type(exc).__name__, "message": str(exc)[:2000]},
-            "final_rot_deg": None, "final_trans": None, "final_trans_world": None, "verdict": None}
+    return blank_row(status=None, error={"type": type(exc).__name__, "message": str(exc)[:2000]})
 
 
 def run_protocol(
@@ -159,7 +150,6 @@ def run_protocol(
     for ii, iv in enumerate(spec.intervals):
         iv_queries, iv_poses = plan(iv)
         for q in iv_queries:
-            gt_w2c = np.linalg.inv(q.gt_c2w)
             for k in range(iv_poses):
                 seed = pose_seed(spec.seed, ii, q.index, k)
                 init = None
@@ -209,7 +199,7 @@ def run_protocol(
                         "protocol": spec.name,
                         "interval": iv.label,
                         "interval_index": ii,
-                        "query": q.name,
+                        "name": q.name,
                         "query_index": q.index,
                         "pose_index": k,
                         "method": method,
@@ -218,13 +208,9 @@ def run_protocol(
                     }
                     if init is not None:
                         init_trans_w = float(np.linalg.norm(init.c2w[:3, 3] - q.gt_c2w[:3, 3]))
-                        rec.update(
-                            {
-                                "init_rot_deg": init.rot_deg,
-                                "init_trans": init_trans_w / scale,
-                                "init_trans_world": init_trans_w,
-                            }
-                        )
+                        rec.update({"init_rot_err_deg": init.rot_deg,
+                                    "init_trans_err": init_trans_w,
+                                    "init_trans_err_rel": init_trans_w / scale})
                     t0 = time.perf_counter()
                     try:
                         rec.update(
@@ -238,7 +224,6 @@ def run_protocol(
                                 backend,
                                 spec,
                                 scale,
-                                gt_w2c,
                                 seed,
                                 key,
                                 progress,
@@ -252,6 +237,7 @@ def run_protocol(
                             exc,
                         )
                         rec.update(_error_record(exc))
+                    rec["method"] = method  # the protocol's variant (a row says the algorithm)
                     rec["wall_seconds"] = time.perf_counter() - t0
                     if not store_curves:
                         for c in ("curve_rot_deg", "curve_trans", "curve_seconds"):
@@ -267,14 +253,14 @@ def run_protocol(
 
 
 def _run_one(
-    scene, q, init, method, configs, matcher, backend, spec, scale, gt_w2c, seed, key, progress
+    scene, q, init, method, configs, matcher, backend, spec, scale, seed, key, progress
 ):
     """One run: a localization (or the essential-matrix baseline); returns its record fields."""
     if not is_localizer_method(method):
         out = essential_matrix_baseline(
             scene.model,
-            q.rgb,
-            q.intrinsics,
+            q.query.rgb,
+            q.query.intrinsics,
             init.c2w,
             q.gt_c2w,
             matcher,
@@ -284,8 +270,8 @@ def _run_one(
             seed=int(seed[-1]),
         )
         out = dict(out)
-        out["final_rot_deg"] = out["rel_rot_err_deg"]
-        out["final_trans"] = None
+        out["rot_err_deg"] = out["rel_rot_err_deg"]
+        out["trans_err_rel"] = None
         return out
 
     def hook(r, _key=key):
@@ -293,24 +279,7 @@ def _run_one(
             progress({"event": "iteration", "key": _key, "record": r})
 
     torch.manual_seed(int(np.random.SeedSequence(list(seed)).generate_state(1)[0]))
-    cfg = configs[method]
-    candidates = scene.candidate_set(q, matcher, cfg, backend) if method == "robust" else None
-    res = localize(
-        scene.model,
-        q.rgb,
-        q.intrinsics,
-        None if init is None else np.linalg.inv(init.c2w),
-        matcher if method != "compare_only" else None,
-        cfg,
-        gt_w2c=gt_w2c,
-        query_alpha=q.alpha,
-        query_valid=q.valid,
-        backend=backend,
-        bg=scene.bg,
-        progress=hook,
-        cameras_c2w=scene.cameras_c2w,
-        candidate_set=candidates,
-        query_name=q.name,
-        model_side=scene.model_side,
-    )
+    localizer = scene.localizer(matcher if method != "compare_only" else None, configs[method],
+                                backend)
+    res = localizer.localize(q.query, None if init is None else init.c2w, q.gt_c2w, hook)
     return _localizer_record(res, scale, spec)

@@ -24,11 +24,13 @@ import torch
 
 from ..camera import Intrinsics
 from ..gaussians import GaussianModel
+from ..localization.localizer import Localizer
+from ..localization.types import Query
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "Query",
+    "BenchQuery",
     "BenchScene",
     "TRANSLATION_UNITS",
     "shared_data_root",
@@ -45,16 +47,17 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 @dataclass
-class Query:
-    """One query photo of a benchmark, with its true pose."""
+class BenchQuery:
+    """One query photo of a benchmark: the photo, its true pose and its index in its split."""
 
-    name: str
-    rgb: torch.Tensor  # [3, H, W] in [0, 1], composited over the background
-    alpha: Optional[torch.Tensor]  # [1, H, W] or None
-    intrinsics: Intrinsics
+    query: Query
     gt_c2w: np.ndarray  # [4, 4] float64, OpenCV axes
-    index: int  # index of the view in its split
-    valid: Optional[torch.Tensor] = None  # [1, H, W] real image content (undistortion), or None
+    index: int
+
+    @property
+    def name(self) -> str:
+        """The photo's name."""
+        return self.query.name
 
 
 @dataclass
@@ -66,7 +69,7 @@ class BenchScene:
     """
 
     model: GaussianModel
-    queries: List[Query]
+    queries: List[BenchQuery]
     bg: torch.Tensor  # [3]
     translation_scale: float  # world units per normalised unit
     translation_unit: str
@@ -74,32 +77,26 @@ class BenchScene:
     info: Dict[str, Any] = field(default_factory=dict)
     cameras_c2w: List[np.ndarray] = field(default_factory=list)
     scene_centre: Optional[np.ndarray] = None
-    no_start_queries: List[Query] = field(default_factory=list)  # distinct views for no-start runs
+    no_start_queries: List[BenchQuery] = field(default_factory=list)  # views for no-start runs
     model_side: Optional[int] = None  # longer side of the images the model was fitted on
-    _candidate_sets: Dict[Any, Any] = field(default_factory=dict)
+    _localizers: Dict[Any, Any] = field(default_factory=dict)
 
-    def candidate_set(self, query: Query, matcher, cfg, backend: str = "auto"):
-        """The candidate views for photos like ``query`` (built once per camera and reused)."""
-        from ..localization.candidates import CandidateSet, usable
+    def localizer(self, matcher, method, backend: str = "auto", cache_dir=False) -> Localizer:
+        """The Localizer of ``method`` on this scene (made once per method and matcher).
 
-        if not usable(matcher) or not cfg.use_candidates:
-            return None
-        key = (query.intrinsics, cfg.candidates.rank_side, cfg.candidates.num_sampled)
-        if key not in self._candidate_sets:
-            self._candidate_sets[key] = CandidateSet.for_model(
-                self.model,
-                query.intrinsics,
-                matcher,
-                self.bg,
-                self.cameras_c2w,
-                cfg.candidates,
-                backend,
-            )
-        return self._candidate_sets[key]
+        Its candidate views are the scene's cameras (never a camera of the queries' split). The
+        candidate index is kept in memory only unless ``cache_dir`` says otherwise.
+        """
+        key = (method.name, id(method), id(matcher), backend)
+        if key not in self._localizers:
+            self._localizers[key] = Localizer(
+                self.model, matcher, method, cameras=self.cameras_c2w, backend=backend,
+                background=self.bg, model_side=self.model_side, cache_dir=cache_dir)
+        return self._localizers[key]
 
     def describe(self) -> Dict[str, Any]:
         """The scene as results.json records it (model, queries, image size, units, ...)."""
-        q = self.queries[0].intrinsics if self.queries else None
+        q = self.queries[0].query.intrinsics if self.queries else None
         return {
             **self.info,
             "num_gaussians": int(self.model.num_gaussians),
@@ -185,8 +182,8 @@ def load_model_folder_scene(
     """
     from ..io.datasets import detect_dataset_kind, read_dataset
     from ..io.model_folder import load_model_folder
-    from ..localization.candidates import scene_frame
-    from ..app.problem import query_from_view
+    from ..localization.candidates import same_pose
+    from ..pose.views import scene_frame
 
     mp = Path(str(model_path)).expanduser()
     if not mp.is_dir():
@@ -221,9 +218,8 @@ def load_model_folder_scene(
         image_scale = training_scale(mf.cfg, mf.cameras, views[0].intrinsics.width)
     bg = torch.ones(3) if white else torch.zeros(3)
     def load(i):
-        q = query_from_view(views[i], bg, float(image_scale))
-        return Query(name=views[i].name, rgb=q.rgb, alpha=q.alpha, intrinsics=q.intrinsics,
-                     gt_c2w=np.asarray(views[i].c2w, np.float64), index=i, valid=q.valid)
+        return BenchQuery(Query.from_view(views[i], bg, float(image_scale)),
+                          np.asarray(views[i].c2w, np.float64), i)
 
     queries = [load(i) for i in idx]
     by_index = {q.index: q for q in queries}
@@ -245,14 +241,14 @@ def load_model_folder_scene(
             np.asarray(v.c2w, np.float64)
             for v in (sd.train if split_of_views == "test" else sd.test)
         ]
-    cams = [c for c in cams if not any(np.allclose(c, t, atol=1e-5) for t in split_c2ws)]
+    cams = [c for c in cams if not any(same_pose(c, t) for t in split_c2ws)]
     if split_of_views != "train" and sd.train:
         # Keep the cameras the model was fitted from (upstream's cameras.json lists the other
         # held-out views too, e.g. lego's 200 test cameras when the queries are its val views).
         train_c2ws = [np.asarray(v.c2w, np.float64) for v in sd.train]
-        fitted = [c for c in cams if any(np.allclose(c, t, atol=1e-5) for t in train_c2ws)]
+        fitted = [c for c in cams if any(same_pose(c, t) for t in train_c2ws)]
         cams = fitted or cams
-    centre, _, _ = scene_frame(mf.model, cams)
+    centre, _, _ = scene_frame(mf.model.means.numpy(), cams)
     return BenchScene(
         model=mf.model,
         queries=queries,
@@ -311,16 +307,7 @@ def synthetic_scene(
         with torch.no_grad():
             img = render(model, intr, torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32), bg,
                          backend=backend).color.clamp(0, 1)
-        queries.append(
-            Query(
-                name=f"synthetic_{i}",
-                rgb=img.contiguous(),
-                alpha=None,
-                intrinsics=intr,
-                gt_c2w=c2w,
-                index=i,
-            )
-        )
+        queries.append(BenchQuery(Query(img.contiguous(), intr, name=f"synthetic_{i}"), c2w, i))
     return BenchScene(
         model=model,
         queries=queries,

@@ -48,3 +48,25 @@ def write_text_atomic(path: PathLike, text: str) -> None:
 def write_json_atomic(path: PathLike, data: Any, indent: int = 2) -> None:
     """Write ``data`` as JSON (and a final newline) to ``path`` atomically."""
     write_text_atomic(path, json.dumps(data, indent=indent) + "\n")
+
+
+@contextlib.contextmanager
+def file_lock(path: PathLike) -> Iterator[None]:
+    """Hold an exclusive lock on ``path`` (created if absent) inside the block.
+
+    ``fcntl.flock``: processes of one machine wait for each other (shared caches, a batch's
+    ledger); where there is no ``fcntl`` (not POSIX) the block runs unlocked.
+    """
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        yield
+        return
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a+") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)

@@ -3,34 +3,35 @@
 Candidates are the model's cameras (``cameras.json``: the views the model was fitted from) plus
 views sampled on a sphere around the scene, looking at its centre. They are ranked by how many
 mutual-nearest-neighbour descriptor matches their render shares with the query, at low resolution;
-the renders and their features are computed once per model (:class:`CandidateSet`) and reused for
-every query of a batch.
+the renders and their features are computed once per model and camera (:class:`CandidateIndex`),
+kept by the Localizer (in memory, and on disk: ``candidate_cache.py``) and reused for every
+query.
 """
 from __future__ import annotations
 
 import logging
 import math
 from dataclasses import dataclass, field
-from typing import List, Optional, Sequence, Tuple
+from typing import Any, Dict, FrozenSet, Iterable, List, Optional, Sequence, Tuple
 
 import numpy as np
+import torch
 
 from ..camera import Intrinsics
 from ..checks import check_bool, check_int, check_real
-from ..gaussians import GaussianModel
-from ..matchers.base import mutual_nn_count
-from ..pose.convert import look_at_c2w
+from ..matchers.base import Features, mutual_nn_count
+from ..pose.views import sample_views, scene_frame
 from .state import LocalizationState
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
     "CandidateConfig",
-    "CandidateSet",
-    "rank_scale",
+    "CandidateIndex",
+    "SAME_POSE_ATOL",
+    "candidate_intrinsics",
     "rolled_w2c",
-    "sample_views",
-    "scene_frame",
+    "same_pose",
     "usable",
 ]
 
@@ -64,75 +65,52 @@ class CandidateConfig:
         check_bool(self.quarter_turns, "CandidateConfig.quarter_turns")
 
 
-def scene_frame(model: GaussianModel, cameras_c2w: Sequence[np.ndarray]):
-    """(centre [3], radius, up [3]) of the scene.
+#: Two poses closer than this (every entry of the 4x4) are the same camera: the one rule that
+#: leaves a query's own camera out of its candidates (a benchmark must not find its answer there).
+SAME_POSE_ATOL = 1e-5
 
-    From the cameras when there are any (the point their optical axes pass closest to, their
-    median distance to it, their mean 'up'), else from the Gaussians (median position, 3x their
-    spread, +z).
+
+def same_pose(c2w_a: np.ndarray, c2w_b: np.ndarray) -> bool:
+    """Whether two camera-to-world poses are the same camera (`SAME_POSE_ATOL`)."""
+    return bool(np.allclose(c2w_a, c2w_b, atol=SAME_POSE_ATOL))
+
+
+def candidate_intrinsics(query: Intrinsics, cameras: Sequence[Intrinsics], side: int
+                         ) -> Intrinsics:
+    """The camera the candidate views are rendered with for photos taken with ``query``.
+
+    At ``side`` px. The model camera with the median focal length (relative to the image
+    diagonal) among those of the photo's aspect ratio, so that photos whose focal lengths differ
+    a little (COLMAP's per-image cameras) share one candidate index: the ranking counts
+    descriptor matches, which a few percent of zoom barely changes; the geometric stage then
+    works with the photo's own intrinsics. Without such a camera, the photo's own.
     """
-    means = model.means.detach().double().cpu().numpy()
-    if len(cameras_c2w) >= 2:
-        C = np.stack([c[:3, 3] for c in cameras_c2w])
-        D = np.stack([c[:3, 2] for c in cameras_c2w])
-        # least-squares point nearest to all optical axes
-        A = np.zeros((3, 3))
-        b = np.zeros(3)
-        for c, d in zip(C, D):
-            P = np.eye(3) - np.outer(d, d)
-            A += P
-            b += P @ c
-        try:
-            centre = np.linalg.solve(A, b)
-        except np.linalg.LinAlgError:
-            centre = np.median(means, 0)
-        if not np.all(np.isfinite(centre)) or np.linalg.cond(A) > 1e6:
-            centre = np.median(means, 0)
-        radius = float(np.median(np.linalg.norm(C - centre, axis=1)))
-        up = -np.mean([c[:3, 1] for c in cameras_c2w], 0)  # OpenCV y points down
-        up = up / np.linalg.norm(up) if np.linalg.norm(up) > 1e-6 else np.array([0.0, 0.0, 1.0])
-        return centre, radius, up
-    centre = np.median(means, 0)
-    spread = float(np.median(np.linalg.norm(means - centre, axis=1))) if len(means) else 1.0
-    return centre, 3.0 * max(spread, 1e-3), np.array([0.0, 0.0, 1.0])
-
-
-def sample_views(centre: np.ndarray, radius: float, up: np.ndarray, n: int) -> List[np.ndarray]:
-    """``n`` c2w poses on a sphere of ``radius`` about ``centre`` (Fibonacci lattice).
-
-    They look at the centre with image 'up' towards ``up``; directions too close to ``up`` are
-    skipped.
-    """
-    out = []
-    if n <= 0:
-        return out
-    golden = math.pi * (3.0 - math.sqrt(5.0))
-    # an orthonormal frame with z = up
-    z = up / np.linalg.norm(up)
-    x = np.cross(z, [1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    for i in range(n):
-        h = 1.0 - 2.0 * (i + 0.5) / n
-        r = math.sqrt(max(0.0, 1.0 - h * h))
-        d = r * math.cos(golden * i) * x + r * math.sin(golden * i) * y + h * z
-        if abs(h) > 0.97:
-            continue  # looking straight along 'up': the image's up is undefined
-        out.append(look_at_c2w(centre + radius * d, centre, up))
-    return out
+    aspect = query.width / query.height
+    same = [c for c in cameras if math.isclose(c.width / c.height, aspect, rel_tol=0.01)]
+    if not same:
+        return query.scaled(query.scale_to_side(side))
+    rel = [c.fx / math.hypot(c.width, c.height) for c in same]
+    cam = same[int(np.argsort(rel, kind="stable")[(len(rel) - 1) // 2])]
+    return cam.scaled(cam.scale_to_side(side))
 
 
 @dataclass
-class CandidateSet:
-    """Candidate poses with their low-resolution renders' features.
+class CandidateIndex:
+    """Candidate views with the features of their low-resolution renders.
 
-    Built once per model and query camera; reusable across queries with the same intrinsics.
+    Built once per model and candidate camera (:func:`candidate_intrinsics`), kept by the
+    Localizer in memory and on disk (``candidate_cache.py``), reused for every query.
+
+    c2w: candidate poses; the first ``num_cameras`` are the model's cameras, then sampled views.
+    source: their names. intrinsics: the camera of the renders. features: the matcher's features
+    of each render (None for a view that sees nothing of the scene).
     """
 
     c2w: List[np.ndarray]
     source: List[str]
     intrinsics: Intrinsics
     features: List = field(default_factory=list)
+    num_cameras: int = 0
 
     @classmethod
     def build(
@@ -141,101 +119,97 @@ class CandidateSet:
         cameras_c2w: Sequence[np.ndarray],
         cfg: CandidateConfig,
         names: Optional[Sequence[str]] = None,
-    ) -> "CandidateSet":
-        """Candidates: ``cameras_c2w`` (the model's cameras) and ``cfg.num_sampled`` sampled views.
+        intrinsics: Optional[Intrinsics] = None,
+    ) -> "CandidateIndex":
+        """Render ``cameras_c2w`` (the model's cameras) and ``cfg.num_sampled`` sampled views.
 
-        They are rendered with the query's intrinsics at ``cfg.rank_side``.
+        With ``intrinsics`` (the query's at ``cfg.rank_side`` when None), and extract their
+        features with ``state.matcher``.
         """
         cams = [np.asarray(c, np.float64) for c in cameras_c2w]
-        centre, radius, up = scene_frame(state.model, cams)
+        centre, radius, up = scene_frame(state.model.means.detach().cpu().numpy(), cams)
         sampled = sample_views(centre, radius, up, cfg.num_sampled)
         c2w = cams + sampled
         names = list(names) if names is not None else [f"camera_{i}" for i in range(len(cams))]
         source = names[: len(cams)] + [f"sampled_{i}" for i in range(len(sampled))]
-        scale = rank_scale(state.query.intrinsics, cfg.rank_side)
-        intr = state.intrinsics_at(scale)
+        q = state.query.intrinsics
+        intr = intrinsics or q.scaled(q.scale_to_side(cfg.rank_side))
         feats = []
         with state.timed("candidates"):
             for T in c2w:
-                obs = state.observe(np.linalg.inv(T), scale, match=False)
-                if float(obs.alpha.mean()) < 0.01:
+                with torch.no_grad():
+                    out = state.render(np.linalg.inv(T), intrinsics=intr)
+                if float(out.alpha.mean()) < 0.01:
                     feats.append(None)  # sees nothing of the scene
                     continue
-                feats.append(state.matcher.extract(obs.color))
-        logger.debug(
-            "candidate set: %d cameras + %d sampled views at %dx%d",
-            len(cams),
-            len(sampled),
-            intr.width,
-            intr.height,
-        )
-        return cls(c2w, source, intr, feats)
+                feats.append(state.matcher.extract(out.color.clamp(0.0, 1.0)))
+        logger.debug("candidate index: %d cameras + %d sampled views at %dx%d", len(cams),
+                     len(sampled), intr.width, intr.height)
+        return cls(c2w, source, intr, feats, len(cams))
 
-    @classmethod
-    def for_model(
-        cls,
-        model: GaussianModel,
-        intrinsics: Intrinsics,
-        matcher,
-        bg,
-        cameras_c2w: Sequence[np.ndarray],
-        cfg: Optional[CandidateConfig] = None,
-        backend: str = "auto",
-        names: Optional[Sequence[str]] = None,
-    ) -> "CandidateSet":
-        """A candidate set for photos taken with ``intrinsics``.
+    def compatible(self, intrinsics: Intrinsics) -> bool:
+        """Whether photos taken with ``intrinsics`` can be ranked against this index.
 
-        Build it once and pass it to every ``localize(..., candidate_set=...)`` of a batch.
+        They must have the aspect ratio of its renders (1 %).
         """
-        import torch
+        return math.isclose(intrinsics.width / intrinsics.height,
+                            self.intrinsics.width / self.intrinsics.height, rel_tol=0.01)
 
-        from .types import Query
+    def own_cameras(self, gt_c2w: Optional[np.ndarray]) -> FrozenSet[int]:
+        """Indices of the model cameras at the pose ``gt_c2w`` (a query's own camera)."""
+        if gt_c2w is None:
+            return frozenset()
+        return frozenset(i for i in range(self.num_cameras) if same_pose(self.c2w[i], gt_c2w))
 
-        if not usable(matcher):
-            raise ValueError(
-                f"candidate views need a matcher that extracts features, got {matcher!r}"
-            )
-        blank = torch.zeros(3, intrinsics.height, intrinsics.width)
-        state = LocalizationState(
-            model, Query(blank, intrinsics), bg, backend=backend, matcher=matcher
-        )
-        return cls.build(state, cameras_c2w, cfg or CandidateConfig(), names)
-
-    def compatible(self, intrinsics: Intrinsics, cfg: CandidateConfig) -> bool:
-        """Whether this set was rendered for photos with ``intrinsics``.
-
-        Rendered at ``cfg.rank_side``, as `rank` needs.
-        """
-        return self.intrinsics == intrinsics.scaled(rank_scale(intrinsics, cfg.rank_side)) \
-            if rank_scale(intrinsics, cfg.rank_side) != 1.0 else self.intrinsics == intrinsics
-
-    def rank(self, state: LocalizationState, cfg: CandidateConfig) -> List[Tuple[int, int]]:
+    def rank(self, state: LocalizationState, cfg: CandidateConfig,
+             exclude: Iterable[int] = ()) -> List[Tuple[int, int]]:
         """(candidate index, quarter turns), best first (most mutual-NN matches with the query).
 
-        The quarter turns (0 unless ``cfg.quarter_turns``) are those of the photo that matched the
-        candidate best; `start_w2c` turns the candidate's camera alike.
+        The query is ranked at the size of the index's renders. The quarter turns (0 unless
+        ``cfg.quarter_turns``) are those of the photo that matched the candidate best;
+        `start_w2c` turns the candidate's camera alike. Candidates in ``exclude`` are left out.
         """
-        if not self.compatible(state.query.intrinsics, cfg):
-            raise ValueError("this candidate set was built for photos of another size or camera "
-                             f"({self.intrinsics}); build one for {state.query.intrinsics}")
-        scale = rank_scale(state.query.intrinsics, cfg.rank_side)
+        q = state.query.intrinsics
+        if not self.compatible(q):
+            raise ValueError("this candidate index was built for photos of another aspect ratio "
+                             f"({self.intrinsics}); build one for {q}")
+        scale = q.scale_to_side(max(self.intrinsics.width, self.intrinsics.height))
         turns = range(4) if cfg.quarter_turns else range(1)
+        skip = set(exclude)
         best: List[Tuple[int, int]] = [(-1, 0)] * len(self.features)
         with state.timed("candidates"):
             for k in turns:
                 fq = state.query_features(scale, k)
                 for i, f in enumerate(self.features):
-                    if f is not None:
+                    if f is not None and i not in skip:
                         n = mutual_nn_count(f, fq, cfg.min_cosine)
                         if n > best[i][0]:
                             best[i] = (n, k)
-        order = sorted(range(len(best)), key=lambda i: -best[i][0])
+        order = [i for i in sorted(range(len(best)), key=lambda i: -best[i][0]) if i not in skip]
         self.last_counts = [b[0] for b in best]
         return [(i, best[i][1]) for i in order]
 
     def start_w2c(self, index: int, quarter_turns: int = 0) -> np.ndarray:
         """The start pose (w2c) of candidate ``index`` for a photo that matched it turned."""
         return rolled_w2c(np.linalg.inv(self.c2w[index]), quarter_turns)
+
+    def to_state(self) -> Dict[str, Any]:
+        """The index as tensors, lists and numbers (``torch.load`` reads it with weights_only)."""
+        feats = [None if f is None else {"kpts": f.kpts.cpu(), "desc": f.desc.cpu(),
+                                          "size": list(f.size)} for f in self.features]
+        return {"c2w": torch.as_tensor(np.stack(self.c2w)) if self.c2w else torch.zeros(0, 4, 4,
+                dtype=torch.float64), "source": list(self.source),
+                "intrinsics": self.intrinsics.to_json(), "features": feats,
+                "num_cameras": self.num_cameras}
+
+    @classmethod
+    def from_state(cls, d: Dict[str, Any]) -> "CandidateIndex":
+        """The index :meth:`to_state` wrote."""
+        feats = [None if f is None else Features(f["kpts"], f["desc"], tuple(f["size"]))
+                 for f in d["features"]]
+        c2w = [np.asarray(T, np.float64) for T in d["c2w"].numpy()]
+        return cls(c2w, list(d["source"]), Intrinsics.from_json(d["intrinsics"]), feats,
+                   int(d["num_cameras"]))
 
 
 def rolled_w2c(w2c: np.ndarray, quarter_turns: int) -> np.ndarray:
@@ -252,11 +226,6 @@ def rolled_w2c(w2c: np.ndarray, quarter_turns: int) -> np.ndarray:
     roll = np.eye(4)
     roll[:2, :2] = [[c, -s], [s, c]]
     return roll @ np.asarray(w2c, np.float64)
-
-
-def rank_scale(intrinsics: Intrinsics, side: int) -> float:
-    """The scale that brings the longer image side to ``side`` px (never above 1)."""
-    return min(1.0, float(side) / max(intrinsics.width, intrinsics.height))
 
 
 def usable(matcher) -> bool:

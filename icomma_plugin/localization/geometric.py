@@ -40,6 +40,7 @@ class GeometricConfig:
         the PnP pose can still improve in the fifth: 4 rounds left 2 of 200 held-out lego starts
         at 1-9 degrees).
     ransac_px: RANSAC inlier threshold [px at the working resolution].
+    ransac_iterations, ransac_confidence: RANSAC (USAC-MAGSAC) iterations at most, confidence.
     min_pnp_inliers: a PnP with fewer inliers is no proposal.
     min_alpha: lift only keypoints where the rendered alpha exceeds this.
     max_depth_jump: drop keypoints next to depth discontinuities (relative depth range of the 3x3
@@ -54,6 +55,8 @@ class GeometricConfig:
 
     max_rounds: int = 8
     ransac_px: float = 3.0
+    ransac_iterations: int = 2000
+    ransac_confidence: float = 0.9999
     min_pnp_inliers: int = 12
     min_alpha: float = 0.5
     max_depth_jump: Optional[float] = 0.05
@@ -66,6 +69,9 @@ class GeometricConfig:
     def __post_init__(self):
         n = "GeometricConfig."
         check_int(self.max_rounds, n + "max_rounds", 1)
+        check_int(self.ransac_iterations, n + "ransac_iterations", 1)
+        check_real(self.ransac_confidence, n + "ransac_confidence", 0.0, 1.0, lo_open=True,
+                   hi_open=True)
         check_int(self.min_pnp_inliers, n + "min_pnp_inliers", 6)
         check_int(self.subpixel_inliers, n + "subpixel_inliers", 0)
         for name in ("ransac_px", "inlier_px"):
@@ -131,9 +137,8 @@ def pnp_from_observation(state: LocalizationState, obs: Observation, cfg: Geomet
         if int(keep.sum()) < cfg.min_pnp_inliers:
             return None
         pix = kpts1[keep].double().cpu().numpy()
-        return solve_pnp(
-            pts.cpu().numpy(), pix, intr, cfg.ransac_px, min_inliers=cfg.min_pnp_inliers, seed=seed
-        )
+        return solve_pnp(pts.cpu().numpy(), pix, intr, cfg.ransac_px, cfg.ransac_iterations,
+                         cfg.ransac_confidence, min_inliers=cfg.min_pnp_inliers, seed=seed)
 
 
 def run_geometric(state: LocalizationState, w2c_start: np.ndarray, cfg: GeometricConfig,

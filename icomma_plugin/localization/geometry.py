@@ -21,7 +21,15 @@ from ..camera import Intrinsics
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["PnPResult", "depth_edges", "lift_keypoints", "project", "sample_bilinear", "solve_pnp"]
+__all__ = [
+    "PnPResult",
+    "depth_edges",
+    "lift_keypoints",
+    "median_depth",
+    "project",
+    "sample_bilinear",
+    "solve_pnp",
+]
 
 
 def sample_bilinear(img: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
@@ -38,6 +46,18 @@ def sample_bilinear(img: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
     grid = torch.stack([gx, gy], -1).to(img.dtype).view(1, -1, 1, 2)
     out = F.grid_sample(img[None], grid, mode="bilinear", padding_mode="zeros", align_corners=True)
     return out[0, :, :, 0].T
+
+
+def median_depth(depth: torch.Tensor, alpha: torch.Tensor, min_alpha: float = 0.5) -> float:
+    """The scene depth of a render: the median depth where its alpha exceeds ``min_alpha``.
+
+    The one definition of the project (thresholds relative to the scene's depth use it); 1.0
+    when the render shows nothing.
+    """
+    sel = alpha > min_alpha
+    if not bool(sel.any()):
+        return 1.0
+    return float(np.median(depth[sel].detach().cpu().numpy()))
 
 
 def depth_edges(depth: torch.Tensor, rel: float) -> torch.Tensor:

@@ -26,8 +26,9 @@ Loss and schedule (iComMa ``run.py``; defaults in :class:`LocalizerConfig`):
   ``0.05 * 0.6 ** (t / 50)``.
 - Stop: after ``max_iterations`` (iComMa: always 500), or earlier when the pose has stopped
   moving: over the last ``converge_patience`` iterations it turned by less than
-  ``converge_rot_deg`` and its centre moved by less than ``converge_trans_rel`` times the mean
-  rendered depth (an addition; set ``converge_patience = 0`` to disable).
+  ``converge_rot_deg`` and its centre moved by less than ``converge_trans_rel`` times the scene
+  depth (the median rendered depth at the start, ``geometry.median_depth``); an addition, set
+  ``converge_patience = 0`` to disable it.
 
 Matching gradient modes (``gradient_mode``):
 
@@ -51,19 +52,20 @@ import dataclasses
 import logging
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 import torch
 
-from ..checks import check_bool, check_choice, check_int, check_real
+from ..checks import check_bool, check_choice, check_int, check_real, config_from_dict
 from ..losses import compare_loss, match_loss, reprojection_match_loss
 from ..pose.convert import invert_rigid, rotation_error_deg
 from ..pose.se3 import se3_exp
-from .geometry import lift_keypoints
+from .geometry import lift_keypoints, median_depth
 from .state import LocalizationState
-from .types import Stage, TraceRecord
+from .types import MethodOutcome, Stage, TraceRecord
+from .verify import VerdictConfig, can_match, verify_pose
 
 logger = logging.getLogger(__name__)
 
@@ -94,8 +96,8 @@ class LocalizerConfig:
         max_iterations: hard cap on iterations (iComMa: 500, no other stop).
         converge_patience: window (iterations) of the "pose stopped moving" stop; 0 disables it.
         converge_rot_deg: rotation change over the window below which the pose counts as still.
-        converge_trans_rel: centre displacement over the window, relative to the mean rendered
-            depth at the initial pose, below which the pose counts as still.
+        converge_trans_rel: centre displacement over the window, relative to the scene depth (the
+            median rendered depth at the initial pose), below which the pose counts as still.
         min_iterations: never stop for convergence before this many iterations.
         gradient_mode: "image" (paper: through the matcher's differentiable refinement and the
             rendered image) or "depth" (lift render keypoints with the rendered depth, minimise
@@ -106,6 +108,11 @@ class LocalizerConfig:
         sh_degree: SH degree used for rendering (None = the model's).
         antialiasing: rasterizer antialiasing flag (upstream 3DGS ``--antialiasing``).
         record_trace: keep the per-iteration trace in the result.
+        verdict: thresholds of the verdict on the final pose (a render-and-match there).
+
+    Its results' ``details``: ``switch_iteration``, ``gradient_mode``, ``final_loss``,
+    ``scene_depth`` and ``match_counts`` (matches used per stage-1 step: first, last, mean, min,
+    max; stage-1 steps; steps that compared alone).
     """
 
     lr: float = 0.05
@@ -131,9 +138,20 @@ class LocalizerConfig:
     sh_degree: Optional[int] = None
     antialiasing: bool = False
     record_trace: bool = True
+    verdict: VerdictConfig = field(default_factory=VerdictConfig)
+
+    #: The method needs a start pose (it follows the loss downhill from there).
+    needs_start = True
 
     def __post_init__(self):
+        if isinstance(self.verdict, dict):  # Hydra's instantiate passes nested groups as mappings
+            self.verdict = config_from_dict(VerdictConfig, self.verdict, "LocalizerConfig.verdict")
         self.validate()
+
+    @property
+    def name(self) -> str:
+        """The method's name in results: ``icomma``, or ``compare_only`` without matching."""
+        return "icomma" if self.use_matching else "compare_only"
 
     def validate(self) -> "LocalizerConfig":
         """Raise ValueError naming the field when a value is out of range."""
@@ -173,28 +191,41 @@ class LocalizerConfig:
         Raises:
             ValueError: unknown keys (the message lists the known ones), or bad values.
         """
-        names = {f.name for f in dataclasses.fields(cls)}
-        d = {
-            k: v
-            for k, v in d.items()
-            if k not in ("_target_", "_convert_", "_recursive_", "_partial_")
-        }
-        unknown = sorted(set(d) - names)
-        if unknown:
-            raise ValueError(f"unknown LocalizerConfig keys {unknown}; known keys: {sorted(names)}")
-        kw = dict(d)
-        if "betas" in kw and kw["betas"] is not None:
-            kw["betas"] = tuple(float(b) for b in kw["betas"])
-        for name in ("lr", "lr_decay_steps", "image_scale", "switch_threshold", "lambda_match"):
-            if isinstance(kw.get(name), int) and not isinstance(kw.get(name), bool):
-                kw[name] = float(kw[name])
-        return cls(**kw)
+        return config_from_dict(cls, d, "LocalizerConfig")
 
     def to_dict(self) -> Dict[str, Any]:
         """The fields as a JSON-friendly dict (``betas`` as a list)."""
         d = dataclasses.asdict(self)
         d["betas"] = list(self.betas)
         return d
+
+    def at_model_side(self, intrinsics, model_side: Optional[int]) -> "LocalizerConfig":
+        """This config working at no more than ``model_side`` px, unless it sets ``image_scale``.
+
+        A photo sharper than the model adds rendering and matching cost, not accuracy (14 s an
+        iteration on a 1080x1920 fox photo against its 270x480 model).
+        """
+        if model_side is None or self.image_scale != 1.0 \
+                or max(intrinsics.width, intrinsics.height) <= model_side:
+            return self
+        return dataclasses.replace(self, image_scale=intrinsics.scale_to_side(model_side))
+
+    def needs(self, matcher) -> Optional[str]:
+        """Why this method cannot run with ``matcher`` (None when it can: any, or none)."""
+        return None
+
+    def run(self, state: LocalizationState, init_w2c: Optional[np.ndarray]) -> MethodOutcome:
+        """The paper's method from ``init_w2c``, then the verdict at the pose it ends on."""
+        if init_w2c is None:
+            raise ValueError("the paper's method (optimizer=icomma) needs a start pose; without "
+                             "one use the default method (optimizer=robust)")
+        out = run_icomma(state, init_w2c, self)
+        converged = out.stop_reason == "converged"
+        verdict, score = verify_pose(state, out.w2c, self.image_scale, self.verdict, converged)
+        details = {"switch_iteration": out.switch_iteration, "gradient_mode": self.gradient_mode,
+                   "final_loss": out.final_loss, "scene_depth": out.scene_depth,
+                   "match_counts": out.match_counts}
+        return MethodOutcome(out.w2c, verdict, score, out.iterations, out.stop_reason, details)
 
     def stage2_lr(self, t: int) -> float:
         """Stage-2 learning rate at its ``t``-th iteration (t = 1 at the first)."""
@@ -253,129 +284,125 @@ def match_step(state: LocalizationState, cfg: LocalizerConfig, image, out, query
     return loss, l_match, n_raw, n_used, float(l_match.detach()) < cfg.switch_threshold
 
 
-def run_icomma(
-    state: LocalizationState, init_w2c: np.ndarray, cfg: LocalizerConfig
-) -> IcommaOutcome:
-    """The paper's loop from ``init_w2c`` (module docstring); appends to ``state.trace``."""
-    matcher = state.matcher
-    use_matching = (
-        cfg.use_matching and matcher is not None and getattr(matcher, "name", None) != "none"
-    )
-    if (
-        use_matching
-        and cfg.gradient_mode == "image"
-        and not getattr(matcher, "supports_image_gradient", False)
-    ):
-        raise ValueError(
-            f"gradient_mode='image' needs a matcher whose keypoints carry image gradients; "
-            f"matcher {getattr(matcher, 'name', matcher)!r} does not: use gradient_mode='depth'"
-        )
-    q = state.query_at(cfg.image_scale)
-    intr = q.intrinsics
-    query = q.rgb
-    mask = q.alpha if cfg.use_query_mask else None
-    w2c0 = torch.as_tensor(np.asarray(init_w2c, np.float64))
+class _PaperLoop:
+    """The state of the paper's loop: the twist, Adam, the stage and what it counted."""
 
-    xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
-    opt = torch.optim.Adam([xi], lr=cfg.lr, betas=cfg.betas, eps=cfg.adam_eps)
+    def __init__(self, state: LocalizationState, init_w2c: np.ndarray, cfg: LocalizerConfig):
+        self.state, self.cfg = state, cfg
+        matcher = state.matcher
+        self.use_matching = cfg.use_matching and can_match(matcher)
+        if (self.use_matching and cfg.gradient_mode == "image"
+                and not getattr(matcher, "supports_image_gradient", False)):
+            raise ValueError(
+                f"gradient_mode='image' needs a matcher whose keypoints carry image gradients; "
+                f"matcher {getattr(matcher, 'name', matcher)!r} does not: use gradient_mode='depth'"
+            )
+        q = state.query_at(cfg.image_scale)
+        self.intr, self.query = q.intrinsics, q.rgb
+        self.mask = q.alpha if cfg.use_query_mask else None
+        self.w2c0 = torch.as_tensor(np.asarray(init_w2c, np.float64))
+        self.xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
+        self.opt = torch.optim.Adam([self.xi], lr=cfg.lr, betas=cfg.betas, eps=cfg.adam_eps)
+        self.stage = STAGE_MATCH if self.use_matching else STAGE_COMPARE
+        self.switch_iteration: Optional[int] = None if self.use_matching else 0
+        self.stage1_iters = self.n_compare_alone = 0
+        self.counts: List[int] = []
+        self.history: deque = deque(maxlen=max(cfg.converge_patience, 0) + 1)
+        self.history.append(self.w2c0.numpy())
+        self.scene_depth: Optional[float] = None
+        self.last_loss: Optional[float] = None
 
-    def current_w2c() -> torch.Tensor:
-        return se3_exp(xi) @ w2c0
+    def current_w2c(self) -> torch.Tensor:
+        """The pose of the twist: ``se3_exp(xi) @ w2c_0``."""
+        return se3_exp(self.xi) @ self.w2c0
 
-    stage = STAGE_MATCH if use_matching else STAGE_COMPARE
-    switch_iteration: Optional[int] = None if use_matching else 0
-    stage1_iters = 0
-    counts: List[int] = []
-    n_compare_alone = 0
-    history: deque = deque(maxlen=max(cfg.converge_patience, 0) + 1)
-    history.append(w2c0.numpy())
-    scene_depth: Optional[float] = None
-    stop_reason = "max_iterations"
-    last_loss = None
-    it = 0
-    for it in range(cfg.max_iterations):
+    def step(self, it: int) -> None:
+        """One iteration: render, loss (stage 1 or 2), backward, Adam step, trace record."""
+        cfg, state = self.cfg, self.state
         t_it = time.perf_counter()
-        lr = cfg.stage2_lr(it - switch_iteration + 1) if stage == STAGE_COMPARE else cfg.lr
-        for g in opt.param_groups:
+        lr = cfg.stage2_lr(it - self.switch_iteration + 1) if self.stage == STAGE_COMPARE \
+            else cfg.lr
+        for g in self.opt.param_groups:
             g["lr"] = lr
-
-        xi_now = [float(v) for v in xi.detach()]
-        w2c = current_w2c()
+        xi_now = [float(v) for v in self.xi.detach()]
+        w2c = self.current_w2c()
         w2c_np = w2c.detach().numpy().copy()
         out = state.render(w2c, cfg.image_scale)
-        image = out.color
-        if scene_depth is None:
-            with torch.no_grad():
-                sel = out.alpha > 0.5
-                scene_depth = float(out.depth[sel].mean()) if bool(sel.any()) else float(
-                    torch.linalg.norm(state.model.means.detach().mean(0).double().cpu()
-                                      - invert_rigid(w2c0)[:3, 3]))
-        l_compare = compare_loss(image, query, mask)
-        l_match = None
-        n_raw = n_used = 0
-        switch_now = False
-        if stage == STAGE_MATCH:
-            stage1_iters += 1
+        if self.scene_depth is None:
+            self.scene_depth = median_depth(out.depth, out.alpha)
+        l_compare = compare_loss(out.color, self.query, self.mask)
+        l_match, n_raw, n_used, switch_now = None, 0, 0, False
+        loss = l_compare
+        if self.stage == STAGE_MATCH:
+            self.stage1_iters += 1
             loss, l_match, n_raw, n_used, switch_now = match_step(
-                state, cfg, image, out, query, w2c, intr, l_compare
-            )
-            counts.append(n_used)
-            if l_match is None:
-                n_compare_alone += 1
-            if cfg.max_stage1_iterations is not None and stage1_iters >= cfg.max_stage1_iterations:
+                state, cfg, out.color, out, self.query, w2c, self.intr, l_compare)
+            self.counts.append(n_used)
+            self.n_compare_alone += l_match is None
+            if cfg.max_stage1_iterations is not None \
+                    and self.stage1_iters >= cfg.max_stage1_iterations:
                 switch_now = True
-        else:
-            loss = l_compare
-
-        opt.zero_grad(set_to_none=True)
+        self.opt.zero_grad(set_to_none=True)
         with state.timed("backward"):
             loss.backward()
-        opt.step()
-        last_loss = float(loss.detach())
-
+        self.opt.step()
+        self.last_loss = float(loss.detach())
         with torch.no_grad():
-            new_w2c = current_w2c().numpy()
-        history.append(new_w2c)
+            self.history.append(self.current_w2c().numpy())
         rot_err, trans_err = state.errors(w2c_np)
         state.record(TraceRecord(
-            iteration=it, stage=stage, seconds=time.perf_counter() - t_it, lr=lr, loss=last_loss,
-            loss_compare=float(l_compare.detach()),
+            iteration=it, stage=self.stage, seconds=time.perf_counter() - t_it, lr=lr,
+            loss=self.last_loss, loss_compare=float(l_compare.detach()),
             loss_match=None if l_match is None else float(l_match.detach()),
             matches=n_raw, matches_used=n_used, rot_err_deg=rot_err, trans_err=trans_err,
             xi=xi_now,  # the twist rendered at this iteration: w2c = se3_exp(xi) @ init_w2c
         ))
-
-        if switch_now and stage == STAGE_MATCH:
-            stage = STAGE_COMPARE
-            switch_iteration = it + 1
+        if switch_now and self.stage == STAGE_MATCH:
+            self.stage = STAGE_COMPARE
+            self.switch_iteration = it + 1
             logger.debug("switch to stage 2 at iteration %d", it + 1)
 
-        # Convergence: the pose barely moved over the last `converge_patience` iterations.
-        P = cfg.converge_patience
-        if P > 0 and len(history) == P + 1 and it + 1 >= max(cfg.min_iterations, P):
-            a, b = np.linalg.inv(history[0]), np.linalg.inv(history[-1])
-            drot = float(rotation_error_deg(a, b))
-            dtrans = float(np.linalg.norm(a[:3, 3] - b[:3, 3]))
-            if drot < cfg.converge_rot_deg and dtrans < cfg.converge_trans_rel * max(
-                scene_depth, 1e-12
-            ):
-                stop_reason = "converged"
-                break
+    def stopped_moving(self, it: int) -> bool:
+        """The pose barely moved over the last ``converge_patience`` iterations."""
+        cfg, P = self.cfg, self.cfg.converge_patience
+        if P <= 0 or len(self.history) != P + 1 or it + 1 < max(cfg.min_iterations, P):
+            return False
+        a, b = np.linalg.inv(self.history[0]), np.linalg.inv(self.history[-1])
+        drot = float(rotation_error_deg(a, b))
+        dtrans = float(np.linalg.norm(a[:3, 3] - b[:3, 3]))
+        return drot < cfg.converge_rot_deg and \
+            dtrans < cfg.converge_trans_rel * max(self.scene_depth, 1e-12)
 
-    with torch.no_grad():
-        final_w2c = current_w2c().numpy()
-    match_counts = {
-        "stage1_iterations": stage1_iters,
-        "compare_alone_steps": n_compare_alone,
-        "first": counts[0] if counts else None,
-        "last": counts[-1] if counts else None,
-        "mean": float(np.mean(counts)) if counts else None,
-        "min": int(min(counts)) if counts else None,
-        "max": int(max(counts)) if counts else None,
-    }
-    sw = (
-        switch_iteration
-        if (use_matching and stage == STAGE_COMPARE)
-        else (None if use_matching else 0)
-    )
-    return IcommaOutcome(final_w2c, it + 1, stop_reason, sw, match_counts, last_loss, scene_depth)
+    def outcome(self, iterations: int, stop_reason: str) -> IcommaOutcome:
+        """What the loop ends with."""
+        with torch.no_grad():
+            final_w2c = self.current_w2c().numpy()
+        c = self.counts
+        match_counts = {
+            "stage1_iterations": self.stage1_iters,
+            "compare_alone_steps": self.n_compare_alone,
+            "first": c[0] if c else None,
+            "last": c[-1] if c else None,
+            "mean": float(np.mean(c)) if c else None,
+            "min": int(min(c)) if c else None,
+            "max": int(max(c)) if c else None,
+        }
+        if self.use_matching:
+            sw = self.switch_iteration if self.stage == STAGE_COMPARE else None
+        else:
+            sw = 0
+        return IcommaOutcome(final_w2c, iterations, stop_reason, sw, match_counts,
+                             self.last_loss, self.scene_depth)
+
+
+def run_icomma(
+    state: LocalizationState, init_w2c: np.ndarray, cfg: LocalizerConfig
+) -> IcommaOutcome:
+    """The paper's loop from ``init_w2c`` (module docstring); appends to ``state.trace``."""
+    loop = _PaperLoop(state, init_w2c, cfg)
+    it = 0
+    for it in range(cfg.max_iterations):
+        loop.step(it)
+        if loop.stopped_moving(it):
+            return loop.outcome(it + 1, "converged")
+    return loop.outcome(it + 1, "max_iterations")

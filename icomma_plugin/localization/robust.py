@@ -16,31 +16,31 @@ from __future__ import annotations
 import dataclasses
 import logging
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
-from ..checks import check_bool, check_choice, check_int, check_real
-from .candidates import CandidateConfig, CandidateSet, usable
+from ..camera import Intrinsics
+from ..checks import check_bool, check_choice, check_int, check_real, config_from_dict
+from .candidates import CandidateConfig, usable
 from .geometric import GeometricConfig, GeometricOutcome, run_geometric
+from .geometry import median_depth
 from .refine import RefineConfig, refine_photometric
 from .state import LocalizationState
-from .types import Stage, TraceRecord, Verdict
-from .verify import PoseScore, VerdictConfig, decide, score_observation
+from .types import MethodOutcome, Stage, TraceRecord
+from .verify import PoseScore, VerdictConfig, decide, score_pose
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["RobustConfig", "RobustOutcome", "localize_robust"]
-
-#: Keys Hydra's instantiate reads (a config composed with ``_target_`` still builds with from_dict).
-HYDRA_KEYS = ("_target_", "_convert_", "_recursive_", "_partial_")
+__all__ = ["RobustConfig"]
 
 
 @dataclass
 class RobustConfig:
     """Constants of the default localizer (conf/optimizer/robust.yaml).
 
-    work_side: longer side of the working resolution [px] (None: the query's own).
+    work_side: longer side of the working resolution [px] (None: the query's own; the
+        Localizer sets it to the model's training side when the model folder says it).
     min_start_inliers: when the geometric stage from the start pose ends with fewer agreeing
         matches than this, or with a score the verdict would not call ok, the candidate views are
         tried too.
@@ -50,6 +50,9 @@ class RobustConfig:
     rollback_inliers: the refined pose is kept only if it keeps this share of the agreeing
         matches of the geometric pose (and its median displacement grows by less than
         ``rollback_median_px``).
+
+    Its results' ``details``: ``hypotheses`` (one summary per start tried), ``rolled_back``,
+    ``refine_iterations``, ``refine_loss`` ([before, after]) and ``start_render_empty``.
     """
 
     work_side: Optional[int] = None
@@ -66,13 +69,18 @@ class RobustConfig:
     candidates: CandidateConfig = field(default_factory=CandidateConfig)
     verdict: VerdictConfig = field(default_factory=VerdictConfig)
 
+    #: The method's name in results and reports.
+    name = "robust"
+    #: The method can start without a start pose (from the candidate views).
+    needs_start = False
+
     def __post_init__(self):
         # Nested groups may come as mappings (Hydra's instantiate, JSON): build their dataclasses.
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
             if isinstance(v, dict) and f.default_factory is not dataclasses.MISSING:
-                kind = type(f.default_factory())
-                setattr(self, f.name, _from_dict(kind, v, f"RobustConfig.{f.name}"))
+                setattr(self, f.name,
+                        config_from_dict(type(f.default_factory()), v, f"RobustConfig.{f.name}"))
         n = "RobustConfig."
         check_int(self.work_side, n + "work_side", 16, optional=True)
         for name in ("min_start_inliers", "good_inliers"):
@@ -87,55 +95,37 @@ class RobustConfig:
     @classmethod
     def from_dict(cls, d: Dict[str, Any]) -> "RobustConfig":
         """From a plain (nested) mapping, e.g. a Hydra group; unknown keys raise ValueError."""
-        return _from_dict(cls, d, "RobustConfig")
+        return config_from_dict(cls, d, "RobustConfig")
 
     def to_dict(self) -> Dict[str, Any]:
         """The config as a nested dict (as `from_dict` reads it)."""
         return dataclasses.asdict(self)
 
+    def at_model_side(self, intrinsics: Intrinsics, model_side: Optional[int]) -> "RobustConfig":
+        """This config working at no more than ``model_side`` px, unless it sets ``work_side``."""
+        if model_side is None or self.work_side is not None:
+            return self
+        return dataclasses.replace(self, work_side=model_side)
 
-def _from_dict(cls, d: Dict[str, Any], where: str):
-    if not isinstance(d, dict):
-        raise ValueError(f"{where} must be a mapping, got {type(d).__name__}")
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    d = {k: v for k, v in d.items() if k not in HYDRA_KEYS}
-    unknown = sorted(set(d) - set(fields))
-    if unknown:
-        raise ValueError(f"unknown {where} keys {unknown}; known keys: {sorted(fields)}")
-    kw = {}
-    for k, v in d.items():
-        default = (
-            fields[k].default_factory()
-            if fields[k].default_factory is not dataclasses.MISSING
-            else None
-        )
-        if dataclasses.is_dataclass(default) and isinstance(v, dict):
-            kw[k] = _from_dict(type(default), v, f"{where}.{k}")
-        elif isinstance(v, list):
-            kw[k] = tuple(v)
-        else:
-            kw[k] = v
-    return cls(**kw)
+    def needs(self, matcher) -> Optional[str]:
+        """Why this method cannot run with ``matcher`` (None when it can)."""
+        if matcher is None or getattr(matcher, "name", None) == "none":
+            return ("the default localizer needs a matcher (matcher=none only works with the "
+                    "paper's optimizer=icomma or compare_only)")
+        return None
 
-
-@dataclass
-class RobustOutcome:
-    """What the default method ends with: the pose, its verdict and score, the hypotheses tried."""
-
-    w2c: np.ndarray
-    verdict: Verdict
-    score: Optional[PoseScore]
-    hypotheses: List[Dict[str, Any]]
-    rolled_back: bool
-    refine_iterations: int
-    converged: bool
-
-
-def work_scale(state: LocalizationState, cfg: RobustConfig) -> float:
-    intr = state.query.intrinsics
-    if cfg.work_side is None:
-        return 1.0
-    return min(1.0, float(cfg.work_side) / max(intr.width, intr.height))
+    def run(self, state: LocalizationState, init_w2c: Optional[np.ndarray]) -> MethodOutcome:
+        """The default localizer on ``state`` from ``init_w2c`` (None: candidate views alone)."""
+        scale = 1.0 if self.work_side is None else \
+            state.query.intrinsics.scale_to_side(self.work_side)
+        search = _Search(state, self, scale)
+        search.from_start(init_w2c)
+        if search.needs_candidates():
+            search.from_candidates()
+        if search.best is None or search.best.score is None \
+                or search.best.score.inliers < self.verdict.fail_inliers:
+            return search.unrefined()
+        return _refine_and_verify(state, self, scale, search)
 
 
 def _summary(name: str, g: GeometricOutcome, state: LocalizationState) -> Dict[str, Any]:
@@ -169,90 +159,91 @@ def _better(a: GeometricOutcome, b: Optional[GeometricOutcome]) -> bool:
     return a.score.better_than(b.score)
 
 
-def localize_robust(
-    state: LocalizationState,
-    init_w2c: Optional[np.ndarray],
-    cfg: RobustConfig,
-    cameras_c2w: Sequence[np.ndarray] = (),
-    camera_names: Optional[Sequence[str]] = None,
-    candidate_set: Optional[CandidateSet] = None,
-) -> RobustOutcome:
-    """Run the default localizer (module docstring) on ``state``.
+class _Search:
+    """The hypotheses of one localization: from the start pose, then from candidate views."""
 
-    Args:
-        state: scene, query and matcher.
-        init_w2c: the start pose, or None (then the candidates alone are used).
-        cfg: the constants.
-        cameras_c2w: the model's cameras (candidate views), c2w; never the query's own camera.
-        camera_names: their names (reports).
-        candidate_set: a prebuilt :class:`CandidateSet` (reused across a batch), else built here
-            when needed.
-    """
-    if state.matcher is None:
-        raise ValueError("the default localizer needs a matcher (matcher=none only works with the "
-                         "paper's optimizer=icomma or compare_only)")
-    scale = work_scale(state, cfg)
-    hyps: List[Tuple[str, GeometricOutcome]] = []
-    best: Optional[GeometricOutcome] = None
-    fallback_w2c = None if init_w2c is None else np.asarray(init_w2c, np.float64)
-    empty_start = False
-    if init_w2c is not None:
-        g = run_geometric(state, init_w2c, cfg.geometric, scale, hypothesis=0)
-        hyps.append(("start", g))
-        best = g
-        empty_start = g.start_coverage < cfg.verdict.fail_coverage
-    need = init_w2c is None or not _convincing(best.score, cfg)
-    if need and cfg.use_candidates and usable(state.matcher):
-        cs = candidate_set
-        if cs is None:
-            cs = CandidateSet.build(state, cameras_c2w, cfg.candidates, camera_names)
-        order = cs.rank(state, cfg.candidates)
-        if fallback_w2c is None and order:
-            fallback_w2c = cs.start_w2c(*order[0])
+    def __init__(self, state: LocalizationState, cfg: RobustConfig, scale: float):
+        self.state, self.cfg, self.scale = state, cfg, scale
+        self.hyps: List[Tuple[str, GeometricOutcome]] = []
+        self.best: Optional[GeometricOutcome] = None
+        self.fallback_w2c: Optional[np.ndarray] = None
+        self.empty_start = False
+        self.had_start = False
+
+    def from_start(self, init_w2c: Optional[np.ndarray]) -> None:
+        """The geometric stage from the start pose (when there is one)."""
+        if init_w2c is None:
+            return
+        self.had_start = True
+        self.fallback_w2c = np.asarray(init_w2c, np.float64)
+        g = run_geometric(self.state, init_w2c, self.cfg.geometric, self.scale, hypothesis=0)
+        self.hyps.append(("start", g))
+        self.best = g
+        self.empty_start = g.start_coverage < self.cfg.verdict.fail_coverage
+
+    def needs_candidates(self) -> bool:
+        """Whether the candidate views are searched (no start, or an unconvincing one)."""
+        need = not self.had_start or not _convincing(self.best.score, self.cfg)
+        return (need and self.cfg.use_candidates and usable(self.state.matcher)
+                and self.state.candidates is not None)
+
+    def from_candidates(self) -> None:
+        """Rank the candidate views, run the geometric stage from the best few."""
+        state, cfg = self.state, self.cfg
+        found = state.candidates()
+        if found is None:
+            return
+        index, excluded = found
+        order = index.rank(state, cfg.candidates, excluded)
+        if self.fallback_w2c is None and order:
+            self.fallback_w2c = index.start_w2c(*order[0])
         state.record(TraceRecord(iteration=state.steps, stage=Stage.CANDIDATES, matches=len(order)))
         for rank, (idx, turns) in enumerate(order[: cfg.candidates.top_k]):
-            if cs.features[idx] is None:
+            if index.features[idx] is None:
                 continue
-            g = run_geometric(
-                state, cs.start_w2c(idx, turns), cfg.geometric, scale, hypothesis=rank + 1
-            )
-            hyps.append((cs.source[idx] + (f" turned {90 * turns} deg" if turns else ""), g))
-            if _better(g, best):
-                best = g
-            if _convincing(best.score, cfg, cfg.good_inliers):
+            g = run_geometric(state, index.start_w2c(idx, turns), cfg.geometric, self.scale,
+                              hypothesis=rank + 1)
+            name = index.source[idx] + (f" turned {90 * turns} deg" if turns else "")
+            self.hyps.append((name, g))
+            if _better(g, self.best):
+                self.best = g
+            if _convincing(self.best.score, cfg, cfg.good_inliers):
                 break
-    summaries = [_summary(n, g, state) for n, g in hyps]
-    if best is None or best.score is None or best.score.inliers < cfg.verdict.fail_inliers:
-        w2c = best.w2c if best is not None else fallback_w2c
+
+    def summaries(self) -> List[Dict[str, Any]]:
+        """One summary per hypothesis tried (the result's ``details["hypotheses"]``)."""
+        return [_summary(n, g, self.state) for n, g in self.hyps]
+
+    def unrefined(self) -> MethodOutcome:
+        """The outcome when no hypothesis is good enough to refine (the verdict says failed)."""
+        best = self.best
+        w2c = best.w2c if best is not None else self.fallback_w2c
         if w2c is None:  # no start and no candidate view: nothing to report but the identity
             w2c = np.eye(4)
         score = None if best is None else best.score
-        verdict = decide(score, cfg.verdict, converged=None,
-                         extra={"start_render_empty": empty_start, "hypotheses": len(hyps)})
-        if empty_start and verdict.status == "failed":
+        verdict = decide(score, self.cfg.verdict, converged=None,
+                         extra={"start_render_empty": self.empty_start,
+                                "hypotheses": len(self.hyps)})
+        if self.empty_start and verdict.status == "failed":
             verdict.reason += ("; the render at the start pose was empty (it looks away from the "
                                "scene): give a start that sees the scene, or none (init=none)")
-        return RobustOutcome(
-            np.asarray(w2c, np.float64), verdict, score, summaries, False, 0, False
-        )
+        return MethodOutcome(np.asarray(w2c, np.float64), verdict, score, self.state.steps,
+                             "max_iterations", {"hypotheses": self.summaries(),
+                                                "rolled_back": False, "refine_iterations": 0})
 
-    # photometric refinement of the best hypothesis, checked by a render-and-match
-    depth = float(np.median(best.observation.depth[best.observation.alpha > 0.5].cpu().numpy())) \
-        if bool((best.observation.alpha > 0.5).any()) else 1.0
+
+def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float,
+                       search: _Search) -> MethodOutcome:
+    """Photometric refinement of the best hypothesis, checked by a render-and-match."""
+    best = search.best
+    depth = median_depth(best.observation.depth, best.observation.alpha)
     ref = refine_photometric(state, best.w2c, cfg.refine, base_scale=scale, scene_depth=depth)
-    with state.timed("verify"):
-        obs = ref.observation
-        if obs is None or obs.scale != scale:
-            obs = state.observe(ref.w2c, scale, match=False)
-        obs.matches = state.match(obs.color, scale)
-        sc = score_observation(obs, state, cfg.verdict.inlier_px)
+    sc = score_pose(state, ref.w2c, scale, cfg.verdict.inlier_px, ref.observation)
     geo = best.score
     keep = (sc.inliers >= cfg.rollback_inliers * geo.inliers
             and sc.median_px <= geo.median_px + cfg.rollback_median_px)
-    rec = state.new_record(
-        Stage.VERIFY, ref.w2c, matches=sc.matches, inliers=sc.inliers, accepted=keep, scale=scale
-    )
-    state.record(rec)
+    state.record(state.new_record(Stage.VERIFY, ref.w2c, matches=sc.matches, inliers=sc.inliers,
+                                  accepted=keep, scale=scale))
     if keep:
         w2c, score = ref.w2c, sc
     else:
@@ -261,23 +252,20 @@ def localize_robust(
         )
         w2c, score = best.w2c, geo
     extra = {
-        "start_render_empty": empty_start,
-        "hypotheses": len(hyps),
+        "start_render_empty": search.empty_start,
+        "hypotheses": len(search.hyps),
         "refine_rolled_back": not keep,
         "refine_iterations": ref.iterations,
         "refine_loss": [ref.loss_start, ref.loss_end],
     }
+    # A rolled-back pose counts as still: the geometric stage had stopped on it.
     verdict = decide(score, cfg.verdict, converged=ref.converged or not keep, extra=extra)
-    if empty_start:
+    if search.empty_start:
         verdict.reason += (
             "; note: the render at the start pose was empty (relocalized from candidate views)"
         )
-    return RobustOutcome(
-        np.asarray(w2c, np.float64),
-        verdict,
-        score,
-        summaries,
-        not keep,
-        ref.iterations,
-        ref.converged,
-    )
+    stop = "rolled_back" if not keep else ("converged" if ref.converged else "max_iterations")
+    details = {"hypotheses": search.summaries(), "rolled_back": not keep,
+               "refine_iterations": ref.iterations, "refine_loss": [ref.loss_start, ref.loss_end],
+               "start_render_empty": search.empty_start}
+    return MethodOutcome(np.asarray(w2c, np.float64), verdict, score, state.steps, stop, details)

@@ -62,6 +62,10 @@ class LocalizationState:
     query: the photo at full resolution. matcher: the keypoint matcher (or None).
     gt_c2w: ground truth, used ONLY to fill the errors of trace records.
     progress: called with every trace record as it is added.
+    scene: the model's rasterizer inputs (``render.prepare_scene`` at ``sh_degree``), prepared
+        once by the Localizer for all its queries; prepared at the first render when None.
+    candidates: ``() -> (CandidateIndex, excluded indices)`` or None: where the default method
+        finds candidate views (the Localizer's index, built or loaded when first asked for).
     """
 
     model: GaussianModel
@@ -74,8 +78,11 @@ class LocalizationState:
     gt_c2w: Optional[np.ndarray] = None
     progress: Optional[Callable[[TraceRecord], Any]] = None
     record_trace: bool = True
+    scene: Any = None
+    candidates: Optional[Callable[[], Any]] = None
     trace: List[TraceRecord] = field(default_factory=list)
     seconds: Dict[str, float] = field(default_factory=lambda: defaultdict(float))
+    cpu_seconds: Dict[str, float] = field(default_factory=lambda: defaultdict(float))
     _queries: Dict[float, Query] = field(default_factory=dict)
     _features: Dict[Tuple[float, int], Any] = field(default_factory=dict)
     steps: int = 0  # trace records made so far (also when the trace is not kept)
@@ -91,37 +98,44 @@ class LocalizationState:
             self.model = self.model.with_sh_degree(0)
         dev, dt = self.model.device, self.model.dtype
         self.bg = torch.as_tensor(self.bg, device=dev, dtype=dt).reshape(3)
-        self._t0 = time.perf_counter()
+        self._t0, self._c0 = time.perf_counter(), time.process_time()
         self._last_record = self._t0
-        self._nested: List[float] = []
+        self._nested: List[Tuple[float, float]] = []
 
     # ------------------------------------------------------------------ time
     @contextlib.contextmanager
     def timed(self, kind: str):
-        """Add the time spent in the block to ``seconds[kind]``.
+        """Add the wall and process CPU time spent in the block to ``seconds[kind]``.
 
         Less the time of timed blocks nested in it (they count as their own kind), so the kinds
-        add up to the total.
+        add up to the total (``cpu_seconds`` alike: on a loaded machine wall time inflates, the
+        CPU time of one thread is the work).
         """
-        t = time.perf_counter()
-        self._nested.append(0.0)
+        t, c = time.perf_counter(), time.process_time()
+        self._nested.append((0.0, 0.0))
         try:
             yield
         finally:
-            spent = time.perf_counter() - t
-            inner = self._nested.pop()
+            spent, spent_cpu = time.perf_counter() - t, time.process_time() - c
+            inner, inner_cpu = self._nested.pop()
             self.seconds[kind] += spent - inner
+            self.cpu_seconds[kind] += spent_cpu - inner_cpu
             if self._nested:
-                self._nested[-1] += spent
+                w, cp = self._nested[-1]
+                self._nested[-1] = (w + spent, cp + spent_cpu)
 
     def elapsed(self) -> float:
         """Seconds since the state was made."""
         return time.perf_counter() - self._t0
 
-    def stage_seconds(self) -> Dict[str, float]:
-        """Seconds per kind of work, plus ``other`` (Python, losses, bookkeeping) and ``total``."""
-        total = self.elapsed()
-        out = {k: float(self.seconds.get(k, 0.0)) for k in TIMED}
+    def stage_seconds(self, cpu: bool = False) -> Dict[str, float]:
+        """Seconds per kind of work, plus ``other`` (Python, losses, bookkeeping) and ``total``.
+
+        Wall seconds, or process CPU seconds with ``cpu``.
+        """
+        total = time.process_time() - self._c0 if cpu else self.elapsed()
+        spent = self.cpu_seconds if cpu else self.seconds
+        out = {k: float(spent.get(k, 0.0)) for k in TIMED}
         out["other"] = max(0.0, total - sum(out.values()))
         out["total"] = total
         return out
@@ -172,8 +186,8 @@ class LocalizationState:
         return f
 
     # ------------------------------------------------------------------ render / match
-    def render(self, w2c, scale: float = 1.0):
-        """Render at ``w2c`` at working ``scale``.
+    def render(self, w2c, scale: float = 1.0, intrinsics: Optional[Intrinsics] = None):
+        """Render at ``w2c`` at working ``scale`` (or with other ``intrinsics``).
 
         ``w2c`` is a [4, 4] float64 numpy pose, or a torch tensor that may require grad.
 
@@ -186,14 +200,11 @@ class LocalizationState:
             w2c = torch.as_tensor(w2c, dtype=torch.float64)
         dev, dt = self.model.device, self.model.dtype
         with self.timed("render"):
-            # The scene's rasterizer inputs, prepared (and checked) once per model: docs/SPEED.md.
-            cached = getattr(self, "_prepared", None)
-            if cached is None or cached[0] is not self.model or cached[1] != self.sh_degree:
-                cached = self._prepared = (self.model, self.sh_degree,
-                                           prepare_scene(self.model, self.sh_degree))
+            if self.scene is None:  # prepared (and checked) once: docs/SPEED.md
+                self.scene = prepare_scene(self.model, self.sh_degree)
             return render(
-                cached[2],
-                self.intrinsics_at(scale),
+                self.scene,
+                intrinsics or self.intrinsics_at(scale),
                 w2c.to(device=dev, dtype=dt),
                 self.bg,
                 backend=self.backend,

@@ -14,8 +14,19 @@ import numpy as np
 import torch
 
 from ..camera import Intrinsics
+from ..checks import check_tensor
 
-__all__ = ["Query", "Stage", "TraceRecord", "Verdict", "VERDICTS", "LocalizationResult"]
+__all__ = [
+    "LocalizationResult",
+    "MethodOutcome",
+    "Query",
+    "ROW_FIELDS",
+    "Stage",
+    "TraceRecord",
+    "VERDICTS",
+    "Verdict",
+    "blank_row",
+]
 
 
 class Stage(IntEnum):
@@ -52,24 +63,35 @@ class Query:
             raise ValueError(
                 f"intrinsics must be an Intrinsics, got {type(self.intrinsics).__name__}"
             )
-        rgb = self.rgb
-        if not isinstance(rgb, torch.Tensor) or rgb.ndim != 3 or rgb.shape[0] != 3 \
-                or not rgb.is_floating_point():
-            got = list(rgb.shape) if isinstance(rgb, torch.Tensor) else type(rgb).__name__
-            raise ValueError(f"query_rgb must be a float [3, H, W] tensor, got {got}")
-        H, W = int(rgb.shape[1]), int(rgb.shape[2])
+        check_tensor(self.rgb, "query_rgb", (3, "H", "W"), floating=True, finite=True)
+        H, W = int(self.rgb.shape[1]), int(self.rgb.shape[2])
         if (self.intrinsics.width, self.intrinsics.height) != (W, H):
             raise ValueError(
                 f"intrinsics size {self.intrinsics.width}x{self.intrinsics.height} (WxH) does not "
                 f"match query_rgb {W}x{H}; scale the intrinsics with Intrinsics.scaled"
             )
-        if not bool(torch.isfinite(rgb).all()):
-            raise ValueError("query_rgb contains NaN or infinite values")
-        for name in ("alpha", "valid"):
-            m = getattr(self, name)
-            if m is not None and (not isinstance(m, torch.Tensor) or tuple(m.shape) != (1, H, W)):
-                got = list(m.shape) if isinstance(m, torch.Tensor) else type(m).__name__
-                raise ValueError(f"query_{name} must be a [1, {H}, {W}] tensor or None, got {got}")
+        check_tensor(self.alpha, "query_alpha", (1, H, W), optional=True)
+        check_tensor(self.valid, "query_valid", (1, H, W), optional=True)
+
+    @classmethod
+    def from_view(cls, view, bg: torch.Tensor, scale: float = 1.0) -> "Query":
+        """The query of a dataset view (``io.datasets.View``) at ``scale``, its masks included."""
+        im = view.load_image(scale=scale, background=bg)
+        intr = view.intrinsics if scale == 1.0 else view.intrinsics.scaled(scale)
+        return cls(im.rgb, intr, im.alpha, im.valid, str(view.name))
+
+    def resized(self, side: Optional[int]) -> "Query":
+        """This query with its longer side at ``side`` px (intrinsics follow); as is for None."""
+        from .state import resize_image
+
+        if not side or max(self.size) == side:
+            return self
+        intr = self.intrinsics.scaled(self.intrinsics.scale_to_side(side, enlarge=True))
+        h, w = intr.height, intr.width
+        rgb = resize_image(self.rgb, h, w).clamp(0, 1)
+        alpha = None if self.alpha is None else resize_image(self.alpha, h, w).clamp(0, 1)
+        valid = None if self.valid is None else (resize_image(self.valid, h, w) > 0.999).float()
+        return Query(rgb.contiguous(), intr, alpha, valid, self.name)
 
     @property
     def size(self):
@@ -162,61 +184,140 @@ class Verdict:
 
 
 @dataclass
-class LocalizationResult:
-    """Outcome of a localization. Poses are float64 numpy, OpenCV axes.
+class MethodOutcome:
+    """What a method's ``run(state, init_w2c)`` ends with (the Localizer makes the result).
 
-    ``stop_reason`` says how the optimisation ended (``"converged"``, ``"max_iterations"``, ...);
-    it is NOT a statement that the pose is right: ``verdict`` is.
+    w2c: the pose found. verdict: whether to trust it. score: the render-and-match behind the
+    verdict (None when it could not be checked). iterations: steps taken. stop_reason: how the
+    optimisation ended (not whether the pose is right). details: what only this method has
+    (documented by each method's config).
     """
 
     w2c: np.ndarray
-    c2w: np.ndarray
-    init_w2c: Optional[np.ndarray]
+    verdict: Verdict
+    score: Any
     iterations: int
     stop_reason: str
-    switch_iteration: Optional[int]
-    match_counts: Dict[str, Any]
-    seconds: float
-    gradient_mode: Optional[str]
+    details: Dict[str, Any] = field(default_factory=dict)
+
+
+#: The one row of a localization, in result.json, poses.json / poses.csv and the benchmark's
+#: records alike (docs/CONTRACTS.md, "Result rows"). Poses are camera-to-world, OpenCV axes.
+ROW_FIELDS = (
+    "name",
+    "image",
+    "status",
+    "reason",
+    "error",
+    "method",
+    "matcher",
+    "c2w",
+    "init_c2w",
+    "gt_c2w",
+    "rot_err_deg",
+    "trans_err",
+    "trans_err_rel",
+    "init_rot_err_deg",
+    "init_trans_err",
+    "init_trans_err_rel",
+    "inliers",
+    "matches",
+    "iterations",
+    "stop_reason",
+    "seconds",
+    "scene_scale",
+    "intrinsics",
+)
+
+
+def blank_row(**values: Any) -> Dict[str, Any]:
+    """A row with every field of `ROW_FIELDS` (None unless given), plus any extra ``values``."""
+    row: Dict[str, Any] = dict.fromkeys(ROW_FIELDS)
+    row.update(values)
+    return row
+
+
+def _list(T: Optional[np.ndarray]) -> Optional[list]:
+    return None if T is None else np.asarray(T).tolist()
+
+
+@dataclass
+class LocalizationResult:
+    """Outcome of a localization. Poses are float64 numpy camera-to-world, OpenCV axes.
+
+    ``stop_reason`` says how the optimisation ended (``"converged"``, ``"max_iterations"``, ...);
+    it is NOT a statement that the pose is right: ``verdict`` is. Errors (``rot_err_deg``,
+    ``trans_err``: camera-centre distance in world units) are filled only when the truth was
+    given, and only for reports. ``inliers`` / ``matches``: the matches agreeing with the final
+    pose and all matches there (the verdict's), for every method. ``stage_seconds`` /
+    ``stage_cpu_seconds``: wall / process CPU seconds per kind of work. ``details``: what only
+    the method has (the paper's: ``switch_iteration``, ``gradient_mode``, ``final_loss``,
+    ``scene_depth``, ``match_counts``; the default's: ``hypotheses``, ``refine_iterations``,
+    ``rolled_back``, ...).
+    """
+
+    name: str
+    c2w: np.ndarray
+    verdict: Verdict
+    method: str
     matcher: Optional[str]
-    method: str = "icomma"
-    verdict: Optional[Verdict] = None
-    initial_rotation_error_deg: Optional[float] = None
-    initial_translation_error: Optional[float] = None
-    final_rotation_error_deg: Optional[float] = None
-    final_translation_error: Optional[float] = None
-    final_loss: Optional[float] = None
-    scene_depth: Optional[float] = None
+    iterations: int
+    stop_reason: str
+    seconds: float
+    intrinsics: Optional[Intrinsics] = None
+    init_c2w: Optional[np.ndarray] = None
+    gt_c2w: Optional[np.ndarray] = None
+    rot_err_deg: Optional[float] = None
+    trans_err: Optional[float] = None
+    init_rot_err_deg: Optional[float] = None
+    init_trans_err: Optional[float] = None
+    inliers: Optional[int] = None
+    matches: Optional[int] = None
     stage_seconds: Dict[str, float] = field(default_factory=dict)
-    hypotheses: List[Dict[str, Any]] = field(default_factory=list)
+    stage_cpu_seconds: Dict[str, float] = field(default_factory=dict)
+    details: Dict[str, Any] = field(default_factory=dict)
     trace: List[TraceRecord] = field(default_factory=list)
     config: Dict[str, Any] = field(default_factory=dict)
 
-    def to_json(self, include_trace: bool = True) -> Dict[str, Any]:
-        """A JSON-serialisable dict (numbers, lists, None)."""
-        d = {
-            "method": self.method,
-            "verdict": None if self.verdict is None else self.verdict.to_json(),
-            "w2c": self.w2c.tolist(),
-            "c2w": self.c2w.tolist(),
-            "init_w2c": None if self.init_w2c is None else self.init_w2c.tolist(),
-            "iterations": self.iterations,
-            "stop_reason": self.stop_reason,
-            "switch_iteration": self.switch_iteration,
-            "match_counts": self.match_counts,
-            "seconds": self.seconds,
-            "stage_seconds": self.stage_seconds,
-            "gradient_mode": self.gradient_mode,
-            "matcher": self.matcher,
-            "initial_rotation_error_deg": self.initial_rotation_error_deg,
-            "initial_translation_error": self.initial_translation_error,
-            "final_rotation_error_deg": self.final_rotation_error_deg,
-            "final_translation_error": self.final_translation_error,
-            "final_loss": self.final_loss,
-            "scene_depth": self.scene_depth,
-            "hypotheses": self.hypotheses,
-            "config": self.config,
-        }
+    @property
+    def w2c(self) -> np.ndarray:
+        """The estimated world-to-camera (the inverse of ``c2w``)."""
+        from ..pose.convert import invert_rigid
+
+        return invert_rigid(self.c2w)
+
+    def row(self, scene_scale: Optional[float] = None, **extra: Any) -> Dict[str, Any]:
+        """The result as a row of `ROW_FIELDS` (JSON-friendly), plus ``extra`` fields.
+
+        ``scene_scale``: the unit of ``trans_err_rel`` and ``init_trans_err_rel`` (``trans_err /
+        scene_scale``; the 3DGS scene radius of the model's cameras in the tools, the benchmark's
+        translation unit).
+        """
+        v = self.verdict
+        def rel(t: Optional[float]) -> Optional[float]:
+            return t / scene_scale if scene_scale and t is not None else None
+
+        row = blank_row(
+            name=self.name, status=v.status, reason=v.reason, method=self.method,
+            matcher=self.matcher, c2w=_list(self.c2w), init_c2w=_list(self.init_c2w),
+            gt_c2w=_list(self.gt_c2w), rot_err_deg=self.rot_err_deg, trans_err=self.trans_err,
+            trans_err_rel=rel(self.trans_err), init_rot_err_deg=self.init_rot_err_deg,
+            init_trans_err=self.init_trans_err, init_trans_err_rel=rel(self.init_trans_err),
+            inliers=self.inliers, matches=self.matches,
+            iterations=self.iterations, stop_reason=self.stop_reason, seconds=self.seconds,
+            scene_scale=scene_scale,
+            intrinsics=None if self.intrinsics is None else self.intrinsics.to_json(),
+            signals=v.to_json()["signals"], stage_seconds=self.stage_seconds,
+            stage_cpu_seconds=self.stage_cpu_seconds,
+            details=self.details,
+        )
+        row.update(extra)
+        return _jsonable(row)
+
+    def to_json(self, include_trace: bool = True, scene_scale: Optional[float] = None
+                ) -> Dict[str, Any]:
+        """The row (:meth:`row`) with the config and, unless left out, the trace."""
+        d = self.row(scene_scale, config=self.config)
         if include_trace:
             d["trace"] = [r.to_dict() for r in self.trace]
         return _jsonable(d)

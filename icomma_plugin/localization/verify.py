@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import Any, Dict, Optional
+from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 import torch
@@ -26,7 +26,16 @@ from ..checks import check_int, check_real
 from .state import LocalizationState, Observation
 from .types import Verdict
 
-__all__ = ["PoseScore", "VerdictConfig", "coverage_mask", "decide", "score_observation"]
+__all__ = [
+    "PoseScore",
+    "VerdictConfig",
+    "can_match",
+    "coverage_mask",
+    "decide",
+    "score_observation",
+    "score_pose",
+    "verify_pose",
+]
 
 
 @dataclass
@@ -223,3 +232,32 @@ def decide(score: Optional[PoseScore], cfg: VerdictConfig, converged: Optional[b
         "the photo",
         signals,
     )
+
+
+def can_match(matcher) -> bool:
+    """Whether ``matcher`` finds matches at all (None and the ``none`` matcher do not)."""
+    return matcher is not None and getattr(matcher, "name", None) != "none"
+
+
+def score_pose(state: LocalizationState, w2c: np.ndarray, scale: float, inlier_px: float,
+               observation: Optional[Observation] = None) -> PoseScore:
+    """Render at ``w2c`` (or reuse ``observation``, a render there), match, score (timed verify).
+
+    The one render-and-match that checks a final pose, for every method.
+    """
+    with state.timed("verify"):
+        obs = observation
+        if obs is None or obs.scale != scale:
+            obs = state.observe(w2c, scale, match=False)
+        obs.matches = state.match(obs.color, scale)
+        return score_observation(obs, state, inlier_px)
+
+
+def verify_pose(state: LocalizationState, w2c: np.ndarray, scale: float, cfg: "VerdictConfig",
+                converged: Optional[bool], extra: Optional[Dict[str, Any]] = None,
+                observation: Optional[Observation] = None) -> Tuple[Verdict, Optional[PoseScore]]:
+    """The verdict of the pose ``w2c`` and its score (None without a matcher to check with)."""
+    if not can_match(state.matcher):
+        return decide(None, cfg, converged, extra), None
+    score = score_pose(state, w2c, scale, cfg.inlier_px, observation)
+    return decide(score, cfg, converged, extra), score

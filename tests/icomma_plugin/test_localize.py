@@ -17,7 +17,7 @@ import torch
 from icomma_plugin.camera import Intrinsics
 from icomma_plugin.app.demo_scene import textured_plane_model
 from icomma_plugin.pose.convert import look_at_c2w, perturb_pose
-from icomma_plugin.localize import LocalizationResult, LocalizerConfig, lift_keypoints, localize
+from icomma_plugin.localize import LocalizationResult, LocalizerConfig, Query, localize
 from icomma_plugin.matchers import make_matcher
 from icomma_plugin.pose.se3 import se3_log
 from icomma_plugin.render import render
@@ -113,7 +113,8 @@ def test_one_step_moves_toward_truth(plane, mode):
     cfg = LocalizerConfig(lambda_match=1.0, lr=0.005, max_iterations=1, gradient_mode=mode,
                           switch_threshold=0.0, converge_patience=0)
     gt_w2c = np.linalg.inv(gt_c2w)
-    res = localize(model, query, intr, np.linalg.inv(init_c2w), matcher, cfg, gt_w2c=gt_w2c)
+    res = localize(model, Query(query, intr), matcher=matcher, config=cfg, init_c2w=init_c2w,
+                   gt_c2w=gt_c2w)
     assert res.iterations == 1
     rec = res.trace[0]
     assert rec["stage"] == 1 and rec["matches_used"] >= 20 and rec["loss_match"] > 0
@@ -132,16 +133,16 @@ def test_losses_wiring_and_switch_schedule(plane):
     cfg = LocalizerConfig(
         max_iterations=6, switch_threshold=1.0, converge_patience=0, gradient_mode="depth"
     )
-    res = localize(model, query, intr, np.linalg.inv(init_c2w), matcher, cfg)
+    res = localize(model, Query(query, intr), matcher=matcher, config=cfg, init_c2w=init_c2w)
     t0 = res.trace[0]
     # L = (1 - lambda) L_compare + lambda L_match in stage 1.
     assert t0["stage"] == 1 and t0["loss_match"] is not None
     assert math.isclose(t0["loss"], 0.2 * t0["loss_compare"] + 0.8 * t0["loss_match"], rel_tol=1e-5)
     assert t0["lr"] == 0.05
     # L_match < threshold at iteration 0 -> stage 2 from iteration 1, compare alone, decaying lr.
-    assert res.switch_iteration == 1
+    assert res.details["switch_iteration"] == 1
     for r in res.trace[1:]:
-        t = r["iteration"] - res.switch_iteration + 1
+        t = r["iteration"] - res.details["switch_iteration"] + 1
         assert r["stage"] == 2 and r["loss_match"] is None and r["matches"] == 0
         assert math.isclose(r["loss"], r["loss_compare"], rel_tol=1e-6)
         assert math.isclose(r["lr"], 0.05 * 0.6 ** (t / 50), rel_tol=1e-12)
@@ -154,8 +155,8 @@ def test_no_switch_above_threshold(plane):
     cfg = LocalizerConfig(
         max_iterations=3, switch_threshold=1e-9, converge_patience=0, gradient_mode="depth"
     )
-    res = localize(model, query, intr, np.linalg.inv(init_c2w), matcher, cfg)
-    assert res.switch_iteration is None
+    res = localize(model, Query(query, intr), matcher=matcher, config=cfg, init_c2w=init_c2w)
+    assert res.details["switch_iteration"] is None
     assert all(r["stage"] == 1 and r["lr"] == 0.05 for r in res.trace)
 
 
@@ -166,19 +167,19 @@ def test_too_few_matches_compare_alone(plane, mode):
     k = torch.tensor([[20.0, 20.0], [40.0, 30.0], [30.0, 44.0]])
     matcher = make_matcher("fake", kpts0=k, kpts1=k)  # 3 matches < min_matches = 5
     cfg = LocalizerConfig(max_iterations=2, converge_patience=0, gradient_mode=mode)
-    res = localize(model, query, intr, np.linalg.inv(init_c2w), matcher, cfg)
+    res = localize(model, Query(query, intr), matcher=matcher, config=cfg, init_c2w=init_c2w)
     for r in res.trace:
         assert r["stage"] == 1 and r["matches"] == 3 and r["matches_used"] == 0
         assert r["loss_match"] is None and r["loss"] == r["loss_compare"]  # weight 1, as iComMa
-    assert res.match_counts["compare_alone_steps"] == 2
-    assert res.switch_iteration is None
+    assert res.details["match_counts"]["compare_alone_steps"] == 2
+    assert res.details["switch_iteration"] is None
 
 
 def test_low_confidence_matches_dropped(plane):
     model, intr, gt_c2w, query = plane
     matcher = make_matcher("fake", grid_step=8, confidence=0.3)
     cfg = LocalizerConfig(max_iterations=1, converge_patience=0, gradient_mode="depth")
-    res = localize(model, query, intr, np.linalg.inv(gt_c2w), matcher, cfg)
+    res = localize(model, Query(query, intr), matcher=matcher, config=cfg, init_c2w=gt_c2w)
     assert res.trace[0]["matches"] > 5 and res.trace[0]["matches_used"] == 0
 
 
@@ -188,51 +189,58 @@ def test_convergence_stop(plane):
     cfg = LocalizerConfig(use_matching=False, max_iterations=60, converge_patience=5,
                           converge_rot_deg=0.5, converge_trans_rel=0.05, lr=1e-4)
     calls = []
-    res = localize(
-        model,
-        query,
-        intr,
-        np.linalg.inv(gt_c2w),
-        None,
-        cfg,
-        gt_w2c=np.linalg.inv(gt_c2w),
-        progress=calls.append,
-    )
+    res = localize(model, Query(query, intr), config=cfg, init_c2w=gt_c2w, gt_c2w=gt_c2w,
+                   progress=calls.append)
     assert res.stop_reason == "converged"
     assert res.iterations == 5 and len(calls) == 5 and len(res.trace) == 5
-    assert res.switch_iteration == 0  # compare-only: stage 2 from the start, lr decaying
+    assert res.details["switch_iteration"] == 0  # compare-only: stage 2 from the start, lr decaying
     assert math.isclose(res.trace[0]["lr"], 1e-4 * 0.6 ** (1 / 50))
-    assert res.final_rotation_error_deg < 0.1
+    assert res.rot_err_deg < 0.1
 
 
 def test_max_iterations_stop_and_json(plane):
     model, intr, gt_c2w, query = plane
     init_c2w = perturb_pose(gt_c2w, 3.0, 0.0, generator=np.random.default_rng(5), pivot="origin")
     cfg = LocalizerConfig(use_matching=False, max_iterations=2, converge_patience=0)
-    res = localize(model, query, intr, np.linalg.inv(init_c2w), make_matcher("none"), cfg,
-                   gt_w2c=np.linalg.inv(gt_c2w))
+    res = localize(model, Query(query, intr), matcher=make_matcher("none"), config=cfg,
+                   init_c2w=init_c2w, gt_c2w=gt_c2w)
     assert isinstance(res, LocalizationResult)
     assert res.stop_reason == "max_iterations" and res.iterations == 2
-    assert math.isclose(res.initial_rotation_error_deg, 3.0, abs_tol=1e-6)
+    assert math.isclose(res.init_rot_err_deg, 3.0, abs_tol=1e-6)
     j = res.to_json()
-    assert np.allclose(np.asarray(j["c2w"]) @ np.asarray(j["w2c"]), np.eye(4), atol=1e-9)
+    assert np.allclose(np.asarray(j["c2w"]), res.c2w) and np.allclose(j["init_c2w"], init_c2w)
+    assert np.allclose(res.c2w @ res.w2c, np.eye(4), atol=1e-9)
     assert len(j["trace"]) == 2 and j["config"]["lr"] == 0.05
     for key in ("loss", "loss_compare", "lr", "stage", "matches", "rot_err_deg", "trans_err"):
         assert key in j["trace"][0]
 
 
 def test_pose_update_is_left_perturbation_of_w2c(plane):
-    """The trace's twist reproduces the estimate: w2c = se3_exp(xi) @ w2c_0."""
+    """The trace's twist reproduces what was rendered: w2c = se3_exp(xi) @ w2c_0, not w2c_0 @ ...
+
+    The render at the pose rebuilt from the recorded twist gives the comparing loss recorded at
+    that iteration; the right perturbation gives another.
+    """
+    from icomma_plugin.losses import compare_loss
     from icomma_plugin.pose.se3 import se3_exp
 
     model, intr, gt_c2w, query = plane
     init_c2w = perturb_pose(gt_c2w, 3.0, 0.02, generator=np.random.default_rng(6), pivot="origin")
     cfg = LocalizerConfig(use_matching=False, max_iterations=3, converge_patience=0)
-    res = localize(model, query, intr, np.linalg.inv(init_c2w), None, cfg)
-    xi = torch.tensor(res.trace[2]["xi"], dtype=torch.float64)
-    w2c2 = (se3_exp(xi) @ torch.as_tensor(np.linalg.inv(init_c2w))).numpy()
+    res = localize(model, Query(query, intr), config=cfg, init_c2w=init_c2w)
     assert res.trace[0]["xi"] == [0.0] * 6
-    assert not np.allclose(w2c2, np.linalg.inv(init_c2w))
+    xi = torch.tensor(res.trace[2]["xi"], dtype=torch.float64)
+    assert float(xi.norm()) > 1e-4
+    w2c0 = torch.as_tensor(np.linalg.inv(init_c2w))
+
+    def loss_at(w2c):
+        with torch.no_grad():
+            img = render(model, intr, w2c.float(), torch.zeros(3)).color
+        return float(compare_loss(img, query, None))
+
+    left, right = loss_at(se3_exp(xi) @ w2c0), loss_at(w2c0 @ se3_exp(xi))
+    assert math.isclose(left, res.trace[2]["loss_compare"], rel_tol=1e-4)
+    assert not math.isclose(right, res.trace[2]["loss_compare"], rel_tol=1e-3)
 
 
 def test_image_mode_needs_gradient_matcher(plane):
@@ -243,40 +251,31 @@ def test_image_mode_needs_gradient_matcher(plane):
         supports_image_gradient = False
 
     with pytest.raises(ValueError, match="gradient_mode='depth'"):
-        localize(model, query, intr, np.linalg.inv(gt_c2w), NoGrad(), LocalizerConfig())
+        localize(model, Query(query, intr), matcher=NoGrad(), config=LocalizerConfig(),
+                 init_c2w=gt_c2w)
 
 
 def test_bad_inputs(plane):
     model, intr, gt_c2w, query = plane
-    w2c = np.linalg.inv(gt_c2w)
     with pytest.raises(ValueError, match="intrinsics size"):
-        localize(model, query[:, :32], intr, w2c, None)
-    with pytest.raises(ValueError, match="init_w2c"):
-        localize(model, query, intr, np.eye(3), None)
-    bad = w2c.copy()
+        Query(query[:, :32], intr)
+    with pytest.raises(ValueError, match="init_c2w"):
+        localize(model, Query(query, intr), config=LocalizerConfig(), init_c2w=np.eye(3))
+    bad = gt_c2w.copy()
     bad[:3, :3] *= 2
-    with pytest.raises(ValueError, match="init_w2c.*rigid"):
-        localize(model, query, intr, bad, None)
+    with pytest.raises(ValueError, match="init_c2w.*rigid"):
+        localize(model, Query(query, intr), config=LocalizerConfig(), init_c2w=bad)
     with pytest.raises(ValueError, match="query_alpha"):
-        localize(model, query, intr, w2c, None, query_alpha=torch.ones(1, 8, 8))
+        Query(query, intr, alpha=torch.ones(1, 8, 8))
     with pytest.raises(ValueError, match="model_side"):
-        localize(model, query, intr, w2c, None, model_side="64")
+        localize(model, Query(query, intr), config=LocalizerConfig(), init_c2w=gt_c2w,
+                 model_side="64")
     with pytest.raises(ValueError, match="intrinsics must be an Intrinsics"):
-        localize(model, query, {"fx": 1.0}, w2c, None, model_side=64)
-
-
-def test_lift_keypoints_roundtrip(plane):
-    model, intr, gt_c2w, query = plane
-    w2c = torch.tensor(np.linalg.inv(gt_c2w), dtype=torch.float32)
-    with torch.no_grad():
-        out = render(model, intr, w2c, torch.zeros(3))
-    k = torch.tensor([[32.0, 32.0], [20.5, 40.25], [45.0, 25.0]])
-    pts, keep = lift_keypoints(k, out.depth, out.alpha, intr, torch.as_tensor(gt_c2w))
-    assert bool(keep.all())
-    assert np.allclose(pts[:, 2].numpy(), 0.0, atol=0.02)  # the plane z = 0
-    Xc = (np.linalg.inv(gt_c2w) @ np.c_[pts.numpy(), np.ones(3)].T).T
-    uv = (intr.K().numpy() @ (Xc[:, :3] / Xc[:, 2:3]).T).T[:, :2]
-    assert np.allclose(uv, k.numpy(), atol=1e-6)
+        Query(query, {"fx": 1.0})
+    with pytest.raises(ValueError, match="query must be a Query"):
+        localize(model, query, config=LocalizerConfig(), init_c2w=gt_c2w)
+    with pytest.raises(TypeError):  # poses are keywords: an old positional w2c cannot slip in
+        localize(model, Query(query, intr), None, None, np.linalg.inv(gt_c2w))
 
 
 def test_image_scale(plane):
@@ -284,5 +283,5 @@ def test_image_scale(plane):
     cfg = LocalizerConfig(
         use_matching=False, max_iterations=1, image_scale=0.5, converge_patience=0
     )
-    res = localize(model, query, intr, np.linalg.inv(gt_c2w), None, cfg)
+    res = localize(model, Query(query, intr), config=cfg, init_c2w=gt_c2w)
     assert res.iterations == 1 and res.trace[0]["loss_compare"] < 0.05

@@ -1,0 +1,295 @@
+"""Running a batch: one worker per process, each with its own Localizer.
+
+    setup = WorkerSetup(model_path=..., method=RobustConfig(), matcher={"_target_": ...}, ...)
+    ledger = PosesLedger(out_dir, run=run_identity("batch", data, ...), total=len(plan.tasks))
+    summary = run_batch(plan, setup, ledger, workers=2)
+
+Each worker loads the model once and builds a :class:`~icomma_plugin.localization.localizer.
+Localizer`, which keeps the candidate views per camera (and on disk) for every photo; a photo
+whose own camera is among the model's cameras (same pose as its known truth) has that camera
+left out, as a benchmark must. A photo that cannot be read, has the wrong size or no start pose
+becomes a ``failed`` row whose ``error`` says why; the batch goes on.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import multiprocessing
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Dict, Iterator, List, Optional, Tuple
+
+import numpy as np
+import torch
+
+from ...localization.localizer import Localizer
+from ...localization.types import LocalizationResult, Query
+from ...matchers import matcher_from_config
+from ...pose.convert import cameras_extent
+from ..inputs import ProblemError
+from ..ledger import PosesLedger
+from ..problem import Problem, read_query_image
+from .planning import BatchPlan, PhotoTask
+from .records import failure_row, result_row, safe_name
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["BatchSummary", "BatchWorker", "WorkerSetup", "run_batch"]
+
+
+@dataclass
+class WorkerSetup:
+    """Everything a worker process needs (picklable).
+
+    method: RobustConfig or LocalizerConfig. matcher: the matcher group mapping. out_dir: the
+    batch's output folder. folders: write each photo's folder of pictures (``photos/<name>/``)
+    with ``output`` (an OutputOptions). thumbs: write ``thumbs/<name>.png`` for the contact
+    sheet. config: the composed config, stored in each result.json. seed: torch / numpy seed of
+    every photo (``seed + index``), so results do not depend on the worker a photo lands on.
+    cache_dir: the Localizer's candidate cache (None: the default folder; False: none).
+    """
+
+    model_path: str
+    method: Any
+    matcher: Optional[Dict[str, Any]]
+    out_dir: str
+    iteration: Optional[int] = None
+    white_background: bool = False
+    backend: str = "auto"
+    resize: Optional[int] = None
+    folders: bool = False
+    output: Any = None
+    thumbs: bool = True
+    thumb_side: int = 192
+    config: Dict[str, Any] = field(default_factory=dict)
+    seed: Optional[int] = 0
+    cache_dir: Any = None
+
+
+@contextlib.contextmanager
+def _seeded(seed: Optional[int]) -> Iterator[None]:
+    """Seed torch and numpy inside the block and restore their states after it."""
+    if seed is None:
+        yield
+        return
+    state = np.random.get_state()
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        np.random.seed(seed % (2**32))
+        try:
+            yield
+        finally:
+            np.random.set_state(state)
+
+
+class BatchWorker:
+    """Localizes the photos of a batch, one at a time (one per process, or the caller's)."""
+
+    def __init__(self, setup: WorkerSetup, model_folder=None, matcher=None):
+        from ...io.model_folder import load_model_folder
+
+        self.setup = setup
+        self.mf = model_folder if model_folder is not None else load_model_folder(
+            setup.model_path, setup.iteration)
+        matcher = matcher if matcher is not None else matcher_from_config(setup.matcher)
+        self.localizer = Localizer.from_model_folder(
+            self.mf, matcher, setup.method, white_background=setup.white_background,
+            backend=setup.backend, cache_dir=setup.cache_dir)
+        self.model, self.bg = self.localizer.model, self.localizer.background
+        self.cameras = list(self.mf.cameras or [])
+        self.scene_scale = cameras_extent([e.c2w for e in self.cameras]) if self.cameras else None
+        self.out_dir = Path(setup.out_dir)
+
+    def load_query(self, task: PhotoTask) -> Query:
+        """The photo of ``task`` as a query, resized to the setup's ``resize``.
+
+        Raises:
+            ProblemError: the photo's size is not the one its intrinsics were planned for.
+        """
+        bg = self.bg.cpu().float()
+        if task.view is not None:
+            q = Query.from_view(task.view, bg)
+            q = Query(q.rgb, q.intrinsics, q.alpha, q.valid, task.name)
+        else:
+            rgb, alpha = read_query_image(task.path, bg)
+            W, H = int(rgb.shape[2]), int(rgb.shape[1])
+            if (W, H) != (task.intrinsics.width, task.intrinsics.height):
+                raise ProblemError(
+                    f"the photo {task.path} is {W}x{H}, not the {task.intrinsics.width}x"
+                    f"{task.intrinsics.height} its intrinsics were planned for"
+                )
+            q = Query(rgb, task.intrinsics, alpha, None, task.name)
+        return q.resized(self.setup.resize)
+
+    def problem(self, task: PhotoTask, query: Query) -> Problem:
+        """The localization problem of ``task``: this worker's model, the query, its poses."""
+        return Problem(
+            model=self.model, query=query, init_c2w=task.init_c2w, gt_c2w=task.gt_c2w,
+            bg=self.bg, scene_scale=self.scene_scale, cameras=self.cameras,
+            info={"model_path": self.setup.model_path, "iteration": self.mf.iteration,
+                  "num_gaussians": self.model.num_gaussians, "batch_index": task.index},
+        )
+
+    def localize(self, problem: Problem, init_c2w: Optional[np.ndarray], progress=None
+                 ) -> LocalizationResult:
+        """Localize ``problem`` from ``init_c2w`` (None: no start pose)."""
+        return self.localizer.localize(problem.query, init_c2w, problem.gt_c2w, progress)
+
+    def write_pictures(self, problem: Problem, result: LocalizationResult, seconds: float
+                       ) -> Tuple[Optional[str], Optional[str]]:
+        """The photo's folder (when asked) and its thumbnail; (folder, thumb) relative paths."""
+        from ..output import write_outputs
+
+        folder = thumb = None
+        safe = safe_name(problem.name)
+        if self.setup.folders:
+            folder = f"photos/{safe}"
+            write_outputs(self.out_dir / folder, problem, result, matcher=self.localizer.matcher,
+                          options=self.setup.output, backend=self.setup.backend,
+                          config=self.setup.config, seconds_total=seconds)
+        if self.setup.thumbs:
+            try:
+                from ...pictures import save_thumbnail
+
+                rel = f"thumbs/{safe}.png"
+                save_thumbnail(self.out_dir / rel, self.model, problem.query, result.c2w,
+                               problem.bg, self.setup.thumb_side, backend=self.setup.backend)
+                thumb = rel
+            except Exception as e:  # noqa: BLE001 - a picture never fails a photo
+                logger.warning("no thumbnail for %s: %s: %s", problem.name, type(e).__name__, e)
+        return folder, thumb
+
+    def run(self, task: PhotoTask) -> Dict[str, Any]:
+        """Localize one photo; always returns a row (a failed one for bad input or a crash)."""
+        t0 = time.perf_counter()
+        if task.error:
+            return failure_row(task, f"bad input: {task.error}", task.error)
+        try:
+            with _seeded(None if self.setup.seed is None else self.setup.seed + task.index):
+                problem = self.problem(task, self.load_query(task))
+                result = self.localize(problem, task.init_c2w)
+            folder, thumb = self.write_pictures(problem, result, time.perf_counter() - t0)
+            row = result_row(task, result, self.scene_scale, time.perf_counter() - t0, folder,
+                             thumb)
+            row["own_camera_left_out"] = len(self.localizer.own_cameras(task.gt_c2w))
+            return row
+        except (ValueError, FileNotFoundError) as e:
+            msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+            return failure_row(task, f"bad input: {msg}", msg, time.perf_counter() - t0)
+        except Exception as e:  # noqa: BLE001 - one photo must not stop the batch
+            logger.exception("photo %s failed", task.name)
+            msg = f"internal error: {type(e).__name__}: {e}"
+            return failure_row(task, msg, msg, time.perf_counter() - t0)
+
+
+# ---------------------------------------------------------------------------------- processes
+
+_WORKER: Optional[BatchWorker] = None
+
+
+def _init_worker(setup: WorkerSetup, threads: int) -> None:
+    """Initializer of a worker process (started by :func:`run_batch`).
+
+    Its own thread count, its own model, matcher and Localizer.
+    """
+    global _WORKER
+    torch.set_num_threads(max(1, int(threads)))
+    _WORKER = BatchWorker(setup)
+
+
+def _work(task: PhotoTask) -> Dict[str, Any]:
+    assert _WORKER is not None, "worker not initialised"
+    return _WORKER.run(task)
+
+
+@dataclass
+class BatchSummary:
+    """What a :func:`run_batch` call did. ``photos_per_minute`` counts the photos it localized."""
+
+    counts: Dict[str, int]
+    done_now: int
+    skipped: int
+    todo: int
+    seconds: float
+    rows: List[Dict[str, Any]]
+
+    @property
+    def photos_per_minute(self) -> Optional[float]:
+        """Photos localized per minute of this call; None when it localized none."""
+        return (
+            None if self.done_now == 0 or self.seconds <= 0 else 60.0 * self.done_now / self.seconds
+        )
+
+
+def _todo(plan: BatchPlan, ledger: PosesLedger, retry_failed: bool) -> Tuple[List[PhotoTask], int]:
+    """(this shard's photos without a row, how many of its photos have one)."""
+    mine = [t for t in plan.tasks if t.index % ledger.num_shards == ledger.shard]
+    done = ledger.finished()
+    if retry_failed:
+        ledger.forget([t.name for t in mine if done.get(t.name, {}).get("status") == "failed"])
+        done = ledger.finished()
+    todo = [t for t in mine if t.name not in done]
+    if len(mine) > len(todo):
+        logger.info("resuming: %d of %d photos of this shard already done", len(mine) - len(todo),
+                    len(mine))
+    return todo, len(mine) - len(todo)
+
+
+def run_batch(
+    plan: BatchPlan,
+    setup: WorkerSetup,
+    ledger: PosesLedger,
+    *,
+    workers: int = 1,
+    threads_per_worker: int = 1,
+    retry_failed: bool = False,
+    progress: Optional[Callable[[Dict[str, Any]], Any]] = None,
+    model_folder=None,
+    matcher=None,
+) -> BatchSummary:
+    """Localize this shard's unfinished photos of ``plan``, recording each in ``ledger``.
+
+    Args:
+        plan: from ``planning.plan_batch``.
+        setup: what each worker loads (from the tool's config).
+        ledger: the output folder's record; photos it already holds are skipped.
+        workers: 1 runs in this process (threads as the caller set them); more start that many
+            worker processes (spawned), each with ``threads_per_worker`` torch threads (set in
+            those processes only) and its own model and Localizer.
+        threads_per_worker: torch threads of each worker process.
+        retry_failed: redo photos recorded as failed.
+        progress: called after each photo with ``{"row", "counts", "done", "todo"}``.
+        model_folder: reuse the caller's loaded model folder (``workers == 1`` only).
+        matcher: reuse the caller's matcher (``workers == 1`` only).
+    """
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers must be a positive int, got {workers!r}")
+    todo, skipped = _todo(plan, ledger, retry_failed)
+    t0 = time.perf_counter()
+    rows: List[Dict[str, Any]] = []
+    if progress is not None:
+        progress({"row": None, "counts": ledger.counts(), "done": 0, "todo": len(todo),
+                  "skipped": skipped})
+
+    def take(row):
+        ledger.record(row)
+        rows.append(row)
+        if progress is not None:
+            progress({"row": row, "counts": ledger.counts(), "done": len(rows), "todo": len(todo)})
+
+    if todo and (workers == 1 or len(todo) == 1):
+        w = BatchWorker(setup, model_folder, matcher)
+        for t in todo:
+            take(w.run(t))
+    elif todo:
+        ctx = multiprocessing.get_context("spawn")
+        with ctx.Pool(min(workers, len(todo)), initializer=_init_worker,
+                      initargs=(setup, threads_per_worker)) as pool:
+            for row in pool.imap_unordered(_work, todo, chunksize=1):
+                take(row)
+    ledger.flush()
+    return BatchSummary(
+        ledger.counts(), len(rows), skipped, len(todo), time.perf_counter() - t0, rows
+    )

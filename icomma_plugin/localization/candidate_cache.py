@@ -1,0 +1,166 @@
+"""The candidate index on disk: rendered once per model and camera, loaded by every later call.
+
+A single-photo call without a start pose would otherwise render and describe every candidate view
+(about 160 on a real capture, tens of seconds on a CPU) each time. The index is stored as one file
+per key in a cache folder (default ``~/.cache/icomma/candidates``; ``ICOMMA_CACHE_DIR`` or the
+Localizer's ``cache_dir`` move it; it is never written into the user's model folder unless that
+folder is given as the cache folder).
+
+The key is a hash of everything the renders' features depend on: the model's content (a hash of
+its Gaussians), the candidate poses (the model's cameras, their names), the camera of the renders,
+the candidate search's constants, the matcher and its settings, the background, the backend and
+the render settings, and the file format. When any of them changes, the key changes and the index
+is built again. Files are written atomically, and a lock file per key makes a second process that
+asks for the same index at the same time wait for the first and load its result instead of
+building it again.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+from pathlib import Path
+from typing import Any, Callable, Dict, Mapping, Optional, Tuple, Union
+
+import numpy as np
+import torch
+
+from ..gaussians import GaussianModel
+from ..io.atomic import atomic_path, file_lock
+from .candidates import CandidateIndex
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "CACHE_FORMAT",
+    "CandidateCache",
+    "default_cache_dir",
+    "matcher_identity",
+    "model_fingerprint",
+]
+
+#: Bump when the stored index changes meaning (old files are then never read: the key changes).
+CACHE_FORMAT = 1
+
+PathLike = Union[str, os.PathLike]
+
+
+def default_cache_dir() -> Path:
+    """``$ICOMMA_CACHE_DIR``, else ``$XDG_CACHE_HOME/icomma`` or ``~/.cache/icomma``."""
+    env = os.environ.get("ICOMMA_CACHE_DIR")
+    if env:
+        return Path(env).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or "~/.cache"
+    return Path(base).expanduser() / "icomma"
+
+
+def model_fingerprint(model: GaussianModel) -> str:
+    """A hash of the model's content (its Gaussians, bit for bit, and its SH degree)."""
+    h = hashlib.blake2b(digest_size=16)
+    h.update(str(model.sh_degree).encode())
+    for name in ("means", "sh_dc", "sh_rest", "opacity_logit", "scale_log", "quat"):
+        t = getattr(model, name).detach().cpu().contiguous()
+        h.update(name.encode() + str(tuple(t.shape)).encode() + str(t.dtype).encode())
+        h.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+    return h.hexdigest()
+
+
+def matcher_identity(matcher) -> Dict[str, Any]:
+    """What a matcher's features depend on: its class, name and plain settings."""
+    cls = type(matcher)
+    settings = {k: v for k, v in sorted(vars(matcher).items())
+                if not k.startswith("_") and isinstance(v, (bool, int, float, str, type(None)))}
+    return {"class": f"{cls.__module__}.{cls.__qualname__}",
+            "name": getattr(matcher, "name", None), "settings": settings}
+
+
+def _hash_poses(c2ws) -> str:
+    h = hashlib.blake2b(digest_size=16)
+    for T in c2ws:
+        h.update(np.ascontiguousarray(T, np.float64).tobytes())
+    return h.hexdigest()
+
+
+def index_fields(model_id: str, cameras_c2w, names, intrinsics, cfg, matcher,
+                 render: Mapping[str, Any]) -> Dict[str, Any]:
+    """The key's fields (JSON): see the module docstring."""
+    return {
+        "format": CACHE_FORMAT,
+        "model": model_id,
+        "cameras": _hash_poses(cameras_c2w),
+        "names": hashlib.blake2b("\n".join(names).encode(), digest_size=8).hexdigest(),
+        "intrinsics": intrinsics.to_json(),
+        "candidates": {"num_sampled": cfg.num_sampled, "rank_side": cfg.rank_side},
+        "matcher": matcher_identity(matcher),
+        "render": dict(render),
+    }
+
+
+class CandidateCache:
+    """Candidate indices stored under ``directory`` (``<key>.pt``, one per key)."""
+
+    def __init__(self, directory: Optional[PathLike] = None):
+        self.directory = Path(directory).expanduser() if directory else (
+            default_cache_dir() / "candidates")
+
+    @staticmethod
+    def key(fields: Mapping[str, Any]) -> str:
+        """The file name stem of an index with these fields."""
+        text = json.dumps(fields, sort_keys=True, default=str)
+        return hashlib.blake2b(text.encode(), digest_size=16).hexdigest()
+
+    def path(self, key: str) -> Path:
+        """Where the index of ``key`` is stored."""
+        return self.directory / f"{key}.pt"
+
+    def load(self, key: str) -> Optional[CandidateIndex]:
+        """The stored index of ``key``, or None (absent, or unreadable: it is then rebuilt)."""
+        p = self.path(key)
+        if not p.is_file():
+            return None
+        try:
+            d = torch.load(p, map_location="cpu", weights_only=True)
+            if d.get("format") != CACHE_FORMAT:
+                return None
+            return CandidateIndex.from_state(d["index"])
+        except Exception as e:  # noqa: BLE001 - a damaged cache file is rebuilt, never fatal
+            logger.warning("candidate cache %s unreadable (%s: %s): building it again", p,
+                           type(e).__name__, e)
+            return None
+
+    def save(self, key: str, fields: Mapping[str, Any], index: CandidateIndex) -> Path:
+        """Store ``index`` atomically (a reader never sees half a file)."""
+        p = self.path(key)
+        with atomic_path(p) as tmp:
+            torch.save({"format": CACHE_FORMAT, "fields": json.loads(json.dumps(fields,
+                        default=str)), "index": index.to_state()}, tmp)
+        return p
+
+    def get_or_build(self, fields: Mapping[str, Any], build: Callable[[], CandidateIndex]
+                     ) -> Tuple[CandidateIndex, bool]:
+        """(index, built now): the stored index of ``fields``, else ``build()`` stored.
+
+        Under a lock per key: a second process asking at the same time waits and loads.
+        """
+        key = self.key(fields)
+        index = self.load(key)
+        if index is not None:
+            return index, False
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            logger.warning("candidate cache folder %s not writable (%s): not cached",
+                           self.directory, e)
+            return build(), True
+        with file_lock(self.directory / f"{key}.lock"):
+            index = self.load(key)
+            if index is not None:
+                return index, False
+            index = build()
+            try:
+                self.save(key, fields, index)
+            except OSError as e:
+                logger.warning("could not store the candidate index in %s (%s)",
+                               self.directory, e)
+            return index, True

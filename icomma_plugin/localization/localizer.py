@@ -1,0 +1,277 @@
+"""One long-lived localizer per model, shared by every caller.
+
+    localizer = Localizer.from_model_folder("output/lego", matcher=make_matcher("xfeat"))
+    result = localizer.localize(query)                       # no start pose: candidate views
+    result = localizer.localize(query, init_c2w=start_c2w)   # from a rough start
+    result.c2w, result.verdict.status, result.verdict.reason
+
+Like pixloc's ``Localizer`` and hloc's ``QueryLocalizer``, it is built once from the model, the
+matcher, the method's config and the options (the model's cameras, its training side, backend,
+background, cache folder), checks what does not change from query to query once, and owns what
+every query reuses: the model's rasterizer inputs, the candidate index (built at the first query
+that needs it, per camera, and kept on disk: ``candidate_cache.py``) and the rule that leaves a
+query's own camera out of its candidates. The tool, batches, tracking, the benchmark and the speed
+benchmark all localize through it. Poses are camera-to-world (OpenCV axes) at this API.
+"""
+from __future__ import annotations
+
+import functools
+import logging
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
+
+import numpy as np
+import torch
+
+from ..camera import Intrinsics
+from ..gaussians import GaussianModel
+from ..pose.convert import as_rigid, invert_rigid
+from ..render import prepare_scene
+from .candidate_cache import CandidateCache, index_fields, model_fingerprint
+from .candidates import (
+    CandidateConfig,
+    CandidateIndex,
+    candidate_intrinsics,
+    same_pose,
+    usable,
+)
+from .icomma import LocalizerConfig
+from .robust import RobustConfig
+from .state import LocalizationState
+from .types import LocalizationResult, Query, TraceRecord
+from .verify import can_match
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["BACKENDS", "Localizer", "Method"]
+
+#: The rasterizer backends a Localizer renders with.
+BACKENDS = ("auto", "cpu", "cuda", "reference")
+
+#: A method's config: the default (``RobustConfig``) or the paper's (``LocalizerConfig``). A
+#: method has ``name``, ``needs_start``, ``needs(matcher)``, ``at_model_side(...)`` and
+#: ``run(state, init_w2c) -> MethodOutcome``.
+Method = Union[RobustConfig, LocalizerConfig]
+
+
+def _camera_parts(cameras) -> Tuple[List[np.ndarray], List[str], List[Optional[Intrinsics]]]:
+    """(c2w, names, intrinsics) of ``cameras``: ``CameraEntry``s or ``[4, 4]`` c2w arrays."""
+    from ..io.cameras_json import CameraEntry, entry_to_intrinsics
+
+    c2ws, names, intrs = [], [], []
+    for i, cam in enumerate(cameras):
+        if isinstance(cam, CameraEntry):
+            c2ws.append(as_rigid(cam.c2w, f"cameras[{i}].c2w"))
+            names.append(str(cam.img_name))
+            intrs.append(entry_to_intrinsics(cam))
+        else:
+            c2ws.append(as_rigid(cam, f"cameras[{i}]"))
+            names.append(f"camera_{i}")
+            intrs.append(None)
+    return c2ws, names, intrs
+
+
+class Localizer:
+    """Localize photos in one 3DGS model (module docstring).
+
+    Args:
+        model: the Gaussians (its device and dtype are used; nothing is moved).
+        matcher: an ``icomma_plugin.matchers.Matcher``; None only for the paper's compare-only.
+        method: :class:`RobustConfig` (the default, when None) or the paper's
+            :class:`LocalizerConfig`.
+        cameras: the model's cameras (``cameras.json`` entries, or c2w arrays): the candidate
+            views of the default method. A query's own camera (at its true pose) is left out.
+        backend: rasterizer backend, one of `BACKENDS`.
+        background: background colour ``[3]`` (default black).
+        model_side: the longer side [px] of the images the model was fitted on: the methods work
+            at no more than this resolution (a sharper photo adds cost, not accuracy).
+        cache_dir: where the candidate index is kept on disk: None for the default
+            (``candidate_cache.default_cache_dir()``), False to keep it in memory only.
+
+    Raises:
+        ValueError: naming the argument: not a model, an unknown backend, a method that cannot
+            run with this matcher, a bad background or camera pose.
+    """
+
+    def __init__(
+        self,
+        model: GaussianModel,
+        matcher=None,
+        method: Optional[Method] = None,
+        *,
+        cameras: Sequence[Any] = (),
+        backend: str = "auto",
+        background: Optional[torch.Tensor] = None,
+        model_side: Optional[int] = None,
+        cache_dir: Union[str, Path, None, bool] = None,
+    ):
+        from ..checks import check_choice, check_int
+
+        if not isinstance(model, GaussianModel):
+            raise ValueError(f"model must be a GaussianModel, got {type(model).__name__}")
+        self.method = RobustConfig() if method is None else method
+        if not isinstance(self.method, (RobustConfig, LocalizerConfig)):
+            raise ValueError("method must be a RobustConfig or a LocalizerConfig, got "
+                             f"{type(self.method).__name__}")
+        problem = self.method.needs(matcher)
+        if problem:
+            raise ValueError(problem)
+        self.backend = check_choice(backend, "backend", BACKENDS)
+        self.model_side = check_int(model_side, "model_side", 1, optional=True)
+        self.matcher = matcher
+        self.model = model.detach()
+        if self.model.sh_degree > 0 and not bool(self.model.sh_rest.any()):
+            # Higher SH bands all zero: degree 0 renders the same image (and gradients), faster.
+            self.model = self.model.with_sh_degree(0)
+        bg = torch.zeros(3) if background is None else torch.as_tensor(background)
+        if bg.numel() != 3 or not bool(torch.isfinite(bg).all()):
+            raise ValueError(f"background must be 3 finite values (RGB), got {background!r}")
+        self.background = bg.reshape(3).to(self.model.device, self.model.dtype)
+        self.cameras_c2w, self.camera_names, self._camera_intrinsics = _camera_parts(cameras)
+        self.cache = None if cache_dir is False else CandidateCache(
+            None if cache_dir in (None, True) else cache_dir)
+        self._scenes: Dict[Optional[int], Any] = {}
+        self._indices: Dict[Any, CandidateIndex] = {}
+        self._model_id: Optional[str] = None
+        self.candidate_builds = 0  # candidate indices rendered by this localizer (not loaded)
+
+    @classmethod
+    def from_model_folder(cls, folder, matcher=None, method: Optional[Method] = None, *,
+                          iteration: Optional[int] = None,
+                          white_background: Optional[bool] = None, backend: str = "auto",
+                          cache_dir: Union[str, Path, None, bool] = None) -> "Localizer":
+        """A localizer for a 3DGS model folder (a ``ModelFolder`` or its path).
+
+        Its cameras, training side and background (``cfg_args``, unless ``white_background`` is
+        given) come from the folder; with ``backend="cuda"`` the model is moved to the GPU.
+        """
+        from ..io.model_folder import ModelFolder, load_model_folder
+
+        mf = folder if isinstance(folder, ModelFolder) else load_model_folder(
+            Path(str(folder)).expanduser(), iteration=iteration)
+        white = mf.white_background if white_background is None else bool(white_background)
+        model = mf.model.to("cuda") if backend == "cuda" else mf.model
+        return cls(model, matcher, method, cameras=mf.cameras, backend=backend,
+                   background=torch.ones(3) if white else torch.zeros(3),
+                   model_side=mf.training_side(), cache_dir=cache_dir)
+
+    # ------------------------------------------------------------------ localize
+    def localize(self, query: Query, init_c2w=None, gt_c2w=None,
+                 progress: Optional[Callable[[TraceRecord], Any]] = None) -> LocalizationResult:
+        """Estimate the pose of ``query``.
+
+        Args:
+            query: the photo (:class:`~.types.Query`: image, intrinsics, masks, name).
+            init_c2w: ``[4, 4]`` start pose (camera-to-world, OpenCV axes); None: no start (the
+                default method searches the candidate views; the paper's method needs one).
+            gt_c2w: the true pose, when known: used ONLY to report errors and to leave the
+                query's own camera out of the candidates.
+            progress: called with each trace record as it is made.
+
+        Raises:
+            ValueError: a bad query or pose (naming it), or no start for the paper's method.
+        """
+        if not isinstance(query, Query):
+            raise ValueError(f"query must be a Query, got {type(query).__name__}")
+        cfg = self.method.at_model_side(query.intrinsics, self.model_side)
+        init_w2c = None if init_c2w is None else np.linalg.inv(as_rigid(init_c2w, "init_c2w"))
+        gt = None if gt_c2w is None else as_rigid(gt_c2w, "gt_c2w")
+        if init_w2c is None and cfg.needs_start:
+            raise ValueError(f"the paper's method (optimizer={cfg.name}) needs a start pose "
+                             "(init_c2w); without one use the default method (optimizer=robust)")
+        state = LocalizationState(
+            self.model, query, self.background, backend=self.backend, matcher=self.matcher,
+            sh_degree=cfg.sh_degree, antialiasing=cfg.antialiasing, gt_c2w=gt,
+            progress=progress, record_trace=cfg.record_trace, scene=self._scene(cfg.sh_degree))
+        state.candidates = functools.partial(self._candidates_for, state, gt, cfg)
+        init_rot, init_trans = (None, None) if init_w2c is None else state.errors(init_w2c)
+        out = cfg.run(state, init_w2c)
+        rot, trans = state.errors(out.w2c)
+        score = out.score
+        return LocalizationResult(
+            name=query.name, c2w=invert_rigid(out.w2c), verdict=out.verdict, method=cfg.name,
+            matcher=getattr(self.matcher, "name", None) if self._matches(cfg) else None,
+            iterations=out.iterations, stop_reason=out.stop_reason, seconds=state.elapsed(),
+            intrinsics=query.intrinsics,
+            init_c2w=None if init_c2w is None else as_rigid(init_c2w, "init_c2w"), gt_c2w=gt,
+            rot_err_deg=rot, trans_err=trans, init_rot_err_deg=init_rot,
+            init_trans_err=init_trans, inliers=None if score is None else score.inliers,
+            matches=None if score is None else score.matches,
+            stage_seconds=state.stage_seconds(), stage_cpu_seconds=state.stage_seconds(cpu=True),
+            details=out.details, trace=state.trace,
+            config=cfg.to_dict(),
+        )
+
+    def own_cameras(self, gt_c2w: Optional[np.ndarray]) -> List[str]:
+        """Names of the model's cameras at the pose ``gt_c2w``, left out of that query's views."""
+        if gt_c2w is None:
+            return []
+        return [n for n, c in zip(self.camera_names, self.cameras_c2w) if same_pose(c, gt_c2w)]
+
+    def _matches(self, cfg) -> bool:
+        """Whether the method matched keypoints (compare-only runs do not)."""
+        return can_match(self.matcher) and getattr(cfg, "use_matching", True)
+
+    # ------------------------------------------------------------------ what queries share
+    def _scene(self, sh_degree: Optional[int]):
+        """The model's rasterizer inputs at ``sh_degree``, prepared once."""
+        if sh_degree not in self._scenes:
+            self._scenes[sh_degree] = prepare_scene(self.model, sh_degree)
+        return self._scenes[sh_degree]
+
+    def _candidates_for(self, state: LocalizationState, gt_c2w: Optional[np.ndarray], cfg
+                        ) -> Optional[Tuple[CandidateIndex, frozenset]]:
+        """(index, the query's own cameras to leave out) for ``state``'s query, or None."""
+        if not usable(self.matcher) or not getattr(cfg, "use_candidates", False):
+            return None
+        index = self.candidate_index(state.query.intrinsics, cfg.candidates, state,
+                                     sh_degree=cfg.sh_degree, antialiasing=cfg.antialiasing)
+        return index, index.own_cameras(gt_c2w)
+
+    def candidate_index(self, intrinsics: Intrinsics, cfg: Optional[CandidateConfig] = None,
+                        state: Optional[LocalizationState] = None, *,
+                        sh_degree: Optional[int] = None,
+                        antialiasing: bool = False) -> CandidateIndex:
+        """The candidate index for photos taken with ``intrinsics``.
+
+        Built once per candidate camera (``candidates.candidate_intrinsics``: photos whose
+        focal lengths differ a little share one), in memory and on disk; ``state`` (a query's)
+        is charged the time of building it.
+        """
+        if not usable(self.matcher):
+            raise ValueError("candidate views need a matcher that extracts features, got "
+                             f"{self.matcher!r}")
+        cfg = cfg or CandidateConfig()
+        cams = [c for c in self._camera_intrinsics if c is not None]
+        intr = candidate_intrinsics(intrinsics, cams, cfg.rank_side)
+        memo = (intr, cfg.num_sampled, cfg.rank_side, sh_degree, antialiasing)
+        if memo not in self._indices:
+            if state is None:
+                blank = torch.zeros(3, intrinsics.height, intrinsics.width)
+                state = LocalizationState(self.model, Query(blank, intrinsics), self.background,
+                                          backend=self.backend, matcher=self.matcher,
+                                          sh_degree=sh_degree, antialiasing=antialiasing,
+                                          scene=self._scene(sh_degree))
+
+            def build() -> CandidateIndex:
+                self.candidate_builds += 1
+                return CandidateIndex.build(state, self.cameras_c2w, cfg, self.camera_names, intr)
+
+            with state.timed("candidates"):
+                if self.cache is None:
+                    index = build()
+                else:
+                    index, _ = self.cache.get_or_build(
+                        self._index_fields(intr, cfg, sh_degree, antialiasing), build)
+            self._indices[memo] = index
+        return self._indices[memo]
+
+    def _index_fields(self, intr: Intrinsics, cfg: CandidateConfig, sh_degree, antialiasing
+                      ) -> Dict[str, Any]:
+        if self._model_id is None:
+            self._model_id = model_fingerprint(self.model)
+        render = {"background": [float(v) for v in self.background.cpu()],
+                  "backend": f"{self.backend}:{self.model.device.type}", "sh_degree": sh_degree,
+                  "antialiasing": antialiasing, "dtype": str(self.model.dtype)}
+        return index_fields(self._model_id, self.cameras_c2w, self.camera_names, intr, cfg,
+                            self.matcher, render)
