@@ -149,6 +149,23 @@ def one_torch_thread():
     torch.set_num_threads(before)
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _candidate_cache_dir(tmp_path_factory):
+    """``ICOMMA_CACHE_DIR`` at a folder of this session: no test writes into ~/.cache.
+
+    The Localizer keeps candidate indices on disk (``localization/candidate_cache.py``); the tool
+    runs a test starts as subprocesses inherit the variable too. A value set before the session
+    is restored afterwards.
+    """
+    before = os.environ.get("ICOMMA_CACHE_DIR")
+    os.environ["ICOMMA_CACHE_DIR"] = str(tmp_path_factory.mktemp("icomma-cache"))
+    yield Path(os.environ["ICOMMA_CACHE_DIR"])
+    if before is None:
+        os.environ.pop("ICOMMA_CACHE_DIR", None)
+    else:
+        os.environ["ICOMMA_CACHE_DIR"] = before
+
+
 @pytest.fixture(autouse=True)
 def _seed():
     torch.manual_seed(0)

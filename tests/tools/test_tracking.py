@@ -18,8 +18,8 @@ from PIL import Image
 
 from icomma_plugin.io import video
 from icomma_plugin.app.ledger import PosesLedger
-from icomma_plugin.app.tracking import FrameSource, TrackingConfig, predict_w2c, track
-from icomma_plugin.localization.types import Verdict
+from icomma_plugin.app.tracking import FrameSource, TrackingConfig, predict_c2w, track
+from icomma_plugin.localization.types import LocalizationResult, Verdict
 from icomma_plugin.pose.se3 import se3_exp
 from tests.helpers.demo import demo_model, photo
 from tests.helpers.tools import compose, localize_tool
@@ -35,18 +35,19 @@ pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
 def test_constant_velocity_prediction_is_exact_on_a_constant_twist_path():
     xi = torch.tensor([0.05, -0.02, 0.03, 0.02, -0.01, 0.04], dtype=torch.float64)
-    T0 = se3_exp(torch.tensor([0.3, 0.1, -2.0, 0.2, 0.5, -0.1], dtype=torch.float64)).numpy()
+    C0 = se3_exp(torch.tensor([0.3, 0.1, -2.0, 0.2, 0.5, -0.1], dtype=torch.float64)).numpy()
 
-    def T(k):
-        return se3_exp(xi * k).numpy() @ T0
+    def C(k):  # camera-to-world moving by the same camera-frame twist every frame
+        return C0 @ se3_exp(xi * k).numpy()
 
-    assert predict_w2c([], 3) is None
-    assert np.allclose(predict_w2c([(0, T(0))], 1), T(0))  # one pose: stay there
-    assert np.allclose(predict_w2c([(0, T(0)), (1, T(1))], 2), T(2), atol=1e-9)
+    assert predict_c2w([], 3) is None
+    assert np.allclose(predict_c2w([(0, C(0))], 1), C(0))  # one pose: stay there
+    assert np.allclose(predict_c2w([(0, C(0)), (1, C(1))], 2), C(2), atol=1e-9)
     assert np.allclose(
-        predict_w2c([(0, T(0)), (2, T(2))], 5), T(5), atol=1e-9
+        predict_c2w([(0, C(0)), (2, C(2))], 5), C(5), atol=1e-9
     )  # gaps (every N, failures)
-    assert np.allclose(predict_w2c([(0, T(0)), (1, T(1))], 2, velocity=False), T(1))
+    assert np.allclose(predict_c2w([(0, C(0)), (1, C(1))], 2, velocity=False), C(1))
+    assert not np.allclose(C(2), C(1), atol=1e-3)  # the path moves: staying put is not exact
 
 
 # ------------------------------------------------------------------------------------ video files
@@ -102,9 +103,8 @@ class _FakeWorker:
     def __init__(self, truth):
         self.truth, self.calls = truth, []
         self.setup = SimpleNamespace(resize=None)
-
-    def _can_search(self):
-        return True
+        self.scene_scale = 1.0
+        self.localizer = SimpleNamespace(method=SimpleNamespace(needs_start=False))
 
     def problem(self, task, query):
         return SimpleNamespace(
@@ -116,16 +116,10 @@ class _FakeWorker:
         ok = init_c2w is None or problem.name != "f2.png"
         status = "ok" if ok else "failed"
         c2w = self.truth[problem.name] if ok else np.eye(4)
-        return SimpleNamespace(
-            c2w=c2w,
-            verdict=Verdict(status, status),
-            final_rotation_error_deg=None,
-            final_translation_error=None,
-            initial_rotation_error_deg=None,
-            seconds=0.0,
-            iterations=1,
-            method="fake",
-            match_counts={},
+        return LocalizationResult(
+            name=problem.name, c2w=c2w, verdict=Verdict(status, status), method="fake",
+            matcher=None, iterations=1, stop_reason="converged", seconds=0.0,
+            intrinsics=problem.query.intrinsics, init_c2w=init_c2w,
         )
 
     def write_pictures(self, problem, result, seconds):
@@ -288,3 +282,73 @@ def test_tracking_an_mp4_every_second_frame_with_its_video(path_scene, tmp_path)
     )
     assert again["summary"]["done_now"] == 0 and again["summary"]["skipped"] == 3
     assert again["photos"] == rows
+
+
+# ------------------------------------------------------------------- a portrait camera (issue 16)
+
+PORTRAIT = (64, 96)  # W x H of the model's portrait camera (even sides: H.264 needs them)
+
+
+@pytest.fixture(scope="module")
+def portrait_scene(tmp_path_factory):
+    """A demo model whose cameras.json also lists a portrait camera, and a video taken with it.
+
+    The square demo cameras stay first (the model's training side is theirs); the portrait entry
+    ``portrait`` comes last. Three frames along an arc, rendered at the portrait camera's size.
+    """
+    from icomma_plugin.camera import Intrinsics
+    from icomma_plugin.io.cameras_json import CameraEntry, read_cameras_json, write_cameras_json
+    from icomma_plugin.pose.convert import look_at_c2w
+
+    root = tmp_path_factory.mktemp("portrait")
+    s, model = demo_model(root / "model", SIZE)
+    W, H = PORTRAIT
+    fx = 80.0
+    intr = Intrinsics(W, H, fx, fx)
+    target = np.array([0.0, 0.0, 0.4])
+    cams = read_cameras_json(s.path / "cameras.json")
+    eye0 = np.array([3.8 * math.cos(0.4), 3.8 * math.sin(0.4), 2.0])
+    cams.append(CameraEntry(len(cams), "portrait", W, H, look_at_c2w(eye0, target), fx, fx))
+    write_cameras_json(s.path / "cameras.json", cams)
+    gts, frames = {}, []
+    for i in range(3):
+        az = 0.4 + 0.05 * i
+        c2w = look_at_c2w(np.array([3.8 * math.cos(az), 3.8 * math.sin(az), 2.0]), target)
+        frames.append(photo(model, intr, c2w))
+        gts[f"frame_{i:06d}"] = c2w.tolist()
+    (root / "gt.json").write_text(json.dumps(gts))
+    start = np.asarray(gts["frame_000000"])
+    start[:3, 3] += 0.05
+    np.savetxt(root / "start.txt", start)
+    mp4 = video.write_video(root / "portrait.mp4", frames, fps=5)
+    return {"model": s.path, "gt": root / "gt.json", "start": root / "start.txt", "mp4": mp4,
+            "fx": fx}
+
+
+def test_a_video_of_a_portrait_camera_is_tracked(portrait_scene, tmp_path):
+    """data.intrinsics.camera=<portrait camera> with a video of its size tracks (issue 16, bug 1).
+
+    Before: the sequence path checked the camera against a dummy 1000x1000 photo and stopped at
+    once ("the photo is 1000x1000 but data.intrinsics.camera=... is 64x96 (another aspect
+    ratio)").
+    """
+    ps = portrait_scene
+    w, h, n, _ = video.video_info(ps["mp4"])
+    assert (w, h, n) == (*PORTRAIT, 3)
+    out = tmp_path / "out"
+    cfg = compose([
+        "data=model_folder", f"data.model_path={ps['model']}",
+        "data.intrinsics.camera=portrait", f"data.sequence={ps['mp4']}",
+        f"data.gt.poses_file={ps['gt']}", f"data.init.c2w_file={ps['start']}",
+        f"output.dir={out}", "output.progress=false", "output.video=false",
+        "output.trajectory_plot=false", "threads=1",
+    ])
+    doc = localize_tool().run(cfg, out)
+    rows = doc["photos"]
+    assert [r["name"] for r in rows] == [f"frame_{i:06d}" for i in range(3)]
+    for r in rows:
+        assert r["status"] != "failed", r["reason"]
+        assert r["rot_err_deg"] < 1.0 and r["trans_err_rel"] < 0.01, r
+        intr = r["intrinsics"]
+        assert (intr["width"], intr["height"]) == PORTRAIT
+        assert intr["fx"] == pytest.approx(ps["fx"]) and intr["fy"] == pytest.approx(ps["fx"])
