@@ -16,25 +16,16 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from ..camera import Intrinsics
 from ..gaussians import GaussianModel
 from ..pose.convert import rotation_error_deg, translation_error
 from .types import Query, Stage, TraceRecord
 
-__all__ = ["LocalizationState", "Observation", "resize_image"]
+__all__ = ["LocalizationState", "Observation"]
 
 #: Kinds of work timed separately (issue: where does a pose's time go).
 TIMED = ("render", "backward", "matcher", "pnp", "verify", "candidates")
-
-
-def resize_image(img: torch.Tensor, h: int, w: int) -> torch.Tensor:
-    """``[C, H, W]`` resized to ``h x w`` (bilinear, antialiased when shrinking)."""
-    if tuple(img.shape[-2:]) == (h, w):
-        return img
-    return F.interpolate(img[None], size=(h, w), mode="bilinear", align_corners=False,
-                         antialias=True)[0]
 
 
 @dataclass
@@ -154,16 +145,7 @@ class LocalizationState:
         """
         q = self._queries.get(scale)
         if q is None:
-            intr = self.intrinsics_at(scale)
-            H, W = intr.height, intr.width
-            dev, dt = self.model.device, self.model.dtype
-            rgb = resize_image(self.query.rgb.detach().to(dev, dt), H, W).clamp(0.0, 1.0)
-            alpha = valid = None
-            if self.query.alpha is not None:
-                alpha = resize_image(self.query.alpha.detach().to(dev, dt), H, W).clamp(0.0, 1.0)
-            if self.query.valid is not None:
-                valid = (resize_image(self.query.valid.detach().to(dev, dt), H, W) > 0.999).to(dt)
-            q = Query(rgb, intr, alpha, valid, self.query.name)
+            q = self.query.at(self.intrinsics_at(scale), self.model.device, self.model.dtype)
             self._queries[scale] = q
         return q
 

@@ -12,6 +12,7 @@ from typing import Any, Dict, Iterator, List, Optional
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from ..camera import Intrinsics
 from ..checks import check_tensor
@@ -26,6 +27,7 @@ __all__ = [
     "VERDICTS",
     "Verdict",
     "blank_row",
+    "resize_image",
 ]
 
 
@@ -38,6 +40,14 @@ class Stage(IntEnum):
     REFINE = 4  # photometric refinement (comparing loss, Levenberg-Marquardt steps)
     CANDIDATES = 5  # ranking of candidate views
     VERIFY = 6  # the final check of a pose
+
+
+def resize_image(img: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """``[C, H, W]`` resized to ``h x w`` (bilinear, antialiased when shrinking)."""
+    if tuple(img.shape[-2:]) == (h, w):
+        return img
+    return F.interpolate(img[None], size=(h, w), mode="bilinear", align_corners=False,
+                         antialias=True)[0]
 
 
 @dataclass
@@ -82,16 +92,26 @@ class Query:
 
     def resized(self, side: Optional[int]) -> "Query":
         """This query with its longer side at ``side`` px (intrinsics follow); as is for None."""
-        from .state import resize_image
-
         if not side or max(self.size) == side:
             return self
-        intr = self.intrinsics.scaled(self.intrinsics.scale_to_side(side, enlarge=True))
-        h, w = intr.height, intr.width
-        rgb = resize_image(self.rgb, h, w).clamp(0, 1)
-        alpha = None if self.alpha is None else resize_image(self.alpha, h, w).clamp(0, 1)
-        valid = None if self.valid is None else (resize_image(self.valid, h, w) > 0.999).float()
-        return Query(rgb.contiguous(), intr, alpha, valid, self.name)
+        q = self.at(self.intrinsics.scaled(self.intrinsics.scale_to_side(side, enlarge=True)))
+        return Query(q.rgb.contiguous(), q.intrinsics, q.alpha, q.valid, q.name)
+
+    def at(self, intrinsics: Intrinsics, device=None, dtype=None) -> "Query":
+        """This query resized to ``intrinsics``' size (on ``device`` / ``dtype`` when given).
+
+        The masks stay conservative: a pixel of ``valid`` stays valid only if all of its source
+        was.
+        """
+        H, W = intrinsics.height, intrinsics.width
+        rgb = resize_image(self.rgb.detach().to(device, dtype), H, W).clamp(0.0, 1.0)
+        alpha = valid = None
+        if self.alpha is not None:
+            alpha = resize_image(self.alpha.detach().to(device, dtype), H, W).clamp(0.0, 1.0)
+        if self.valid is not None:
+            dt = dtype or self.valid.dtype
+            valid = (resize_image(self.valid.detach().to(device, dtype), H, W) > 0.999).to(dt)
+        return Query(rgb, intrinsics, alpha, valid, self.name)
 
     @property
     def size(self):

@@ -26,7 +26,7 @@ def save_thumbnail(
 
     ``query`` is a localization ``Query``; the longer side is ``side`` px; written to ``path``.
     """
-    from ..localization.state import resize_image
+    from ..localization.types import resize_image
     from ..render import render
 
     intr = query.intrinsics

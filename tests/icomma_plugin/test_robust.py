@@ -346,7 +346,7 @@ def test_renders_above_one_reach_the_matcher_clamped(demo, xfeat):
 
 def test_a_photo_sharper_than_the_model_is_worked_at_the_model_resolution(demo, xfeat):
     from icomma_plugin.localize import localize
-    from icomma_plugin.localization.state import resize_image
+    from icomma_plugin.localization.types import resize_image
 
     scene, model, q, cams = demo
     big = resize_image(q, 200, 200).clamp(0, 1)
@@ -361,7 +361,7 @@ def test_a_photo_sharper_than_the_model_is_worked_at_the_model_resolution(demo, 
 
 def test_the_paper_method_too_works_at_the_model_resolution(demo, xfeat):
     from icomma_plugin.localize import LocalizerConfig, localize
-    from icomma_plugin.localization.state import resize_image
+    from icomma_plugin.localization.types import resize_image
 
     scene, model, q, _ = demo
     big = resize_image(q, 200, 200).clamp(0, 1)
