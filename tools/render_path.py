@@ -98,6 +98,7 @@ def main(argv=None) -> int:
     from icomma_plugin.io.cameras_json import entry_to_intrinsics, find_entry
     from icomma_plugin.io.model_folder import load_model_folder
     from icomma_plugin.io.video import write_video
+    from icomma_plugin.pose.convert import invert_rigid
     from icomma_plugin.pose.views import scene_frame
     from icomma_plugin.render import render
     from icomma_plugin.pictures import save_image, to_uint8
@@ -150,7 +151,7 @@ def main(argv=None) -> int:
     for k, c2w in enumerate(poses):
         with torch.no_grad():
             img = render(
-                mf.model, intr, torch.as_tensor(np.linalg.inv(c2w), dtype=mf.model.dtype), bg
+                mf.model, intr, torch.as_tensor(invert_rigid(c2w), dtype=mf.model.dtype), bg
             ).color
         frames.append(to_uint8(img.clamp(0, 1)))
         truth[f"frame_{k:06d}"] = c2w.tolist()

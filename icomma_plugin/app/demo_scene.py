@@ -40,7 +40,7 @@ import torch
 
 from ..camera import Intrinsics
 from ..gaussians import GaussianModel, rgb_to_sh
-from ..pose.convert import look_at_c2w, perturb_pose, rotation_about_axis
+from ..pose.convert import invert_rigid, look_at_c2w, perturb_pose, rotation_about_axis
 
 logger = logging.getLogger(__name__)
 
@@ -344,7 +344,7 @@ def raster_bench_scene(num_gaussians: int, resolution: int, seed: int = 0) -> di
     w2c = torch.tensor(
         [[c, 0, s, 0.1], [0, 1, 0, -0.2], [-s, 0, c, 0.3], [0, 0, 0, 1]], dtype=torch.float32
     )
-    c2w = torch.linalg.inv(w2c)
+    c2w = invert_rigid(w2c)
     means3D = means_cam @ c2w[:3, :3].T + c2w[:3, 3]
     # footprint: sigma of 0.5..4 pixels, anisotropic
     sigma_px = torch.exp(U(P, 3, lo=math.log(0.5), hi=math.log(4.0)))
@@ -623,7 +623,7 @@ def _build_into(
     write_model_folder(folder, model, cfg, cams, DEMO_ITERATION,
                        input_points=(model.means.numpy(), info["rgb"]))
 
-    w2c = torch.as_tensor(np.linalg.inv(gt_c2w), dtype=torch.float32)
+    w2c = torch.as_tensor(invert_rigid(gt_c2w), dtype=torch.float32)
     with torch.no_grad():
         out = render(model, intr, w2c, torch.zeros(3), backend=backend)
     Image.fromarray(_to_uint8(out.color)).save(folder / "query.png")

@@ -24,7 +24,7 @@ from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 
-from ..pose.convert import rotation_error_deg
+from ..pose.convert import invert_rigid, rotation_error_deg
 import torch
 
 logger = logging.getLogger(__name__)
@@ -143,8 +143,8 @@ def essential_matrix_baseline(
     from ..render import render
 
     t0 = time.perf_counter()
-    w2c_a = np.linalg.inv(np.asarray(init_c2w, np.float64))
-    w2c_b = np.linalg.inv(np.asarray(gt_c2w, np.float64))
+    w2c_a = invert_rigid(np.asarray(init_c2w, np.float64))
+    w2c_b = invert_rigid(np.asarray(gt_c2w, np.float64))
     if bg is None:
         bg = torch.zeros(3)
     with torch.no_grad():

@@ -283,7 +283,7 @@ def synthetic_scene(
     12 "train" cameras on a ring (for the scene radius) and ``num_queries`` query cameras between
     them.
     """
-    from ..pose.convert import look_at_c2w
+    from ..pose.convert import invert_rigid, look_at_c2w
     from ..render import render
 
     from ..app.demo_scene import blob_model
@@ -305,7 +305,7 @@ def synthetic_scene(
     for i in range(int(num_queries)):
         c2w = cam(15.0 + 360.0 * i / max(1, num_queries), 25.0 + 10.0 * (i % 2))
         with torch.no_grad():
-            img = render(model, intr, torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32), bg,
+            img = render(model, intr, torch.as_tensor(invert_rigid(c2w), dtype=torch.float32), bg,
                          backend=backend).color.clamp(0, 1)
         queries.append(BenchQuery(Query(img.contiguous(), intr, name=f"synthetic_{i}"), c2w, i))
     return BenchScene(

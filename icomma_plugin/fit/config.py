@@ -57,6 +57,9 @@ class FitConfig:
     num_sweep_points: int = 20_000
     max_init_points: int = 200_000  # a bigger dataset cloud is subsampled
     init_opacity: float = 0.1
+    # initial scales at most this angle (radians) seen from the nearest camera
+    # (init.init_scale_limits; None: upstream's nearest-neighbour scales as they are)
+    init_max_angle: Optional[float] = None
     # far field (photographed captures only): this many points on a shell beyond the cameras,
     # coloured by the photos (init.far_field_points); its radius is the LLFF far bound, else
     # far_field_factor x the largest camera distance from the scene centre. 0: none.
@@ -124,6 +127,10 @@ class FitConfig:
         if not (isinstance(self.far_field_factor, (int, float)) and self.far_field_factor > 1.0):
             raise ValueError(f"FitConfig.far_field_factor must be > 1 (beyond the cameras), got "
                              f"{self.far_field_factor!r}")
+        if self.init_max_angle is not None and not (
+                isinstance(self.init_max_angle, (int, float)) and 0 < self.init_max_angle < 1):
+            raise ValueError(f"FitConfig.init_max_angle must be None or in (0, 1) radians, got "
+                             f"{self.init_max_angle!r}")
         if self.exposure not in (None, True, False):
             raise ValueError(f"FitConfig.exposure must be None (auto), True or False, got "
                              f"{self.exposure!r}")

@@ -53,8 +53,13 @@ def model_from_points(
     init_opacity: float = 0.1,
     dtype: torch.dtype = torch.float32,
     device: Optional[torch.device] = None,
+    max_scale: Optional[np.ndarray] = None,
 ) -> GaussianModel:
-    """A GaussianModel with one isotropic Gaussian per point (upstream `create_from_pcd`)."""
+    """A GaussianModel with one isotropic Gaussian per point (upstream `create_from_pcd`).
+
+    max_scale: [N] upper bounds of the initial scales (`init_scale_limits`), or None (upstream:
+    the nearest-neighbour scale as it is).
+    """
     xyz = np.asarray(xyz, dtype=np.float64)
     rgb = np.asarray(rgb, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3 or xyz.shape[0] < 1:
@@ -65,6 +70,12 @@ def model_from_points(
         rgb = rgb / 255.0
     P = xyz.shape[0]
     dist2 = mean_knn_sq_dist(xyz)
+    if max_scale is not None:
+        max_scale = np.asarray(max_scale, dtype=np.float64).reshape(-1)
+        if max_scale.shape != (P,) or not np.all(max_scale > 0):
+            raise ValueError(f"max_scale must hold {P} positive values, got shape "
+                             f"{list(max_scale.shape)}")
+        dist2 = np.minimum(dist2, max_scale ** 2)
     t = lambda a: torch.as_tensor(a, dtype=dtype, device=device)  # noqa: E731
     scale_log = t(np.log(np.sqrt(dist2)))[:, None].repeat(1, 3)
     quat = torch.zeros(P, 4, dtype=dtype, device=device)
@@ -79,6 +90,20 @@ def model_from_points(
         quat=quat,
         sh_degree=sh_degree,
     )
+
+
+def init_scale_limits(xyz: np.ndarray, camera_centres: np.ndarray, angle: float) -> np.ndarray:
+    """[N] largest initial scale of each point: `angle` x its distance to the nearest camera.
+
+    The nearest-neighbour scale of an isolated point (an SfM outlier far away, a sparse far
+    field) can cover much of the image; on a CPU the rasterizer's time grows with the screen
+    area of the Gaussians, so the start is kept to about `angle` radians as seen from the
+    cameras (densification fills what that leaves open).
+    """
+    if not (math.isfinite(angle) and angle > 0):
+        raise ValueError(f"angle must be a positive finite number of radians, got {angle!r}")
+    d, _ = cKDTree(np.asarray(camera_centres, np.float64)).query(np.asarray(xyz, np.float64))
+    return np.maximum(angle * np.asarray(d), 1e-7)
 
 
 def subsample_points(

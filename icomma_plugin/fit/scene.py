@@ -33,7 +33,8 @@ import torch
 from ..io.atomic import write_json_atomic
 from .config import FitConfig
 from .evaluate import evaluate_views
-from .init import InitCloud, initial_points, is_object_render, model_from_points
+from .init import (InitCloud, init_scale_limits, initial_points, is_object_render,
+                   model_from_points)
 from .trainer import FitResult, FitView, ProgressFn, Trainer, render_state
 
 log = logging.getLogger(__name__)
@@ -256,8 +257,12 @@ def fit_scene(
 
     t_init = time.perf_counter()
     cloud = initial_points(scene, train, config)
+    max_scale = None
+    if config.init_max_angle is not None:
+        centres = np.stack([v.campos for v in scene.train])
+        max_scale = init_scale_limits(cloud.xyz, centres, config.init_max_angle)
     init = model_from_points(cloud.xyz, cloud.rgb, config.sh_degree, config.init_opacity,
-                             device=dev)
+                             device=dev, max_scale=max_scale)
     seconds_init = time.perf_counter() - t_init
     extent = scene.scene_radius()
     log.info("init: %d points (%s, %d far field, %.1f s); scene extent %.3f", init.num_gaussians,

@@ -242,7 +242,8 @@ def _evaluate(state: LocalizationState, w2c: np.ndarray, scale: float, mask: Opt
     """Loss at ``w2c``, and its gradient and render when it beats ``best``.
 
     The gradient is w.r.t. the camera-frame twist; ``best`` None always counts as beaten.
-    ``mask`` None: the coverage mask of this very render (detached), set into ``state``'s level.
+    ``mask`` None: the coverage mask of this very render (detached) is made and returned, for the
+    caller to keep for the rest of the level.
 
     Returns:
         (loss, grad or None, render or None, mask).

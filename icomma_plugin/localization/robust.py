@@ -4,9 +4,10 @@ A geometric stage, several hypotheses when needed, photometric refinement with r
 verdict.
 
 1. From the start pose (if any): render-match-PnP rounds (``geometric.py``).
-2. When the start gives too few PnP inliers (a large rotation, a camera that sees little of the
-   scene), or when there is no start: rank candidate views (``candidates.py``) and run the
-   geometric stage from the best few; keep the best hypothesis by its verified score.
+2. When the pose the start leads to is not convincing (fewer than ``min_start_inliers`` agreeing
+   matches, or a score the verdict would not call ok: a large rotation, a camera that sees
+   little of the scene), or when there is no start: rank candidate views (``candidates.py``) and
+   run the geometric stage from the best few; keep the best hypothesis by its verified score.
 3. Photometric refinement of that pose (``refine.py``), checked by a render-and-match at the
    result: a refinement that loses agreeing matches is rolled back.
 4. The verdict (``verify.py``) from the measured signals.

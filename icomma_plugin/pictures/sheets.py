@@ -9,6 +9,7 @@ from typing import Any, Dict, Sequence, Union
 import numpy as np
 import torch
 
+from ..pose.convert import invert_rigid
 from .images import VERDICT_COLOURS, save_image
 
 logger = logging.getLogger(__name__)
@@ -30,11 +31,11 @@ def save_thumbnail(
     from ..render import render
 
     intr = query.intrinsics
-    s = min(1.0, float(side) / max(intr.width, intr.height))
+    s = intr.scale_to_side(side)
     small = intr.scaled(s) if s != 1.0 else intr
     photo = resize_image(query.rgb.float().cpu(), small.height, small.width).clamp(0, 1)
     w2c = torch.as_tensor(
-        np.linalg.inv(np.asarray(c2w, np.float64)), dtype=model.dtype, device=model.device
+        invert_rigid(np.asarray(c2w, np.float64)), dtype=model.dtype, device=model.device
     )
     with torch.no_grad():
         img = (
