@@ -564,13 +564,26 @@ def _try_load(path: Path, params: dict) -> Optional[DemoScene]:
     )
 
 
+def _ring_cameras(intr: Intrinsics, centre: np.ndarray, radius: float, height: float, n: int):
+    """A ring of ``n`` cameras looking at ``centre`` (what a capture would have produced)."""
+    from ..io.cameras_json import CameraEntry
+
+    cams = []
+    for i in range(n):
+        az = 2 * math.pi * i / n
+        eye = centre + np.array([radius * math.cos(az), radius * math.sin(az), height - centre[2]])
+        cams.append(CameraEntry(id=i, img_name=f"ring_{i:03d}", width=intr.width,
+                                height=intr.height, c2w=look_at_c2w(eye, centre),
+                                fx=float(intr.fx), fy=float(intr.fy)))
+    return cams
+
+
 def _build_into(
     folder: Path, final_path: Path, params: dict, num_ring_cameras: int, backend: str
 ) -> None:
     from PIL import Image
 
     from ..io.atomic import write_json_atomic, write_text_atomic
-    from ..io.cameras_json import CameraEntry
     from ..io.model_folder import write_model_folder
     from ..render import render
 
@@ -580,20 +593,9 @@ def _build_into(
     intr = Intrinsics.from_fov(W, H, math.radians(params["fov_deg"]))
     centre = np.array([0.0, 0.0, 0.4])
 
-    # A ring of cameras (what a capture would have produced).
     ring_radius, ring_height = 4.0, 2.2
-    cams = []
-    c2ws = []
-    for i in range(num_ring_cameras):
-        az = 2 * math.pi * i / num_ring_cameras
-        eye = centre + np.array(
-            [ring_radius * math.cos(az), ring_radius * math.sin(az), ring_height - centre[2]]
-        )
-        c2w = look_at_c2w(eye, centre)
-        c2ws.append(c2w)
-        cams.append(CameraEntry(id=i, img_name=f"ring_{i:03d}", width=W, height=H, c2w=c2w,
-                                fx=float(intr.fx), fy=float(intr.fy)))
-    centres = np.stack([c[:3, 3] for c in c2ws])
+    cams = _ring_cameras(intr, centre, ring_radius, ring_height, num_ring_cameras)
+    centres = np.stack([c.c2w[:3, 3] for c in cams])
     scene_scale = 1.1 * float(np.max(np.linalg.norm(centres - centres.mean(0), axis=1)))
 
     # The hidden query pose: random azimuth off the ring, varied distance / height / aim.

@@ -22,7 +22,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Optional, Tuple
+from typing import Dict, Optional, Tuple
 
 import numpy as np
 import torch
@@ -267,6 +267,63 @@ def _evaluate(state: LocalizationState, w2c: np.ndarray, scale: float, mask: Opt
     return val, xi.grad.detach().clone(), out, mask
 
 
+def _lm_level(state: LocalizationState, cfg: RefineConfig, w2c: np.ndarray, scale: float,
+              level: Tuple, start: Tuple, counts: Dict[str, int], scene_depth: float,
+              hypothesis: Optional[int]):
+    """Levenberg-Marquardt steps at one level, from ``start`` = (loss, grad, render).
+
+    ``level`` = (intrinsics, blur, query, mask, iterations); ``counts`` (``total``, ``accepted``)
+    run over all levels.
+
+    Returns:
+        (w2c, loss, render at w2c, converged at this level, last step's rotation [deg] and
+        translation, or None).
+    """
+    intr, blur, query, mask, n_it = level
+    loss, grad, out = start
+    hess = _hessian(state, cfg, w2c, scale, out, mask, intr, blur)
+    lam, nu = cfg.lambda_init, 2.0
+    last_rot = last_trans = None
+    for _ in range(n_it):
+        counts["total"] += 1
+        damp = torch.diag(torch.diag(hess)).clamp_min(0) + 1e-12 * torch.eye(
+            6, dtype=torch.float64
+        )
+        step = -torch.linalg.solve(hess + lam * damp, grad)
+        if not bool(torch.isfinite(step).all()):
+            break
+        predicted = -float(grad @ step + 0.5 * step @ hess @ step)
+        w2c_try = (se3_exp(step) @ torch.as_tensor(w2c)).numpy()
+        loss_try, grad_try, out_try, _ = _evaluate(state, w2c_try, scale, mask, loss, blur, query)
+        ok = grad_try is not None
+        state.record(state.new_record(Stage.REFINE, w2c_try, loss=loss_try, loss_compare=loss_try,
+                                      accepted=ok, hypothesis=hypothesis, scale=scale, lr=lam))
+        if not ok:
+            lam *= nu
+            nu *= 2.0
+            if lam > 1e6:
+                return w2c, loss, out, True, last_rot, last_trans  # no step lowers the loss
+            continue
+        # Nielsen's damping update: the gain ratio of the actual to the predicted decrease
+        # corrects for the approximate Hessian.
+        rho = (loss - loss_try) / max(predicted, 1e-30)
+        lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+        lam, nu = max(lam, 1e-9), 2.0
+        counts["accepted"] += 1
+        grad_prev = grad
+        w2c, loss, grad, out = w2c_try, loss_try, grad_try, out_try
+        if cfg.hessian == "motion_field" or (
+            cfg.hessian_every and counts["accepted"] % cfg.hessian_every == 0
+        ):
+            hess = _hessian(state, cfg, w2c, scale, out_try, mask, intr, blur)
+        elif cfg.secant:
+            hess = _bfgs_update(hess, step, grad - grad_prev)
+        last_rot, last_trans = math.degrees(float(step[3:].norm())), float(step[:3].norm())
+        if last_rot < cfg.stop_rot_deg and last_trans < cfg.stop_trans_rel * scene_depth:
+            return w2c, loss, out, True, last_rot, last_trans
+    return w2c, loss, out, False, last_rot, last_trans
+
+
 def refine_photometric(state: LocalizationState, w2c_start: np.ndarray, cfg: RefineConfig,
                        base_scale: float = 1.0, scene_depth: float = 1.0,
                        hypothesis: Optional[int] = None) -> RefineOutcome:
@@ -275,7 +332,8 @@ def refine_photometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Ref
     ``base_scale`` is the working scale the levels' ``scales`` are relative to.
     """
     w2c = np.asarray(w2c_start, np.float64).copy()
-    total, accepted, loss0, loss = 0, 0, None, None
+    counts = {"total": 0, "accepted": 0}
+    loss0 = loss = None
     last_out, last_scale = None, None
     converged = False
     last_rot = last_trans = None
@@ -290,58 +348,12 @@ def refine_photometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Ref
         loss, grad, out, mask = _evaluate(state, w2c, scale, None, None, blur, query)
         if grad is None:  # the render covers (almost) nothing: no photometric signal here
             continue
-        last_out, last_scale = out, scale
+        last_scale = scale
         if loss0 is None:
             loss0 = loss
-        hess = _hessian(state, cfg, w2c, scale, out, mask, intr, blur)
-        lam, nu = cfg.lambda_init, 2.0
-        level_converged = False
-        last_rot = last_trans = None
-        for _ in range(n_it):
-            total += 1
-            damp = torch.diag(torch.diag(hess)).clamp_min(0) + 1e-12 * torch.eye(
-                6, dtype=torch.float64
-            )
-            step = -torch.linalg.solve(hess + lam * damp, grad)
-            if not bool(torch.isfinite(step).all()):
-                break
-            predicted = -float(grad @ step + 0.5 * step @ hess @ step)
-            w2c_try = (se3_exp(step) @ torch.as_tensor(w2c)).numpy()
-            loss_try, grad_try, out_try, _ = _evaluate(
-                state, w2c_try, scale, mask, loss, blur, query
-            )
-            ok = grad_try is not None
-            rec = state.new_record(Stage.REFINE, w2c_try, loss=loss_try, loss_compare=loss_try,
-                                   accepted=ok, hypothesis=hypothesis, scale=scale, lr=lam)
-            state.record(rec)
-            if ok:
-                # Nielsen's damping update: the gain ratio of the actual to the predicted decrease
-                # corrects for the approximate Hessian.
-                rho = (loss - loss_try) / max(predicted, 1e-30)
-                lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-                lam, nu = max(lam, 1e-9), 2.0
-                accepted += 1
-                grad_prev = grad
-                w2c, loss, grad = w2c_try, loss_try, grad_try
-                last_out = out_try
-                if cfg.hessian == "motion_field" or (
-                    cfg.hessian_every and accepted % cfg.hessian_every == 0
-                ):
-                    hess = _hessian(state, cfg, w2c, scale, out_try, mask, intr, blur)
-                elif cfg.secant:
-                    hess = _bfgs_update(hess, step, grad - grad_prev)
-                rot = math.degrees(float(step[3:].norm()))
-                trans = float(step[:3].norm())
-                last_rot, last_trans = rot, trans
-                if rot < cfg.stop_rot_deg and trans < cfg.stop_trans_rel * scene_depth:
-                    level_converged = True
-                    break
-            else:
-                lam *= nu
-                nu *= 2.0
-                if lam > 1e6:
-                    level_converged = True  # no step lowers the loss: a (local) minimum
-                    break
+        w2c, loss, last_out, level_converged, last_rot, last_trans = _lm_level(
+            state, cfg, w2c, scale, (intr, blur, query, mask, n_it), (loss, grad, out), counts,
+            scene_depth, hypothesis)
         converged = level_converged or (
             last_rot is not None
             and last_rot < cfg.still_rot_deg
@@ -356,4 +368,5 @@ def refine_photometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Ref
             last_out.depth.detach(),
             last_out.alpha.detach(),
         )
-    return RefineOutcome(w2c, total, accepted, loss0, loss, converged, last_rot, last_trans, final)
+    return RefineOutcome(w2c, counts["total"], counts["accepted"], loss0, loss, converged,
+                         last_rot, last_trans, final)
