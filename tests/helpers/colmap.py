@@ -92,3 +92,40 @@ def write_colmap_txt(sparse: Path, cameras, images, points) -> None:
     sparse.mkdir(parents=True, exist_ok=True)
     for name, data in colmap_text(cameras, images, points).items():
         (sparse / name).write_bytes(data)
+
+
+def qvec_tvec(w2c) -> Tuple[List[float], List[float]]:
+    """COLMAP's (qvec (w, x, y, z), tvec) of a world-to-camera ``[4, 4]``.
+
+    The quaternion comes from the axis-angle of ``cv2.Rodrigues`` (not from the reader's own
+    conversion), so a reader that mixes up the order or the sign is caught.
+    """
+    import cv2
+    import numpy as np
+
+    w2c = np.asarray(w2c, np.float64)
+    rvec, _ = cv2.Rodrigues(w2c[:3, :3])
+    angle = float(np.linalg.norm(rvec))
+    axis = rvec.ravel() / angle if angle > 0 else np.zeros(3)
+    q = [float(np.cos(angle / 2))] + [float(v) for v in np.sin(angle / 2) * axis]
+    return q, [float(v) for v in w2c[:3, 3]]
+
+
+def write_colmap_dataset(root: Path, photos) -> None:
+    """A COLMAP dataset folder: ``images/<name>`` and ``sparse/0`` (binary, no points).
+
+    ``photos``: ``(name, [H, W, 3] uint8 RGB, c2w, fx, fy)``, each with its own PINHOLE camera
+    (COLMAP's per-image intrinsics), principal point at the image centre.
+    """
+    import numpy as np
+    from PIL import Image
+
+    (root / "images").mkdir(parents=True, exist_ok=True)
+    cameras, images = [], []
+    for i, (name, rgb, c2w, fx, fy) in enumerate(photos, 1):
+        h, w = rgb.shape[:2]
+        Image.fromarray(rgb).save(root / "images" / name)
+        cameras.append((i, "PINHOLE", w, h, [float(fx), float(fy), w / 2.0, h / 2.0]))
+        q, t = qvec_tvec(np.linalg.inv(np.asarray(c2w, np.float64)))
+        images.append((i, q, t, i, name, []))
+    write_colmap_bin(root / "sparse" / "0", cameras, images, [])
