@@ -182,6 +182,8 @@ def _worker_setup(cfg: DictConfig, data: Dict[str, Any], out: Path, sequence: bo
     if problem:
         raise common.UserError(problem)
     oc = common.container(cfg.output)
+    if str(data.get("photos") or "auto").lower() not in ("auto", "none"):
+        raise common.UserError(f"data.photos must be auto or none, got {data.get('photos')!r}")
     mf, white = open_model_folder(data)
     setup = WorkerSetup(
         model_path=str(Path(mf.path).resolve()), method=method,
@@ -191,6 +193,7 @@ def _worker_setup(cfg: DictConfig, data: Dict[str, Any], out: Path, sequence: bo
         thumbs=bool(oc.get("contact_sheet")) and not sequence,  # the sheet is a batch's
         thumb_side=int(oc.get("thumb_side") or 192), config=common.container(cfg),
         seed=int(cfg.seed), cache_dir=_cache_dir(cfg),
+        photos=str(data.get("photos") or "auto").lower(),
     )
     return setup, mf, matcher
 

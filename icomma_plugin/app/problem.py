@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from ..io.poses_file import read_c2w_file
-from ..localization.localizer import Localizer
+from ..localization.localizer import Localizer, source_photos
 from ..localization.types import Query
 from ..pose.convert import cameras_extent
 from .inputs import (
@@ -37,6 +37,7 @@ __all__ = [
     "Problem",
     "load_problem",
     "open_model_folder",
+    "photos_of",
     "read_query_image",
     "scene_centre_of",
 ]
@@ -60,6 +61,7 @@ class Problem:
     cameras: List[Any] = field(default_factory=list)
     info: Dict[str, Any] = field(default_factory=dict)
     model_side: Optional[int] = None  # longer side of the images the model was fitted on
+    photos: Optional[List[Any]] = None  # the model's source photos (anchors), when known
 
     @property
     def name(self) -> str:
@@ -69,7 +71,8 @@ class Problem:
     def localizer(self, matcher, method, backend: str = "auto", cache_dir=None) -> Localizer:
         """The Localizer of this problem's model, cameras, background and training side."""
         return Localizer(self.model, matcher, method, cameras=self.cameras, backend=backend,
-                         background=self.bg, model_side=self.model_side, cache_dir=cache_dir)
+                         background=self.bg, model_side=self.model_side, cache_dir=cache_dir,
+                         photos=self.photos)
 
 
 def _bg(white: bool) -> torch.Tensor:
@@ -253,6 +256,14 @@ def _truth(d: Dict[str, Any], name: str, view, cam, mf) -> Optional[np.ndarray]:
     return gt
 
 
+def photos_of(data: Dict[str, Any], mf, white: bool):
+    """The model's source photos as ``data.photos`` asks (``auto`` | ``none``)."""
+    mode = str(data.get("photos") or "auto").lower()
+    if mode not in ("auto", "none"):
+        raise ProblemError(f"data.photos must be auto or none, got {data.get('photos')!r}")
+    return source_photos(mf, white) if mode == "auto" else None
+
+
 def _model_folder(d: Dict[str, Any]) -> Problem:
     mf, white = open_model_folder(d)
     bg = _bg(white)
@@ -271,6 +282,7 @@ def _model_folder(d: Dict[str, Any]) -> Problem:
         scene_scale=cameras_extent([e.c2w for e in mf.cameras]) if mf.cameras else None,
         cameras=list(mf.cameras or []),
         model_side=mf.training_side(),
+        photos=photos_of(d, mf, white),
         info={
             "model_path": str(mf.path),
             "iteration": mf.iteration,

@@ -182,7 +182,7 @@ def load_model_folder_scene(
     """
     from ..io.datasets import detect_dataset_kind, read_dataset
     from ..io.model_folder import load_model_folder
-    from ..localization.candidates import same_pose
+    from ..pose.convert import same_pose
     from ..pose.views import scene_frame
 
     mp = Path(str(model_path)).expanduser()

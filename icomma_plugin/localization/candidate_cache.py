@@ -8,8 +8,9 @@ folder is given as the cache folder).
 
 The key is a hash of everything the renders' features depend on: the model's content (a hash of
 its Gaussians), the candidate poses (the model's cameras, their names), the camera of the renders,
-the candidate search's constants, the matcher and its settings, the background, the backend and
-the render settings, and the file format. When any of them changes, the key changes and the index
+the candidate search's constants, the source photos (names, cameras, files) when they describe
+cameras, the matcher and its settings, the background, the backend and the render settings, and
+the file format. When any of them changes, the key changes and the index
 is built again. Files are written atomically, and a lock file per key makes a second process that
 asks for the same index at the same time wait for the first and load its result instead of
 building it again.
@@ -83,7 +84,7 @@ def _hash_poses(c2ws) -> str:
 
 
 def index_fields(model_id: str, cameras_c2w, names, intrinsics, cfg, matcher,
-                 render: Mapping[str, Any]) -> Dict[str, Any]:
+                 render: Mapping[str, Any], photos: Optional[str] = None) -> Dict[str, Any]:
     """The key's fields (JSON): see the module docstring."""
     return {
         "format": CACHE_FORMAT,
@@ -92,6 +93,7 @@ def index_fields(model_id: str, cameras_c2w, names, intrinsics, cfg, matcher,
         "names": hashlib.blake2b("\n".join(names).encode(), digest_size=8).hexdigest(),
         "intrinsics": intrinsics.to_json(),
         "candidates": {"num_sampled": cfg.num_sampled, "rank_side": cfg.rank_side},
+        "photos": photos,
         "matcher": matcher_identity(matcher),
         "render": dict(render),
     }

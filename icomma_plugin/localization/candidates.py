@@ -20,7 +20,9 @@ import torch
 from ..camera import Intrinsics
 from ..checks import check_bool, check_int, check_real
 from ..matchers.base import Features, mutual_nn_count
+from ..pose.convert import same_pose
 from ..pose.views import sample_views, scene_frame
+from .anchors import name_stem
 from .state import LocalizationState
 
 logger = logging.getLogger(__name__)
@@ -28,10 +30,8 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "CandidateConfig",
     "CandidateIndex",
-    "SAME_POSE_ATOL",
     "candidate_intrinsics",
     "rolled_w2c",
-    "same_pose",
     "usable",
 ]
 
@@ -49,6 +49,13 @@ class CandidateConfig:
         the candidate turned alike about its optical axis. Learned descriptors are not invariant
         to large in-plane rotations: a camera held sideways, or one looking straight down at the
         scene (every candidate near it differs by its roll), else finds no candidate.
+    photos: rank against the model's source photos where they are known (a camera with a photo
+        is described by its photo, not its render; photos without a camera entry are candidates
+        too): sharp and real where the render is foggy (``anchors.py``).
+    rival_share: a candidate far from the best one (``rival_deg`` apart) whose ranking count is
+        at least this share of the best's is run through the geometric stage too, even when the
+        best one convinced: two places that look alike (``robust.py``, ambiguity).
+    rival_deg: how far apart (rotation [deg]) two poses must be to be rivals.
     """
 
     num_sampled: int = 60
@@ -56,6 +63,9 @@ class CandidateConfig:
     top_k: int = 4
     min_cosine: float = 0.8
     quarter_turns: bool = True
+    photos: bool = True
+    rival_share: float = 0.8
+    rival_deg: float = 10.0
 
     def __post_init__(self):
         check_int(self.num_sampled, "CandidateConfig.num_sampled", 0)
@@ -63,16 +73,9 @@ class CandidateConfig:
         check_int(self.top_k, "CandidateConfig.top_k", 1)
         check_real(self.min_cosine, "CandidateConfig.min_cosine", -1.0, 1.0)
         check_bool(self.quarter_turns, "CandidateConfig.quarter_turns")
-
-
-#: Two poses closer than this (every entry of the 4x4) are the same camera: the one rule that
-#: leaves a query's own camera out of its candidates (a benchmark must not find its answer there).
-SAME_POSE_ATOL = 1e-5
-
-
-def same_pose(c2w_a: np.ndarray, c2w_b: np.ndarray) -> bool:
-    """Whether two camera-to-world poses are the same camera (`SAME_POSE_ATOL`)."""
-    return bool(np.allclose(c2w_a, c2w_b, atol=SAME_POSE_ATOL))
+        check_bool(self.photos, "CandidateConfig.photos")
+        check_real(self.rival_share, "CandidateConfig.rival_share", 0.0, 1.0)
+        check_real(self.rival_deg, "CandidateConfig.rival_deg", 0.0, 180.0)
 
 
 def candidate_intrinsics(query: Intrinsics, cameras: Sequence[Intrinsics], side: int
@@ -96,14 +99,16 @@ def candidate_intrinsics(query: Intrinsics, cameras: Sequence[Intrinsics], side:
 
 @dataclass
 class CandidateIndex:
-    """Candidate views with the features of their low-resolution renders.
+    """Candidate views with the features of their low-resolution renders (or photos).
 
     Built once per model and candidate camera (:func:`candidate_intrinsics`), kept by the
     Localizer in memory and on disk (``candidate_cache.py``), reused for every query.
 
-    c2w: candidate poses; the first ``num_cameras`` are the model's cameras, then sampled views.
-    source: their names. intrinsics: the camera of the renders. features: the matcher's features
-    of each render (None for a view that sees nothing of the scene).
+    c2w: candidate poses; the first ``num_cameras`` are the model's cameras, then the source
+    photos without a camera entry, then sampled views. source: their names. intrinsics: the
+    camera of the renders. features: the matcher's features of each render, or of the camera's
+    source photo (None for a view that sees nothing of the scene). kinds: ``camera``, ``photo``
+    (described by its source photo) or ``sampled``.
     """
 
     c2w: List[np.ndarray]
@@ -111,6 +116,7 @@ class CandidateIndex:
     intrinsics: Intrinsics
     features: List = field(default_factory=list)
     num_cameras: int = 0
+    kinds: List[str] = field(default_factory=list)
 
     @classmethod
     def build(
@@ -120,32 +126,47 @@ class CandidateIndex:
         cfg: CandidateConfig,
         names: Optional[Sequence[str]] = None,
         intrinsics: Optional[Intrinsics] = None,
+        photos=None,
     ) -> "CandidateIndex":
-        """Render ``cameras_c2w`` (the model's cameras) and ``cfg.num_sampled`` sampled views.
+        """Describe ``cameras_c2w`` (the model's cameras) and ``cfg.num_sampled`` sampled views.
 
-        With ``intrinsics`` (the query's at ``cfg.rank_side`` when None), and extract their
-        features with ``state.matcher``.
+        Renders with ``intrinsics`` (the query's at ``cfg.rank_side`` when None); with
+        ``photos`` (``anchors.PhotoAnchors``) and ``cfg.photos``, a camera that has a source photo
+        is described by the photo, and photos without a camera are candidates too. Features by
+        ``state.matcher``.
         """
         cams = [np.asarray(c, np.float64) for c in cameras_c2w]
+        names = list(names) if names is not None else [f"camera_{i}" for i in range(len(cams))]
+        use = photos if (photos is not None and cfg.photos) else None
+        of_camera = [None if use is None else use.index_of(n) for n in names[: len(cams)]]
+        extra = [] if use is None else [
+            i for i in range(len(use)) if i not in set(j for j in of_camera if j is not None)]
         centre, radius, up = scene_frame(state.model.means.detach().cpu().numpy(), cams)
         sampled = sample_views(centre, radius, up, cfg.num_sampled)
-        c2w = cams + sampled
-        names = list(names) if names is not None else [f"camera_{i}" for i in range(len(cams))]
-        source = names[: len(cams)] + [f"sampled_{i}" for i in range(len(sampled))]
+        c2w = cams + [use.photos[i].c2w for i in extra] + sampled
+        source = names[: len(cams)] + [use.photos[i].name for i in extra] + [
+            f"sampled_{i}" for i in range(len(sampled))]
+        photo_of = of_camera + extra + [None] * len(sampled)
+        kinds = ["camera" if j is None else "photo" for j in of_camera] + ["photo"] * len(
+            extra) + ["sampled"] * len(sampled)
         q = state.query.intrinsics
         intr = intrinsics or q.scaled(q.scale_to_side(cfg.rank_side))
         feats = []
         with state.timed("candidates"):
-            for T in c2w:
+            for T, j in zip(c2w, photo_of):
+                if j is not None:
+                    feats.append(use.features(j, max(intr.width, intr.height), state.matcher))
+                    continue
                 with torch.no_grad():
                     out = state.render(np.linalg.inv(T), intrinsics=intr)
                 if float(out.alpha.mean()) < 0.01:
                     feats.append(None)  # sees nothing of the scene
                     continue
                 feats.append(state.matcher.extract(out.color.clamp(0.0, 1.0)))
-        logger.debug("candidate index: %d cameras + %d sampled views at %dx%d", len(cams),
-                     len(sampled), intr.width, intr.height)
-        return cls(c2w, source, intr, feats, len(cams))
+        logger.debug("candidate index: %d cameras (%d described by photos) + %d photos + %d "
+                     "sampled views at %dx%d", len(cams), kinds.count("photo") - len(extra),
+                     len(extra), len(sampled), intr.width, intr.height)
+        return cls(c2w, source, intr, feats, len(cams), kinds)
 
     def compatible(self, intrinsics: Intrinsics) -> bool:
         """Whether photos taken with ``intrinsics`` can be ranked against this index.
@@ -155,11 +176,20 @@ class CandidateIndex:
         return math.isclose(intrinsics.width / intrinsics.height,
                             self.intrinsics.width / self.intrinsics.height, rel_tol=0.01)
 
-    def own_cameras(self, gt_c2w: Optional[np.ndarray]) -> FrozenSet[int]:
-        """Indices of the model cameras at the pose ``gt_c2w`` (a query's own camera)."""
-        if gt_c2w is None:
-            return frozenset()
-        return frozenset(i for i in range(self.num_cameras) if same_pose(self.c2w[i], gt_c2w))
+    def own_cameras(self, gt_c2w: Optional[np.ndarray], name: Optional[str] = None
+                    ) -> FrozenSet[int]:
+        """Candidates that are the query's own: at the pose ``gt_c2w``, or named ``name``.
+
+        Names are compared without folders and extension (a camera and its photo file).
+        """
+        stem = None if name is None else name_stem(name)
+        out = set()
+        for i, (c, src) in enumerate(zip(self.c2w, self.source)):
+            sampled = self.kinds[i] == "sampled" if self.kinds else i >= self.num_cameras
+            if not sampled and ((gt_c2w is not None and same_pose(c, gt_c2w))
+                                or (stem is not None and name_stem(src) == stem)):
+                out.add(i)
+        return frozenset(out)
 
     def rank(self, state: LocalizationState, cfg: CandidateConfig,
              exclude: Iterable[int] = ()) -> List[Tuple[int, int]]:
@@ -200,7 +230,7 @@ class CandidateIndex:
         return {"c2w": torch.as_tensor(np.stack(self.c2w)) if self.c2w else torch.zeros(0, 4, 4,
                 dtype=torch.float64), "source": list(self.source),
                 "intrinsics": self.intrinsics.to_json(), "features": feats,
-                "num_cameras": self.num_cameras}
+                "num_cameras": self.num_cameras, "kinds": list(self.kinds)}
 
     @classmethod
     def from_state(cls, d: Dict[str, Any]) -> "CandidateIndex":
@@ -209,7 +239,7 @@ class CandidateIndex:
                  for f in d["features"]]
         c2w = [np.asarray(T, np.float64) for T in d["c2w"].numpy()]
         return cls(c2w, list(d["source"]), Intrinsics.from_json(d["intrinsics"]), feats,
-                   int(d["num_cameras"]))
+                   int(d["num_cameras"]), list(d.get("kinds") or []))
 
 
 def rolled_w2c(w2c: np.ndarray, quarter_turns: int) -> np.ndarray:

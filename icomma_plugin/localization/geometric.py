@@ -16,11 +16,12 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
-from typing import List, Optional
+from typing import List, Optional, Tuple
 
 import numpy as np
+import torch
 
-from ..checks import check_bool, check_int, check_real
+from ..checks import check_bool, check_choice, check_int, check_real
 from ..pose.convert import rotation_error_deg
 from .geometry import PnPResult, lift_keypoints, solve_pnp
 from .state import LocalizationState, Observation
@@ -29,7 +30,11 @@ from .verify import PoseScore, score_observation
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["GeometricConfig", "GeometricOutcome", "pnp_from_observation", "run_geometric"]
+__all__ = ["ANCHORS", "GeometricConfig", "GeometricOutcome", "pnp_from_observation",
+           "run_geometric"]
+
+#: Where the geometric stage's 2D-3D correspondences come from (``GeometricConfig.anchors``).
+ANCHORS = ("renders", "photos", "both")
 
 
 @dataclass
@@ -51,6 +56,12 @@ class GeometricConfig:
     inlier_px: displacement below which a match agrees with a pose (the score; see verify.py).
     stop_rot_deg, stop_trans_rel: a proposal that moves the pose less than this (rotation, and
         centre motion relative to the scene depth) ends the stage.
+    anchors: which 2D-3D correspondences the PnP takes: ``renders`` (the render at the current
+        pose matched to the query), ``photos`` (the model's source photos nearest the current pose
+        matched to the query, lifted with the model's depth at their cameras: ``anchors.py``) or
+        ``both`` (pooled). Without source photos, ``renders``.
+    anchor_photos: source photos matched per round; anchor_max_angle_deg: only photos whose
+        optical axis is within this angle of the current pose's.
     """
 
     max_rounds: int = 8
@@ -65,6 +76,9 @@ class GeometricConfig:
     inlier_px: float = 2.0
     stop_rot_deg: float = 0.05
     stop_trans_rel: float = 1e-3
+    anchors: str = "both"
+    anchor_photos: int = 2
+    anchor_max_angle_deg: float = 60.0
 
     def __post_init__(self):
         n = "GeometricConfig."
@@ -81,6 +95,9 @@ class GeometricConfig:
         check_real(self.stop_rot_deg, n + "stop_rot_deg", 0.0)
         check_real(self.stop_trans_rel, n + "stop_trans_rel", 0.0)
         check_bool(self.subpixel, n + "subpixel")
+        check_choice(self.anchors, n + "anchors", ANCHORS)
+        check_int(self.anchor_photos, n + "anchor_photos", 0)
+        check_real(self.anchor_max_angle_deg, n + "anchor_max_angle_deg", 0.0, 180.0)
 
 
 @dataclass
@@ -108,13 +125,12 @@ def _motion(w2c_a: np.ndarray, w2c_b: np.ndarray):
     return float(rotation_error_deg(ca, cb)), float(np.linalg.norm(ca[:3, 3] - cb[:3, 3]))
 
 
-def pnp_from_observation(state: LocalizationState, obs: Observation, cfg: GeometricConfig,
-                         seed: int = 0, subpixel: Optional[bool] = None) -> Optional[PnPResult]:
-    """A PnP estimate of the query pose from the matches of ``obs``, or None."""
-    subpixel = cfg.subpixel if subpixel is None else subpixel
+def _render_correspondences(state: LocalizationState, obs: Observation, cfg: GeometricConfig,
+                            subpixel: bool) -> Tuple[np.ndarray, np.ndarray]:
+    """(world points, query pixels) of the matches of ``obs``, lifted with its rendered depth."""
     m = obs.matches
     if m is None or len(m) < cfg.min_pnp_inliers:
-        return None
+        return np.zeros((0, 3)), np.zeros((0, 2))
     intr = state.intrinsics_at(obs.scale)
     kpts0, kpts1 = m.kpts0.detach(), m.kpts1.detach()
     if subpixel:
@@ -130,15 +146,32 @@ def pnp_from_observation(state: LocalizationState, obs: Observation, cfg: Geomet
             ).detach()
     with state.timed("pnp"):
         c2w = np.linalg.inv(obs.w2c)
-        import torch
-
         pts, keep = lift_keypoints(kpts0, obs.depth, obs.alpha, intr, torch.as_tensor(c2w),
                                    cfg.min_alpha, cfg.max_depth_jump)
-        if int(keep.sum()) < cfg.min_pnp_inliers:
-            return None
-        pix = kpts1[keep].double().cpu().numpy()
-        return solve_pnp(pts.cpu().numpy(), pix, intr, cfg.ransac_px, cfg.ransac_iterations,
-                         cfg.ransac_confidence, min_inliers=cfg.min_pnp_inliers, seed=seed)
+        return pts.cpu().numpy(), kpts1[keep].double().cpu().numpy()
+
+
+def pnp_from_observation(state: LocalizationState, obs: Observation, cfg: GeometricConfig,
+                         seed: int = 0, subpixel: Optional[bool] = None) -> Optional[PnPResult]:
+    """A PnP estimate of the query pose from the correspondences at ``obs``, or None.
+
+    The render's matches (``cfg.anchors`` renders / both) and the nearest source photos' (photos
+    / both, when the state has anchors), pooled in one RANSAC.
+    """
+    subpixel = cfg.subpixel if subpixel is None else subpixel
+    photos = state.anchors if cfg.anchors != "renders" else None
+    pts, pix = np.zeros((0, 3)), np.zeros((0, 2))
+    if cfg.anchors != "photos" or photos is None:
+        pts, pix = _render_correspondences(state, obs, cfg, subpixel)
+    if photos is not None:
+        X, x, _ = photos(state, obs.scale, np.linalg.inv(obs.w2c), cfg)
+        pts, pix = np.concatenate([pts, X]), np.concatenate([pix, x])
+    if len(pts) < cfg.min_pnp_inliers:
+        return None
+    with state.timed("pnp"):
+        return solve_pnp(pts, pix, state.intrinsics_at(obs.scale), cfg.ransac_px,
+                         cfg.ransac_iterations, cfg.ransac_confidence,
+                         min_inliers=cfg.min_pnp_inliers, seed=seed)
 
 
 def run_geometric(state: LocalizationState, w2c_start: np.ndarray, cfg: GeometricConfig,

@@ -15,6 +15,7 @@ benchmark all localize through it. Poses are camera-to-world (OpenCV axes) at th
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 from pathlib import Path
@@ -28,13 +29,9 @@ from ..gaussians import GaussianModel
 from ..pose.convert import as_rigid, invert_rigid
 from ..render import prepare_scene
 from .candidate_cache import CandidateCache, index_fields, model_fingerprint
-from .candidates import (
-    CandidateConfig,
-    CandidateIndex,
-    candidate_intrinsics,
-    same_pose,
-    usable,
-)
+from ..pose.convert import same_pose
+from .anchors import PhotoAnchors, SourcePhoto, name_stem
+from .candidates import CandidateConfig, CandidateIndex, candidate_intrinsics, usable
 from .icomma import LocalizerConfig
 from .robust import RobustConfig
 from .state import LocalizationState
@@ -43,7 +40,7 @@ from .verify import can_match
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["BACKENDS", "Localizer", "Method"]
+__all__ = ["BACKENDS", "Localizer", "Method", "source_photos"]
 
 #: The rasterizer backends a Localizer renders with.
 BACKENDS = ("auto", "cpu", "cuda", "reference")
@@ -71,6 +68,25 @@ def _camera_parts(cameras) -> Tuple[List[np.ndarray], List[str], List[Optional[I
     return c2ws, names, intrs
 
 
+def source_photos(mf, white_background: bool) -> Optional[List[SourcePhoto]]:
+    """The photos a model folder was fitted from: the train views of its ``source_path``.
+
+    None when ``cfg_args`` names no dataset folder that exists here (or it cannot be read: said in
+    the log, the localizer then works with renders only).
+    """
+    from ..io.datasets import read_dataset
+
+    src = mf.cfg.get("source_path")
+    if not src or not Path(str(src)).expanduser().is_dir():
+        return None
+    try:
+        scene = read_dataset(Path(str(src)).expanduser(), white_background=white_background)
+    except (ValueError, OSError) as e:
+        logger.warning("the model's source photos at %s cannot be read (%s): renders only", src, e)
+        return None
+    return [SourcePhoto.of_view(v) for v in scene.train] or None
+
+
 class Localizer:
     """Localize photos in one 3DGS model (module docstring).
 
@@ -87,6 +103,11 @@ class Localizer:
             at no more than this resolution (a sharper photo adds cost, not accuracy).
         cache_dir: where the candidate index is kept on disk: None for the default
             (``candidate_cache.default_cache_dir()``), False to keep it in memory only.
+        photos: the photos the model was fitted from (``SourcePhoto``s or dataset views; never
+            held-out views): anchors of the candidate ranking and of the geometric stage
+            (``anchors.py``). None: renders only.
+        verdict: thresholds of the verdict for this model (a calibration,
+            ``localization/calibration.py``), replacing the method's.
 
     Raises:
         ValueError: naming the argument: not a model, an unknown backend, a method that cannot
@@ -104,8 +125,11 @@ class Localizer:
         background: Optional[torch.Tensor] = None,
         model_side: Optional[int] = None,
         cache_dir: Union[str, Path, None, bool] = None,
+        photos: Optional[Sequence[Any]] = None,
+        verdict=None,
     ):
         from ..checks import check_choice, check_int
+        from .verify import VerdictConfig
 
         if not isinstance(model, GaussianModel):
             raise ValueError(f"model must be a GaussianModel, got {type(model).__name__}")
@@ -113,6 +137,10 @@ class Localizer:
         if not isinstance(self.method, (RobustConfig, LocalizerConfig)):
             raise ValueError("method must be a RobustConfig or a LocalizerConfig, got "
                              f"{type(self.method).__name__}")
+        if verdict is not None:
+            if not isinstance(verdict, VerdictConfig):
+                raise ValueError(f"verdict must be a VerdictConfig, got {type(verdict).__name__}")
+            self.method = dataclasses.replace(self.method, verdict=verdict)
         problem = self.method.needs(matcher)
         if problem:
             raise ValueError(problem)
@@ -128,6 +156,9 @@ class Localizer:
             raise ValueError(f"background must be 3 finite values (RGB), got {background!r}")
         self.background = bg.reshape(3).to(self.model.device, self.model.dtype)
         self.cameras_c2w, self.camera_names, self._camera_intrinsics = _camera_parts(cameras)
+        self.photos = None if not photos else PhotoAnchors(
+            [p if isinstance(p, SourcePhoto) else SourcePhoto.of_view(p) for p in photos],
+            self.background)
         self.cache = None if cache_dir is False else CandidateCache(
             None if cache_dir in (None, True) else cache_dir)
         self._scenes: Dict[Optional[int], Any] = {}
@@ -139,11 +170,15 @@ class Localizer:
     def from_model_folder(cls, folder, matcher=None, method: Optional[Method] = None, *,
                           iteration: Optional[int] = None,
                           white_background: Optional[bool] = None, backend: str = "auto",
-                          cache_dir: Union[str, Path, None, bool] = None) -> "Localizer":
+                          cache_dir: Union[str, Path, None, bool] = None,
+                          photos: Union[str, Sequence[Any], None] = "auto",
+                          verdict=None) -> "Localizer":
         """A localizer for a 3DGS model folder (a ``ModelFolder`` or its path).
 
         Its cameras, training side and background (``cfg_args``, unless ``white_background`` is
         given) come from the folder; with ``backend="cuda"`` the model is moved to the GPU.
+        ``photos="auto"``: the training photos of the dataset named by ``cfg_args``
+        (``source_path``) when it is a folder here (:func:`source_photos`); None: none.
         """
         from ..io.model_folder import ModelFolder, load_model_folder
 
@@ -151,9 +186,14 @@ class Localizer:
             Path(str(folder)).expanduser(), iteration=iteration)
         white = mf.white_background if white_background is None else bool(white_background)
         model = mf.model.to("cuda") if backend == "cuda" else mf.model
+        if isinstance(photos, str):
+            if photos != "auto":
+                raise ValueError(f"photos must be 'auto', None or a list, got {photos!r}")
+            photos = source_photos(mf, white)
         return cls(model, matcher, method, cameras=mf.cameras, backend=backend,
                    background=torch.ones(3) if white else torch.zeros(3),
-                   model_side=mf.training_side(), cache_dir=cache_dir)
+                   model_side=mf.training_side(), cache_dir=cache_dir, photos=photos,
+                   verdict=verdict)
 
     # ------------------------------------------------------------------ localize
     def localize(self, query: Query, init_c2w=None, gt_c2w=None,
@@ -184,6 +224,9 @@ class Localizer:
             sh_degree=cfg.sh_degree, antialiasing=cfg.antialiasing, gt_c2w=gt,
             progress=progress, record_trace=cfg.record_trace, scene=self._scene(cfg.sh_degree))
         state.candidates = functools.partial(self._candidates_for, state, gt, cfg)
+        if self.photos is not None:
+            own = self.photos.own(query.name, gt)
+            state.anchors = functools.partial(self._anchors_for, own=own)
         init_rot, init_trans = (None, None) if init_w2c is None else state.errors(init_w2c)
         out = cfg.run(state, init_w2c)
         rot, trans = state.errors(out.w2c)
@@ -202,11 +245,15 @@ class Localizer:
             config=cfg.to_dict(),
         )
 
-    def own_cameras(self, gt_c2w: Optional[np.ndarray]) -> List[str]:
-        """Names of the model's cameras at the pose ``gt_c2w``, left out of that query's views."""
-        if gt_c2w is None:
-            return []
-        return [n for n, c in zip(self.camera_names, self.cameras_c2w) if same_pose(c, gt_c2w)]
+    def own_cameras(self, gt_c2w: Optional[np.ndarray], name: Optional[str] = None
+                    ) -> List[str]:
+        """Names of the model's cameras that are a query's own, left out of its candidates.
+
+        At the pose ``gt_c2w`` (its truth), or named like the query (extension ignored).
+        """
+        stem = None if name is None else name_stem(name)
+        return [n for n, c in zip(self.camera_names, self.cameras_c2w)
+                if (gt_c2w is not None and same_pose(c, gt_c2w)) or name_stem(n) == stem]
 
     def _matches(self, cfg) -> bool:
         """Whether the method matched keypoints (compare-only runs do not)."""
@@ -226,7 +273,12 @@ class Localizer:
             return None
         index = self.candidate_index(state.query.intrinsics, cfg.candidates, state,
                                      sh_degree=cfg.sh_degree, antialiasing=cfg.antialiasing)
-        return index, index.own_cameras(gt_c2w)
+        return index, index.own_cameras(gt_c2w, state.query.name)
+
+    def _anchors_for(self, state: LocalizationState, scale: float, c2w: np.ndarray, cfg,
+                     own: frozenset):
+        """The source photos' correspondences of ``state``'s query near ``c2w`` (``anchors``)."""
+        return self.photos.correspondences(state, scale, c2w, cfg.anchor_photos, cfg, own)
 
     def candidate_index(self, intrinsics: Intrinsics, cfg: Optional[CandidateConfig] = None,
                         state: Optional[LocalizationState] = None, *,
@@ -255,7 +307,8 @@ class Localizer:
 
             def build() -> CandidateIndex:
                 self.candidate_builds += 1
-                return CandidateIndex.build(state, self.cameras_c2w, cfg, self.camera_names, intr)
+                return CandidateIndex.build(state, self.cameras_c2w, cfg, self.camera_names, intr,
+                                            self.photos)
 
             with state.timed("candidates"):
                 if self.cache is None:
@@ -273,5 +326,6 @@ class Localizer:
         render = {"background": [float(v) for v in self.background.cpu()],
                   "backend": f"{self.backend}:{self.model.device.type}", "sh_degree": sh_degree,
                   "antialiasing": antialiasing, "dtype": str(self.model.dtype)}
+        photos = None if self.photos is None or not cfg.photos else self.photos.fingerprint()
         return index_fields(self._model_id, self.cameras_c2w, self.camera_names, intr, cfg,
-                            self.matcher, render)
+                            self.matcher, render, photos)

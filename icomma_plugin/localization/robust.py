@@ -23,6 +23,7 @@ import numpy as np
 
 from ..camera import Intrinsics
 from ..checks import check_bool, check_choice, check_int, check_real, config_from_dict
+from ..pose.convert import rotation_error_deg
 from .candidates import CandidateConfig, usable
 from .geometric import GeometricConfig, GeometricOutcome, run_geometric
 from .geometry import median_depth
@@ -160,6 +161,32 @@ def _better(a: GeometricOutcome, b: Optional[GeometricOutcome]) -> bool:
     return a.score.better_than(b.score)
 
 
+def _support(g: GeometricOutcome) -> int:
+    """How much agrees with a hypothesis.
+
+    The render's agreeing matches and the last PnP's inliers (its pooled render and photo
+    correspondences).
+    """
+    return g.score.inliers + (g.pnp_inliers[-1] if g.pnp_inliers else 0)
+
+
+def _rival(hyps: List[Tuple[str, GeometricOutcome]], best: Optional[GeometricOutcome],
+           cfg: RobustConfig, tie: float = 0.15) -> Optional[Dict[str, Any]]:
+    """The hypothesis far from ``best`` whose support is within ``tie`` of the best's, if any."""
+    if best is None or best.score is None:
+        return None
+    best_c2w = np.linalg.inv(best.w2c)
+    rivals = []
+    for name, g in hyps:
+        if g is best or g.score is None:
+            continue
+        apart = float(rotation_error_deg(np.linalg.inv(g.w2c), best_c2w))
+        if apart > cfg.candidates.rival_deg and _support(g) >= (1.0 - tie) * _support(best):
+            rivals.append({"start": name, "rot_deg_apart": apart, "support": _support(g),
+                           "best_support": _support(best), "inliers": g.score.inliers})
+    return max(rivals, key=lambda r: r["support"]) if rivals else None
+
+
 class _Search:
     """The hypotheses of one localization: from the start pose, then from candidate views."""
 
@@ -167,6 +194,7 @@ class _Search:
         self.state, self.cfg, self.scale = state, cfg, scale
         self.hyps: List[Tuple[str, GeometricOutcome]] = []
         self.best: Optional[GeometricOutcome] = None
+        self.rival: Optional[Dict[str, Any]] = None
         self.fallback_w2c: Optional[np.ndarray] = None
         self.empty_start = False
         self.had_start = False
@@ -199,17 +227,47 @@ class _Search:
         if self.fallback_w2c is None and order:
             self.fallback_w2c = index.start_w2c(*order[0])
         state.record(TraceRecord(iteration=state.steps, stage=Stage.CANDIDATES, matches=len(order)))
+        ran = set()
         for rank, (idx, turns) in enumerate(order[: cfg.candidates.top_k]):
             if index.features[idx] is None:
                 continue
-            g = run_geometric(state, index.start_w2c(idx, turns), cfg.geometric, self.scale,
-                              hypothesis=rank + 1)
-            name = index.source[idx] + (f" turned {90 * turns} deg" if turns else "")
-            self.hyps.append((name, g))
-            if _better(g, self.best):
-                self.best = g
+            ran.add(idx)
+            self._run_candidate(index, idx, turns, rank + 1)
             if _convincing(self.best.score, cfg, cfg.good_inliers):
                 break
+        self._run_rival(index, order, ran)
+        self.rival = _rival(self.hyps, self.best, cfg)
+
+    def _run_candidate(self, index, idx: int, turns: int, hypothesis: int,
+                       note: str = "") -> None:
+        g = run_geometric(self.state, index.start_w2c(idx, turns), self.cfg.geometric, self.scale,
+                          hypothesis=hypothesis)
+        name = index.source[idx] + (f" turned {90 * turns} deg" if turns else "") + note
+        self.hyps.append((name, g))
+        if _better(g, self.best):
+            self.best = g
+
+    def _run_rival(self, index, order: List[Tuple[int, int]], ran: set) -> None:
+        """Run the best-ranked candidate far from the best pose, if it ranked almost as well.
+
+        Two places that look alike (a repeating floor, a symmetric object) rank close; the best
+        one convincing alone does not rule the other out.
+        """
+        cc = self.cfg.candidates
+        if self.best is None or self.best.score is None or not order:
+            return
+        counts = index.last_counts
+        top = max(counts[order[0][0]], 1)
+        best_c2w = np.linalg.inv(self.best.w2c)
+        for idx, turns in order[: 2 * cc.top_k]:
+            if counts[idx] < cc.rival_share * top:
+                return  # ranked in decreasing count: no later one ranks close
+            if idx in ran or index.features[idx] is None:
+                continue
+            start_c2w = np.linalg.inv(index.start_w2c(idx, turns))
+            if float(rotation_error_deg(start_c2w, best_c2w)) > cc.rival_deg:
+                self._run_candidate(index, idx, turns, len(self.hyps) + 1, " (rival)")
+                return
 
     def summaries(self) -> List[Dict[str, Any]]:
         """One summary per hypothesis tried (the result's ``details["hypotheses"]``)."""
@@ -255,6 +313,8 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
     extra = {
         "start_render_empty": search.empty_start,
         "hypotheses": len(search.hyps),
+        "ambiguous": search.rival is not None,
+        "rival": search.rival,
         "refine_rolled_back": not keep,
         "refine_iterations": ref.iterations,
         "refine_loss": [ref.loss_start, ref.loss_end],
@@ -266,7 +326,7 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
             "; note: the render at the start pose was empty (relocalized from candidate views)"
         )
     stop = "rolled_back" if not keep else ("converged" if ref.converged else "max_iterations")
-    details = {"hypotheses": search.summaries(), "rolled_back": not keep,
+    details = {"hypotheses": search.summaries(), "rival": search.rival, "rolled_back": not keep,
                "refine_iterations": ref.iterations, "refine_loss": [ref.loss_start, ref.loss_end],
                "start_render_empty": search.empty_start}
     return MethodOutcome(np.asarray(w2c, np.float64), verdict, score, state.steps, stop, details)

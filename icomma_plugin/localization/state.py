@@ -57,6 +57,8 @@ class LocalizationState:
         once by the Localizer for all its queries; prepared at the first render when None.
     candidates: ``() -> (CandidateIndex, excluded indices)`` or None: where the default method
         finds candidate views (the Localizer's index, built or loaded when first asked for).
+    anchors: ``(state, scale, c2w, geometric config) -> (points [N, 3], pixels [N, 2], names)``
+        or None: the model's source photos' correspondences near a pose (``anchors.py``).
     """
 
     model: GaussianModel
@@ -71,6 +73,7 @@ class LocalizationState:
     record_trace: bool = True
     scene: Any = None
     candidates: Optional[Callable[[], Any]] = None
+    anchors: Optional[Callable[..., Any]] = None
     trace: List[TraceRecord] = field(default_factory=list)
     seconds: Dict[str, float] = field(default_factory=lambda: defaultdict(float))
     cpu_seconds: Dict[str, float] = field(default_factory=lambda: defaultdict(float))

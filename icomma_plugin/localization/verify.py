@@ -223,6 +223,10 @@ def decide(score: Optional[PoseScore], cfg: VerdictConfig, converged: Optional[b
                         f"{100 * cfg.ok_coverage:.0f}%)")
     if converged is False:
         problems.append("the optimisation had not stopped moving")
+    rival = signals.get("rival")
+    if signals.get("ambiguous") and rival:
+        problems.append(f"a rival pose {rival['rot_deg_apart']:.0f} deg away agrees almost as well "
+                        f"({rival['support']} vs {rival['best_support']}): two places look alike")
     if problems:
         return Verdict("uncertain", "check this pose: " + "; ".join(problems), signals)
     return Verdict(

@@ -19,6 +19,7 @@ GeneratorLike = Union[None, int, np.random.Generator, torch.Generator]
 
 __all__ = [
     "RIGID_ATOL",
+    "SAME_POSE_ATOL",
     "as_rigid",
     "invert_rigid",
     "opengl_to_opencv_c2w",
@@ -32,6 +33,7 @@ __all__ = [
     "perturb_pose",
     "cameras_extent",
     "rigid_problem",
+    "same_pose",
 ]
 
 
@@ -395,3 +397,13 @@ def cameras_extent(c2ws) -> float:
         raise ValueError("cameras_extent needs at least one camera-to-world matrix, got none")
     c = np.stack([_to_np64(T)[:3, 3] for T in c2ws])
     return float(1.1 * np.linalg.norm(c - c.mean(0), axis=1).max())
+
+
+#: Two poses closer than this (every entry of the 4x4) are the same camera: the one rule that
+#: leaves a query's own camera out of its candidates (a benchmark must not find its answer there).
+SAME_POSE_ATOL = 1e-5
+
+
+def same_pose(c2w_a: np.ndarray, c2w_b: np.ndarray) -> bool:
+    """Whether two camera-to-world poses are the same camera (`SAME_POSE_ATOL`)."""
+    return bool(np.allclose(c2w_a, c2w_b, atol=SAME_POSE_ATOL))

@@ -49,6 +49,7 @@ class WorkerSetup:
     sheet. config: the composed config, stored in each result.json. seed: torch / numpy seed of
     every photo (``seed + index``), so results do not depend on the worker a photo lands on.
     cache_dir: the Localizer's candidate cache (None: the default folder; False: none).
+    photos: ``auto`` (the model's source photos as anchors, when found) or ``none``.
     """
 
     model_path: str
@@ -66,6 +67,7 @@ class WorkerSetup:
     config: Dict[str, Any] = field(default_factory=dict)
     seed: Optional[int] = 0
     cache_dir: Any = None
+    photos: str = "auto"
 
 
 @contextlib.contextmanager
@@ -96,7 +98,8 @@ class BatchWorker:
         matcher = matcher if matcher is not None else matcher_from_config(setup.matcher)
         self.localizer = Localizer.from_model_folder(
             self.mf, matcher, setup.method, white_background=setup.white_background,
-            backend=setup.backend, cache_dir=setup.cache_dir)
+            backend=setup.backend, cache_dir=setup.cache_dir,
+            photos="auto" if setup.photos == "auto" else None)
         self.model, self.bg = self.localizer.model, self.localizer.background
         self.cameras = list(self.mf.cameras or [])
         self.scene_scale = cameras_extent([e.c2w for e in self.cameras]) if self.cameras else None
@@ -173,7 +176,7 @@ class BatchWorker:
             folder, thumb = self.write_pictures(problem, result, time.perf_counter() - t0)
             row = result_row(task, result, self.scene_scale, time.perf_counter() - t0, folder,
                              thumb)
-            row["own_camera_left_out"] = len(self.localizer.own_cameras(task.gt_c2w))
+            row["own_camera_left_out"] = len(self.localizer.own_cameras(task.gt_c2w, task.name))
             return row
         except (ValueError, FileNotFoundError) as e:
             msg = str(e).splitlines()[0] if str(e) else type(e).__name__
