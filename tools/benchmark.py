@@ -97,6 +97,7 @@ def load_scene(cfg: DictConfig, spec: ProtocolSpec, backend: str):
             iteration=s.iteration,
             translation_unit=str(s.translation_unit),
             no_start_queries=spec.num_queries * spec.poses_per_query if no_start else 0,
+            photos=str(s.get("photos") or "auto"),
         )
     raise common.UserError(f"scene.kind must be model_folder or synthetic, got {s.kind!r}")
 

@@ -79,6 +79,7 @@ class BenchScene:
     scene_centre: Optional[np.ndarray] = None
     no_start_queries: List[BenchQuery] = field(default_factory=list)  # views for no-start runs
     model_side: Optional[int] = None  # longer side of the images the model was fitted on
+    photos: Optional[List[Any]] = None  # the photos the model was fitted from (anchors)
     _localizers: Dict[Any, Any] = field(default_factory=dict)
 
     def localizer(self, matcher, method, backend: str = "auto", cache_dir=False) -> Localizer:
@@ -91,7 +92,8 @@ class BenchScene:
         if key not in self._localizers:
             self._localizers[key] = Localizer(
                 self.model, matcher, method, cameras=self.cameras_c2w, backend=backend,
-                background=self.bg, model_side=self.model_side, cache_dir=cache_dir)
+                background=self.bg, model_side=self.model_side, cache_dir=cache_dir,
+                photos=self.photos)
         return self._localizers[key]
 
     def describe(self) -> Dict[str, Any]:
@@ -160,7 +162,7 @@ def load_model_folder_scene(
     model_path, dataset=None, num_queries: int = 5, split: str = "test",
     query_indices: Optional[Sequence[int]] = None, image_scale: Optional[float] = None,
     white_background: Optional[bool] = None, iteration: Optional[int] = None,
-    translation_unit: str = "world", no_start_queries: int = 0,
+    translation_unit: str = "world", no_start_queries: int = 0, photos: str = "none",
 ) -> BenchScene:
     """Model folder + the dataset's ``split`` views as queries.
 
@@ -179,7 +181,11 @@ def load_model_folder_scene(
         translation_unit: ``world`` or ``scene_radius`` (module docstring).
         no_start_queries: also load this many evenly spaced views for the runs without a start
             pose (they have nothing random to vary, so each run takes another view).
+        photos: ``auto``: the split's training views (the photos the model was fitted from)
+            anchor the default method; ``none``: renders only.
     """
+    if photos not in ("auto", "none"):
+        raise ValueError(f"photos must be auto or none, got {photos!r}")
     from ..io.datasets import detect_dataset_kind, read_dataset
     from ..io.model_folder import load_model_folder
     from ..pose.convert import same_pose
@@ -260,6 +266,7 @@ def load_model_folder_scene(
         scene_centre=centre,
         no_start_queries=extra,
         model_side=mf.training_side(),
+        photos=list(sd.train) if photos == "auto" and split_of_views != "train" else None,
         info={
             "kind": "model_folder",
             "model_path": str(mp),
