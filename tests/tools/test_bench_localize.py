@@ -1,17 +1,20 @@
 """tools/bench_localize.py on a small demo scene.
 
-It runs both methods and both render paths, writes its JSON and markdown, the two render paths
-end on the same poses, bad input is one line.
+It runs both methods through the scene's Localizer, writes its JSON and markdown, records the same
+pose as a one-off ``localize()`` call from the same start, records a run that raises, and bad input
+is one line.
 """
 
 from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
+import torch
 
 
-def test_both_methods_and_render_paths(small_demo, tmp_path, capsys):
+def test_both_methods(small_demo, tmp_path, capsys):
     from tools.bench_localize import STAGES, main
 
     out = tmp_path / "bench"
@@ -31,8 +34,6 @@ def test_both_methods_and_render_paths(small_demo, tmp_path, capsys):
             "1",
             "--paper-max-iterations",
             "3",
-            "--render-path",
-            "both",
             "--render-repeats",
             "1",
             "--threads",
@@ -43,33 +44,61 @@ def test_both_methods_and_render_paths(small_demo, tmp_path, capsys):
     )
     assert rc == 0
     res = json.loads((out / "results.json").read_text())
-    runs = {(r["method"], r["render_path"], r["start"]) for r in res["records"]}
-    assert runs == {
-        (m, p, k)
-        for m, n in (("robust", 2), ("icomma", 1))
-        for p in ("plain", "prepared")
-        for k in range(n)
-    }
+    runs = {(r["method"], r["start"]) for r in res["records"]}
+    assert runs == {(m, k) for m, n in (("robust", 2), ("icomma", 1)) for k in range(n)}
     for r in res["records"]:
         assert set(r["stage_seconds"]) == set(STAGES) == set(r["stage_cpu_seconds"])
-        assert r["wall_s"] > 0 and r["final_rot_deg"] is not None
+        assert r["wall_s"] > 0 and r["rot_err_deg"] is not None and r["trans_err"] is not None
+        assert r["status"] in ("ok", "uncertain", "failed") and r["error"] is None
+        c2w = np.asarray(r["c2w"])
+        assert c2w.shape == (4, 4) and np.allclose(c2w[:3, :3] @ c2w[:3, :3].T, np.eye(3))
+        assert "render_path" not in r
     icomma = [r for r in res["records"] if r["method"] == "icomma"]
     assert all(r["iterations"] <= 3 for r in icomma)
-    # The prepared render path renders the same bits: every localization ends on the same pose.
-    by_path = {q["what"]: q for q in res["ratios"]}
-    for method in ("robust", "icomma"):
-        assert by_path[f"plain / prepared ({method})"]["max_pose_diff"] == 0.0
-    assert "paper / default (prepared)" in by_path
+    by_what = {q["what"]: q for q in res["ratios"]}
+    assert set(by_what) == {"paper / default"} and by_what["paper / default"]["paired_n"] == 1
     assert set(res["render_timings"]["demo"]) >= {
-        "plain/fwd",
         "prepared/fwd",
-        "plain/fwd+bwd",
+        "kernel/fwd",
         "prepared/fwd+bwd",
+        "kernel/fwd+bwd",
     }
     assert res["machine"]["torch_threads"] == 1 and len(res["load_before"]) == 3
     md = (out / "results.md").read_text()
-    assert "Breakdown by stage (CPU seconds" in md and "plain / prepared (robust)" in md
+    assert "Breakdown by stage (CPU seconds" in md and "paper / default" in md
     assert md in capsys.readouterr().out
+
+
+def test_a_record_is_the_pose_localize_gives_from_the_same_start(small_demo, tmp_path):
+    """bench_localize localizes as the library's one-off ``localize()`` does (no monkeypatching).
+
+    The same start, seed, cameras, background and training side give the same pose, bit for bit.
+    """
+    from icomma_plugin.localize import RobustConfig, localize
+    from icomma_plugin.matchers import make_matcher
+    from tools.bench_localize import build_parser, load_scene, main, sample_starts
+
+    out = tmp_path / "bench"
+    argv = ["--scenes", "demo", "--demo-path", str(small_demo), "--demo-size", "64",
+            "--methods", "robust", "--starts", "1", "--threads", "1", "--out", str(out)]
+    assert main(argv) == 0
+    rec = json.loads((out / "results.json").read_text())["records"][0]
+    args = build_parser().parse_args(argv)
+    scene = load_scene("demo", args)
+    st = sample_starts(scene, 1, args.seed, args.rot, args.trans)[0]
+    assert rec["seed"] == list(st.seed) and rec["init_rot_err_deg"] == pytest.approx(st.rot_deg)
+    torch.manual_seed(int(np.random.SeedSequence(list(st.seed)).generate_state(1)[0]))
+    threads_before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        res = localize(scene.model, st.query.query, matcher=make_matcher(args.matcher),
+                       config=RobustConfig(), init_c2w=st.init_c2w, gt_c2w=st.query.gt_c2w,
+                       cameras=scene.cameras_c2w, background=scene.bg,
+                       model_side=scene.model_side, cache_dir=False)
+    finally:
+        torch.set_num_threads(threads_before)
+    assert np.array_equal(np.asarray(rec["c2w"]), res.c2w)
+    assert rec["status"] == res.verdict.status and rec["iterations"] == res.iterations
 
 
 def test_bad_input_is_one_line(tmp_path, capsys):
@@ -82,17 +111,17 @@ def test_bad_input_is_one_line(tmp_path, capsys):
 
 
 def test_cpu_stages_add_up_and_a_raising_run_is_recorded(small_demo, tmp_path, monkeypatch):
-    import icomma_plugin.localize as loc
+    from icomma_plugin.localization.localizer import Localizer
     from tools.bench_localize import STAGES, main
 
-    real = loc.localize
+    real = Localizer.localize
 
-    def flaky(*a, **kw):  # the paper's method raises (as a matcher check can mid-run)
-        if type(a[5]).__name__ == "LocalizerConfig":
+    def flaky(self, *a, **kw):  # the paper's method raises (as a matcher check can mid-run)
+        if type(self.method).__name__ == "LocalizerConfig":
             raise ValueError("image0 must hold values in [0, 1]")
-        return real(*a, **kw)
+        return real(self, *a, **kw)
 
-    monkeypatch.setattr(loc, "localize", flaky)
+    monkeypatch.setattr(Localizer, "localize", flaky)
     out = tmp_path / "bench"
     rc = main(["--scenes", "demo", "--demo-path", str(small_demo), "--demo-size", "64",
                "--starts", "1", "--paper-starts", "1", "--threads", "1", "--out", str(out)])
@@ -115,8 +144,8 @@ def test_cpu_stages_add_up_and_a_raising_run_is_recorded(small_demo, tmp_path, m
 def test_markdown_rows_match_the_header():
     from tools.bench_localize import STAGES, markdown
 
-    row = {"scene": "demo", "method": "robust", "render_path": "prepared", "n": 4, "errors": 1,
-           "wall_s": 2.5, "cpu_s": 1.5, "final_rot_deg": 0.01, "final_trans": 0.001,
+    row = {"scene": "demo", "method": "robust", "n": 4, "errors": 1,
+           "wall_s": 2.5, "cpu_s": 1.5, "rot_err_deg": 0.01, "trans_err": 0.001,
            "success": 0.75, "ok": 0.5, "iterations": 7.0,
            "stages": {k: 0.1 for k in STAGES}, "stages_cpu": {k: 0.2 for k in STAGES}}
     md = markdown({"machine": {"torch_threads": 1, "cores": 2, "cpu": "x", "torch": "t",
@@ -132,3 +161,4 @@ def test_markdown_rows_match_the_header():
     got = dict(zip(header, cells))
     assert (got["n"], got["errors"], got["wall s"], got["CPU s"]) == ("4", "1", "2.50", "1.50")
     assert (got["success"], got["verdict ok"], got["iterations"]) == ("75 %", "50 %", "7")
+    assert (got["final rot deg"], got["final trans"]) == ("0.010", "0.0010")
