@@ -300,7 +300,8 @@ def _run_sequence(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, An
                               f"{data['sequence']}")
     return {"kind": "sequence", "done_now": summ.done_now, "skipped": summ.skipped,
             "frames_per_second": summ.frames_per_second, "seconds": summ.seconds,
-            "relocalized": summ.relocalized, "files": files, "rows": rows}
+            "relocalized": summ.relocalized, "fast_ok": summ.fast_ok, "files": files,
+            "rows": rows}
 
 
 def many_summary(doc: Dict[str, Any]) -> str:

@@ -13,11 +13,14 @@ the first frame it had not finished, with the same predictions.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import queue
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, Iterable, Iterator, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -39,6 +42,7 @@ __all__ = [
     "TrackingSummary",
     "first_frame_start",
     "predict_c2w",
+    "prefetched",
     "sequence_pictures",
     "sequence_truths",
     "track",
@@ -55,10 +59,52 @@ class TrackingConfig:
     Attributes:
         velocity: predict with constant velocity (else start from the previous pose).
         relocalize: a failed frame is localized again from the candidate views.
+        fast: tracking mode: from the prediction, first a cheap localization (``fast_rounds``
+            geometric rounds that stop at a step below ``fast_stop_deg``, ``fast_refine``
+            refinement steps, matching at ``fast_scale`` of the working resolution, no candidate
+            search); the full method only when its verdict is not ``ok``.
+        prefetch: frames decoded ahead in a second thread (0: none).
     """
 
     velocity: bool = True
     relocalize: bool = True
+    fast: bool = True
+    fast_rounds: int = 3
+    fast_stop_deg: float = 0.25
+    fast_refine: int = 0
+    fast_scale: float = 1.0
+    prefetch: int = 4
+
+    def __post_init__(self):
+        from ..checks import check_bool, check_int, check_real
+
+        for name in ("velocity", "relocalize", "fast"):
+            check_bool(getattr(self, name), f"tracking.{name}")
+        check_int(self.fast_rounds, "tracking.fast_rounds", 1)
+        check_real(self.fast_stop_deg, "tracking.fast_stop_deg", 0.0, lo_open=True)
+        check_int(self.fast_refine, "tracking.fast_refine", 0)
+        check_real(self.fast_scale, "tracking.fast_scale", 0.0, 1.0, lo_open=True)
+        check_int(self.prefetch, "tracking.prefetch", 0)
+
+    def fast_method(self, method, side: int):
+        """The cheap config of the default ``method`` for the tracking mode (None: not used).
+
+        ``side``: the longer side of the full method's working resolution [px].
+        """
+        from ..localization.robust import RobustConfig
+
+        if not self.fast or not isinstance(method, RobustConfig):
+            return None
+        return dataclasses.replace(
+            method,
+            work_side=max(16, int(round(side * self.fast_scale))),
+            use_candidates=False,
+            geometric=dataclasses.replace(method.geometric, max_rounds=self.fast_rounds,
+                                          stop_rot_deg=self.fast_stop_deg,
+                                          stop_trans_rel=self.fast_stop_deg * 0.02),
+            refine=dataclasses.replace(method.refine, scales=(1.0,), blur=(0.0,),
+                                       iterations=(self.fast_refine,)),
+        )
 
 
 def predict_c2w(
@@ -176,11 +222,54 @@ class TrackingSummary:
     seconds: float
     relocalized: int
     rows: List[Dict[str, Any]] = field(default_factory=list)
+    fast_ok: int = 0  # frames the tracking mode's cheap localization settled alone
 
     @property
     def frames_per_second(self) -> Optional[float]:
         """Frames tracked per second of this call; None when it tracked none."""
         return None if self.done_now == 0 or self.seconds <= 0 else self.done_now / self.seconds
+
+
+def prefetched(frames: Iterable, ahead: int) -> Iterator:
+    """``frames``, decoded up to ``ahead`` items in advance in a second thread (0: as they are).
+
+    Decoding (OpenCV, PIL) runs outside the GIL, beside the localization of the previous frame.
+    An error of the reader is raised where the frame would have been.
+    """
+    if ahead <= 0:
+        yield from frames
+        return
+    q: "queue.Queue" = queue.Queue(maxsize=ahead)
+    done = object()
+    stop = threading.Event()
+
+    def read():
+        try:
+            for item in frames:
+                while not stop.is_set():
+                    try:
+                        q.put(("item", item), timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            q.put(("end", done))
+        except BaseException as e:  # noqa: BLE001 - handed to the consumer
+            q.put(("error", e))
+
+    t = threading.Thread(target=read, name="frame-prefetch", daemon=True)
+    t.start()
+    try:
+        while True:
+            kind, item = q.get()
+            if kind == "end":
+                return
+            if kind == "error":
+                raise item
+            yield item
+    finally:
+        stop.set()
 
 
 def _query(rgb: np.ndarray, intr: Intrinsics, name: str, resize: Optional[int]) -> Query:
@@ -203,11 +292,23 @@ class _Tracker:
             if r.get("status") != "failed" and r.get("c2w") is not None
         ]
         self.relocalized = 0
+        self.fast_ok = 0
 
     def _localize(self, problem, start: Optional[np.ndarray]):
-        """The frame's result from ``start``; a failed one relocalized from the candidates."""
+        """The frame's result from ``start``; a failed one relocalized from the candidates.
+
+        In the tracking mode a cheap localization first; the full one when it is not ``ok``.
+        """
         worker = self.worker
-        result = worker.localize(problem, start)
+        result = None
+        loc = worker.localizer
+        side = loc.method.work_side or loc.model_side or max(problem.query.size)
+        fast = self.cfg.fast_method(loc.method, min(side, max(problem.query.size)))
+        if fast is not None and start is not None:
+            result = loc.localize(problem.query, start, problem.gt_c2w, method=fast)
+            self.fast_ok += result.verdict.status == "ok"
+        if result is None or result.verdict.status != "ok":
+            result = worker.localize(problem, start)
         if (result.verdict.status == "failed" and start is not None and self.cfg.relocalize
                 and not worker.localizer.method.needs_start):
             again = worker.localize(problem, None)
@@ -274,7 +375,7 @@ def track(
     if progress is not None:
         progress({"row": None, "counts": ledger.counts(), "done": 0, "skipped": len(tracker.done),
                   "todo": None if total is None else max(0, total - len(tracker.done))})
-    for index, name, rgb in source:
+    for index, name, rgb in prefetched(source, tracker.cfg.prefetch):
         if name in tracker.done:
             skipped += 1
             continue
@@ -285,7 +386,7 @@ def track(
             progress({"row": row, "counts": ledger.counts(), "done": len(rows), "todo": total})
     ledger.flush()
     return TrackingSummary(ledger.counts(), len(rows), skipped, time.perf_counter() - t0,
-                           tracker.relocalized, rows)
+                           tracker.relocalized, rows, tracker.fast_ok)
 
 
 def write_tracking_video(

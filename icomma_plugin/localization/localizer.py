@@ -137,6 +137,7 @@ class Localizer:
         if not isinstance(self.method, (RobustConfig, LocalizerConfig)):
             raise ValueError("method must be a RobustConfig or a LocalizerConfig, got "
                              f"{type(self.method).__name__}")
+        self._verdict = verdict
         if verdict is not None:
             if not isinstance(verdict, VerdictConfig):
                 raise ValueError(f"verdict must be a VerdictConfig, got {type(verdict).__name__}")
@@ -197,7 +198,8 @@ class Localizer:
 
     # ------------------------------------------------------------------ localize
     def localize(self, query: Query, init_c2w=None, gt_c2w=None,
-                 progress: Optional[Callable[[TraceRecord], Any]] = None) -> LocalizationResult:
+                 progress: Optional[Callable[[TraceRecord], Any]] = None,
+                 method: Optional[Method] = None) -> LocalizationResult:
         """Estimate the pose of ``query``.
 
         Args:
@@ -207,13 +209,15 @@ class Localizer:
             gt_c2w: the true pose, when known: used ONLY to report errors and to leave the
                 query's own camera out of the candidates.
             progress: called with each trace record as it is made.
+            method: another config of a method for this query only (e.g. tracking's cheaper
+                one), sharing this localizer's model, candidate index and verdict.
 
         Raises:
             ValueError: a bad query or pose (naming it), or no start for the paper's method.
         """
         if not isinstance(query, Query):
             raise ValueError(f"query must be a Query, got {type(query).__name__}")
-        cfg = self.method.at_model_side(query.intrinsics, self.model_side)
+        cfg = self._method(method).at_model_side(query.intrinsics, self.model_side)
         init_w2c = None if init_c2w is None else np.linalg.inv(as_rigid(init_c2w, "init_c2w"))
         gt = None if gt_c2w is None else as_rigid(gt_c2w, "gt_c2w")
         if init_w2c is None and cfg.needs_start:
@@ -244,6 +248,20 @@ class Localizer:
             details=out.details, trace=state.trace,
             config=cfg.to_dict(),
         )
+
+    def _method(self, method: Optional[Method]) -> Method:
+        """``method`` (checked, with this localizer's verdict), or the localizer's own."""
+        if method is None:
+            return self.method
+        if not isinstance(method, (RobustConfig, LocalizerConfig)):
+            raise ValueError("method must be a RobustConfig or a LocalizerConfig, got "
+                             f"{type(method).__name__}")
+        problem = method.needs(self.matcher)
+        if problem:
+            raise ValueError(problem)
+        if self._verdict is not None:
+            method = dataclasses.replace(method, verdict=self._verdict)
+        return method
 
     def own_cameras(self, gt_c2w: Optional[np.ndarray], name: Optional[str] = None
                     ) -> List[str]:

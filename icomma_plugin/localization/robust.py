@@ -319,13 +319,15 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
         "refine_iterations": ref.iterations,
         "refine_loss": [ref.loss_start, ref.loss_end],
     }
-    # A rolled-back pose counts as still: the geometric stage had stopped on it.
-    verdict = decide(score, cfg.verdict, converged=ref.converged or not keep, extra=extra)
+    # Whether the pose stopped moving is said by the last stage that moved it: the refinement, or
+    # the geometric stage when the refinement took no step or was rolled back.
+    converged = (ref.converged if ref.iterations > 0 else best.converged) or not keep
+    verdict = decide(score, cfg.verdict, converged=converged, extra=extra)
     if search.empty_start:
         verdict.reason += (
             "; note: the render at the start pose was empty (relocalized from candidate views)"
         )
-    stop = "rolled_back" if not keep else ("converged" if ref.converged else "max_iterations")
+    stop = "rolled_back" if not keep else ("converged" if converged else "max_iterations")
     details = {"hypotheses": search.summaries(), "rival": search.rival, "rolled_back": not keep,
                "refine_iterations": ref.iterations, "refine_loss": [ref.loss_start, ref.loss_end],
                "start_render_empty": search.empty_start}
