@@ -2,26 +2,29 @@
 r"""Fit a 3DGS model to a posed image set on CPU (gaussian_renderer_pose) and write a model folder.
 
     python tools/fit_scene.py -s ../shared/data/nerf_synthetic/lego_400 -m OUT/lego_200 -r 2
-    python tools/fit_scene.py -s ../shared/data/fox -m OUT/fox_270 -r 4 --iterations 4000
+    python tools/fit_scene.py -s ../shared/data/fox -m OUT/fox_270 -r 4 --threads 2
     python tools/fit_scene.py -s DATA -m OUT --iterations 3000 --eval-views 25 --eval-interval 1000
     python tools/fit_scene.py -s DATA -m OUT --set densify_grad_threshold=1e-4 \
         --set max_gaussians=80000
-    python tools/fit_scene.py -m OUT/fox_270 --evaluate     # train / test PSNR of a model folder
+    python tools/fit_scene.py -m OUT/fox_270 --evaluate     # PSNRs + OUT/fox_270/eval_test_grid.png
 
 Input: any folder `icomma_plugin.io.datasets.read_dataset` reads (COLMAP, Blender, instant-ngp /
 nerfstudio transforms.json, LLFF). Distorted photos are undistorted and the pixels that fall
 outside the photo are left out of the losses and of PSNR (validity masks). A capture without a
-point cloud (transforms.json) starts from a plane sweep over its training views.
+point cloud starts from a plane sweep over its training views (fit.init.initial_points).
 
 Output (upstream 3DGS layout, loadable by icomma_plugin.io.model_folder.load_model_folder and by
 upstream render.py): cfg_args, cameras.json, input.ply, point_cloud/iteration_N/point_cloud.ply,
 plus metrics.json (train and test PSNR on valid pixels, iterations, Gaussian count, wall and CPU
 seconds, resolution). An existing model folder is replaced only with --overwrite.
 
-Schedule: by default the densification / opacity-reset / SH schedule is scaled to --iterations
-(FitConfig.scaled_schedule): densify from 4 % to 50 % of the run every 2 %, opacity reset every
-30 %, SH degree +1 every 10 %; learning rates are upstream's. Any FitConfig field can be set with
---set name=value. The recipe, its comparison with upstream and measurements: docs/FITTING.md.
+Schedule (--recipe capture, the default): FitConfig.for_capture: the iterations from the photo
+count and size unless --iterations is given, the densification / opacity-reset / SH schedule
+scaled to them (densify from 4 % to 50 % of the run every 2 %, opacity reset every 30 %, SH
+degree +1 every 10 %; upstream's learning rates), and, for photographed captures, coarse-to-fine
+and bounded initial scales. Photographed captures also get a far-field shell and per-photo
+exposure (exposure.json). Any FitConfig field can be set with --set name=value. The recipe, its
+comparison with upstream and measurements: docs/FITTING.md.
 """
 from __future__ import annotations
 
@@ -68,7 +71,22 @@ def parse_args(argv=None) -> argparse.Namespace:
         "$ICOMMA_SHARED_DATA/nerf_synthetic/lego_400",
     )
     p.add_argument("-m", "--model", required=True, help="model folder to write")
-    p.add_argument("--iterations", type=int, default=5000)
+    p.add_argument(
+        "--iterations",
+        type=int,
+        default=None,
+        help="steps (default: FitConfig.for_capture's count from the photo count and size; "
+        "with --recipe scaled, 5000)",
+    )
+    p.add_argument(
+        "--recipe",
+        choices=["capture", "scaled"],
+        default="capture",
+        help="capture (default): FitConfig.for_capture, what a photographed capture needs "
+        "(object renders such as NeRF-synthetic get the scaled schedule alone); scaled: the "
+        "schedule scaled to --iterations only (the fitter before issue 18, plus its new "
+        "defaults: far field, exposure; see docs/FITTING.md)",
+    )
     g = p.add_mutually_exclusive_group()
     g.add_argument(
         "-r",
@@ -143,8 +161,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def build_config(args: argparse.Namespace) -> FitConfig:
-    """The FitConfig of the command line: the scaled schedule plus the flags and ``--set``s.
+def build_config(args: argparse.Namespace, capture=None) -> FitConfig:
+    """The FitConfig of the command line: the recipe plus the flags and ``--set``s.
+
+    Args:
+        args: the parsed command line.
+        capture: `icomma_plugin.fit.scene.CaptureInfo` of the dataset (for --recipe capture);
+            None: the scaled schedule of --iterations (default 5000).
 
     Raises:
         ValueError: a ``--set`` that is not FIELD=VALUE or names no FitConfig field.
@@ -172,7 +195,10 @@ def build_config(args: argparse.Namespace) -> FitConfig:
             over[k] = ast.literal_eval(v)
         except (ValueError, SyntaxError):
             over[k] = v
-    return FitConfig.scaled_schedule(args.iterations, **over)
+    if args.recipe == "capture" and capture is not None:
+        return FitConfig.for_capture(capture.train_views, capture.width, capture.height,
+                                     capture.object_render, args.iterations, **over)
+    return FitConfig.scaled_schedule(args.iterations or 5000, **over)
 
 
 def evaluate(args: argparse.Namespace) -> int:
@@ -209,7 +235,13 @@ def main(argv=None) -> int:
         return evaluate(args)
     source = args.source or default_data_root() / "nerf_synthetic" / "lego_400"
     try:
-        config = build_config(args)
+        capture = None
+        if args.recipe == "capture":
+            from icomma_plugin.fit.scene import describe_capture
+
+            capture = describe_capture(source, None if args.downscale else args.resolution,
+                                       args.downscale, args.white_background)
+        config = build_config(args, capture)
     except ValueError as e:
         log.error("%s", e)
         return 2
@@ -219,6 +251,8 @@ def main(argv=None) -> int:
         from tqdm import tqdm
 
         bar = tqdm(total=config.iterations, dynamic_ncols=True, mininterval=1.0)
+    log.info("recipe %s: %d iterations, coarse-to-fine %s, initial scales <= %s rad",
+             args.recipe, config.iterations, list(config.coarse_to_fine), config.init_max_angle)
     t_start = time.perf_counter()
 
     def progress(it, total, info):
@@ -264,8 +298,10 @@ def main(argv=None) -> int:
     if bar is not None:
         bar.close()
     m = res.metrics
-    keys = ("test_psnr", "train_psnr", "test_views", "iterations", "num_gaussians", "seconds_train",
-            "seconds_cpu", "seconds_total", "resolution", "backend", "threads")
+    keys = ("test_psnr", "train_psnr", "test_psnr_right_half", "test_psnr_right_half_exposure",
+            "train_psnr_exposure", "test_views", "iterations", "num_gaussians", "seconds_train",
+            "seconds_cpu", "seconds_per_step", "seconds_total", "resolution", "backend",
+            "threads")
     summary = {k: m[k] for k in keys}
     summary["model_path"] = str(res.model_path)
     summary["wall_seconds"] = round(time.perf_counter() - t0, 1)

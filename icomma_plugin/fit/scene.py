@@ -175,8 +175,8 @@ def _staging_path(final: Path) -> Path:
     return final.parent / f".{final.name}.partial"
 
 
-def _check_paths(source_path: PathLike, model_path: PathLike, overwrite: bool):
-    """(dataset folder, model folder) resolved; ValueError naming the bad argument."""
+def _check_source(source_path: PathLike) -> Path:
+    """The dataset folder, resolved; ValueError naming the argument when it is not a folder."""
     if source_path is None or str(source_path) == "":
         raise ValueError("source_path must be a dataset folder, got an empty value")
     src = Path(source_path).expanduser().resolve()
@@ -185,6 +185,12 @@ def _check_paths(source_path: PathLike, model_path: PathLike, overwrite: bool):
             f"source_path must be an existing dataset folder, got {str(source_path)!r} "
             f"({'not a folder' if src.exists() else 'does not exist'})"
         )
+    return src
+
+
+def _check_paths(source_path: PathLike, model_path: PathLike, overwrite: bool):
+    """(dataset folder, model folder) resolved; ValueError naming the bad argument."""
+    src = _check_source(source_path)
     if model_path is None or str(model_path) == "":
         raise ValueError("model_path must be a folder path, got an empty value")
     final = Path(model_path).expanduser().resolve()
@@ -209,6 +215,30 @@ def _read_scene(src: Path, white_background: Optional[bool], dataset_kwargs: Opt
     if not scene.train:
         raise ValueError(f"source_path {str(src)!r}: the dataset has no training views")
     return scene
+
+
+@dataclass
+class CaptureInfo:
+    """What the recipe of a fit depends on (`describe_capture`)."""
+
+    train_views: int
+    width: int
+    height: int
+    object_render: bool
+
+
+def describe_capture(source_path: PathLike, resolution: Optional[int] = -1,
+                     downscale: Optional[float] = None,
+                     white_background: Optional[bool] = None) -> CaptureInfo:
+    """Training-view count, fitted image size and kind of a dataset, for the recipe.
+
+    Reads the dataset's files (not its images) as `fit_scene` does; the result feeds
+    `FitConfig.for_capture`.
+    """
+    scene = _read_scene(_check_source(source_path), white_background, None)
+    intr = scene.train[0].intrinsics
+    small = intr.scaled(resolution_scale(resolution, downscale, intr.width))
+    return CaptureInfo(len(scene.train), small.width, small.height, is_object_render(scene))
 
 
 def fit_scene(
