@@ -308,27 +308,6 @@ def start_poses(
     return "per_photo", out, errs
 
 
-def _truths(gt_cfg, names: Sequence[str], views) -> List[Optional[np.ndarray]]:
-    g = gt_cfg or {}
-    for k in ("camera", "c2w_file"):
-        if g.get(k) is not None:
-            raise ProblemError(
-                f"data.gt.{k} is one pose for one photo; for a batch use data.gt.poses_file "
-                "or data.gt.cameras_json (poses by name)"
-            )
-    table: Optional[PoseTable] = None
-    for k in ("poses_file", "cameras_json"):
-        if g.get(k) is not None:
-            table = read_poses_file(g[k], f"data.gt.{k}")
-    out = []
-    for i, name in enumerate(names):
-        gt = table.get(name) if table is not None else None
-        if gt is None and views is not None:
-            gt = np.asarray(views[i].c2w, np.float64)
-        out.append(gt)
-    return out
-
-
 def truths(gt_cfg, names: Sequence[str], views) -> List[Optional[np.ndarray]]:
     """The true pose of each photo (``data.gt``, else the dataset view's), or None."""
     g = gt_cfg or {}

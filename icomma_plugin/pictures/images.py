@@ -2,20 +2,17 @@
 from __future__ import annotations
 
 import logging
-import os
 from pathlib import Path
-from typing import List, Union
+from typing import List
 
 import numpy as np
 import torch
 
 from ..io.atomic import atomic_path
-from ..io.video import to_uint8
+from ..io.video import ImageLike, PathLike, to_uint8
 
 logger = logging.getLogger(__name__)
 
-PathLike = Union[str, os.PathLike]
-ImageLike = Union[torch.Tensor, np.ndarray]
 
 __all__ = [
     "VERDICT_COLOURS",

@@ -3,20 +3,17 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 from pathlib import Path
-from typing import Any, Dict, Optional, Sequence, Union
+from typing import Any, Dict, Optional, Sequence
 
 import numpy as np
-import torch
 
 from ..io.atomic import atomic_path
+from ..io.video import PathLike
 from .images import VERDICT_COLOURS
 
 logger = logging.getLogger(__name__)
 
-PathLike = Union[str, os.PathLike]
-ImageLike = Union[torch.Tensor, np.ndarray]
 
 __all__ = ["plot_convergence", "plot_curves_vs_paper", "plot_trajectory", "save_figure"]
 
@@ -130,17 +127,24 @@ def plot_trajectory(
     gt_c2w: Optional[Sequence[Optional[np.ndarray]]] = None,
     statuses: Optional[Sequence[str]] = None,
     title: Optional[str] = None,
+    flagged: Optional[Sequence[bool]] = None,
+    labels: Optional[Dict[str, str]] = None,
 ) -> Path:
     """The estimated camera path (coloured by verdict) over the scene's cameras.
 
     The cameras are grey, with their viewing directions; shown in 3D and seen from above (the
     plane of the two widest axes); the true path dashed when known. Written to ``path`` (PNG).
+    ``flagged`` (one bool per estimated pose, e.g. an audit's flagged cameras): those poses are
+    ringed in magenta, joined to their ``gt_c2w`` (same order) by a magenta line when it is given.
+    ``labels`` renames the legend's ``estimated``, ``truth`` and ``cameras`` entries.
     """
     import matplotlib
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
+    names = {"estimated": "estimated path", "truth": "true path", "cameras": "scene cameras",
+             **(labels or {})}
     est = [None if c is None else np.asarray(c, np.float64) for c in est_c2w]
     pts = np.array([c[:3, 3] for c in est if c is not None]).reshape(-1, 3)
     cams = np.array([np.asarray(c)[:3, 3] for c in cameras_c2w]).reshape(-1, 3)
@@ -157,19 +161,19 @@ def plot_trajectory(
     a3 = fig.add_subplot(1, 2, 1, projection="3d")
     a2 = fig.add_subplot(1, 2, 2)
     if len(cams):
-        a3.scatter(cams[:, 0], cams[:, 1], cams[:, 2], s=8, c="0.6", label="scene cameras")
-        a2.scatter(cams[:, ax_a], cams[:, ax_b], s=8, c="0.6", label="scene cameras")
+        a3.scatter(cams[:, 0], cams[:, 1], cams[:, 2], s=8, c="0.6", label=names["cameras"])
+        a2.scatter(cams[:, ax_a], cams[:, ax_b], s=8, c="0.6", label=names["cameras"])
         for c in cameras_c2w:
             c = np.asarray(c)
             p, d = c[:3, 3], c[:3, 2] * scale
             a3.plot([p[0], p[0] + d[0]], [p[1], p[1] + d[1]], [p[2], p[2] + d[2]], c="0.7", lw=0.6)
             a2.plot([p[ax_a], p[ax_a] + d[ax_a]], [p[ax_b], p[ax_b] + d[ax_b]], c="0.7", lw=0.6)
     if gts is not None and len(gts):
-        a3.plot(gts[:, 0], gts[:, 1], gts[:, 2], "k--", lw=1, label="true path")
-        a2.plot(gts[:, ax_a], gts[:, ax_b], "k--", lw=1, label="true path")
+        a3.plot(gts[:, 0], gts[:, 1], gts[:, 2], "k--", lw=1, label=names["truth"])
+        a2.plot(gts[:, ax_a], gts[:, ax_b], "k--", lw=1, label=names["truth"])
     if len(pts):
-        a3.plot(pts[:, 0], pts[:, 1], pts[:, 2], "-", c="C0", lw=1.2, label="estimated path")
-        a2.plot(pts[:, ax_a], pts[:, ax_b], "-", c="C0", lw=1.2, label="estimated path")
+        a3.plot(pts[:, 0], pts[:, 1], pts[:, 2], "-", c="C0", lw=1.2, label=names["estimated"])
+        a2.plot(pts[:, ax_a], pts[:, ax_b], "-", c="C0", lw=1.2, label=names["estimated"])
         st = [s for c, s in zip(est, statuses or ["ok"] * len(est)) if c is not None]
         cols = [np.asarray(VERDICT_COLOURS.get(s, (128, 128, 128))) / 255.0 for s in st]
         a3.scatter(pts[:, 0], pts[:, 1], pts[:, 2], s=10, c=cols)
@@ -178,7 +182,9 @@ def plot_trajectory(
             if c is not None:
                 d = c[:3, 2] * scale * 1.5
                 a2.arrow(c[ax_a, 3], c[ax_b, 3], d[ax_a], d[ax_b], color="C0", width=scale * 0.05)
-    names = "xyz"
+    if flagged is not None:
+        _mark_flagged(a3, a2, (ax_a, ax_b), est, gt_c2w, flagged)
+    axis_names = "xyz"
     mid, half = 0.5 * (allp.max(0) + allp.min(0)), 0.55 * float(max(span.max(), 1e-6))
     a3.set_xlim(mid[0] - half, mid[0] + half)  # equal axes: a circle stays a circle
     a3.set_ylim(mid[1] - half, mid[1] + half)
@@ -186,8 +192,8 @@ def plot_trajectory(
     a3.set_xlabel("x")
     a3.set_ylabel("y")
     a3.set_zlabel("z")
-    a2.set_xlabel(names[ax_a])
-    a2.set_ylabel(names[ax_b])
+    a2.set_xlabel(axis_names[ax_a])
+    a2.set_ylabel(axis_names[ax_b])
     a2.set_aspect("equal", adjustable="datalim")
     a2.grid(alpha=0.3)
     a2.legend(fontsize=7, loc="best")
@@ -199,6 +205,30 @@ def plot_trajectory(
         fig.suptitle(title, fontsize=9)
     return save_figure(fig, path)
 
+
+
+def _mark_flagged(a3, a2, axes2d, est, gt_c2w, flagged) -> None:
+    """Ring the flagged estimated centres in magenta; join each to its truth when known."""
+    if len(flagged) != len(est):
+        raise ValueError(f"flagged must have one bool per estimated pose ({len(est)}), got "
+                         f"{len(flagged)}")
+    ax_a, ax_b = axes2d
+    gts = list(gt_c2w) if gt_c2w is not None and len(gt_c2w) == len(est) else [None] * len(est)
+    first = True
+    for c, g, f in zip(est, gts, flagged):
+        if not f or c is None:
+            continue
+        p = c[:3, 3]
+        label = "flagged" if first else None
+        first = False
+        a3.scatter([p[0]], [p[1]], [p[2]], s=90, facecolors="none", edgecolors="m",
+                   linewidths=1.5, label=label)
+        a2.scatter([p[ax_a]], [p[ax_b]], s=90, facecolors="none", edgecolors="m",
+                   linewidths=1.5, label=label)
+        if g is not None:
+            q = np.asarray(g, np.float64)[:3, 3]
+            a3.plot([q[0], p[0]], [q[1], p[1]], [q[2], p[2]], "m-", lw=1.2)
+            a2.plot([q[ax_a], p[ax_a]], [q[ax_b], p[ax_b]], "m-", lw=1.2)
 
 
 def _paper_number(paper, interval: str, method: str, metric: str):

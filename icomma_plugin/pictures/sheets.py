@@ -2,22 +2,20 @@
 from __future__ import annotations
 
 import logging
-import os
 from pathlib import Path
-from typing import Any, Dict, Sequence, Union
+from typing import Any, Dict, Mapping, Optional, Sequence
 
 import numpy as np
 import torch
 
+from ..io.video import PathLike
 from ..pose.convert import invert_rigid
 from .images import VERDICT_COLOURS, save_image
 
 logger = logging.getLogger(__name__)
 
-PathLike = Union[str, os.PathLike]
-ImageLike = Union[torch.Tensor, np.ndarray]
 
-__all__ = ["contact_sheet", "save_thumbnail"]
+__all__ = ["FLAG_COLOUR", "contact_sheet", "save_thumbnail"]
 
 
 def save_thumbnail(
@@ -69,12 +67,15 @@ def contact_sheet(
     cell: int = 192,
     border: int = 5,
     max_photos: int = 400,
+    flags: Optional[Mapping[str, str]] = None,
 ) -> Path:
     """One picture of a batch: each photo's thumbnail framed in its verdict's colour.
 
     Thumbnails are ``row["thumb"]``, relative to ``base_dir``; colours :data:`VERDICT_COLOURS`;
     each cell has the photo's name and, when the truth is known, its errors. Photos without a
     thumbnail get a grey cell. Rows after ``max_photos`` are left out (the sheet says so).
+    ``flags`` (photo name -> a short word, e.g. an audit's flag): those cells get an inner
+    magenta frame (:data:`FLAG_COLOUR`) and the word; the title counts them.
     """
     from PIL import Image
 
@@ -89,9 +90,10 @@ def contact_sheet(
     header = 24
     canvas = np.full((header + nrows * pitch, cols * pitch, 3), 30, np.uint8)
     counts = {k: sum(1 for r in rows if r.get("status") == k) for k in VERDICT_COLOURS}
+    flags = dict(flags or {})
     title = "  ".join(f"{k} {v}" for k, v in counts.items()) + (
-        f"   (first {len(shown)} of {len(rows)})" if len(rows) > len(shown) else ""
-    )
+        f"   flagged {sum(1 for r in rows if str(r.get('name')) in flags)}" if flags else ""
+    ) + (f"   (first {len(shown)} of {len(rows)})" if len(rows) > len(shown) else "")
     _label(canvas, title, (6, 17), 0.5)
     base = Path(base_dir)
     for i, r in enumerate(shown):
@@ -122,5 +124,21 @@ def contact_sheet(
             t = r.get("trans_err_rel")
             line += f"  {err:.2f} deg" + ("" if t is None else f"  {100 * t:.2f}%")
         _label(canvas, line, (x0 + border + 3, y0 + border + cell - 6))
+        if name in flags:
+            _mark_flag(canvas, x0 + border, y0 + border, cell, str(flags[name]))
     return save_image(path, canvas)
+
+
+#: The inner frame of a flagged cell (magenta: no verdict colour).
+FLAG_COLOUR = (255, 0, 255)
+
+
+def _mark_flag(canvas: np.ndarray, x0: int, y0: int, cell: int, word: str) -> None:
+    """An inner magenta frame on the cell at (x0, y0) and ``FLAG <word>`` under its name."""
+    w = max(2, cell // 40)
+    canvas[y0 : y0 + w, x0 : x0 + cell] = FLAG_COLOUR
+    canvas[y0 + cell - w : y0 + cell, x0 : x0 + cell] = FLAG_COLOUR
+    canvas[y0 : y0 + cell, x0 : x0 + w] = FLAG_COLOUR
+    canvas[y0 : y0 + cell, x0 + cell - w : x0 + cell] = FLAG_COLOUR
+    _label(canvas, f"FLAG {word}"[:28], (x0 + w + 3, y0 + 30), colour=FLAG_COLOUR)
 
