@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import json
 import os
 import platform
 import statistics
@@ -452,6 +453,75 @@ def ratios(records: List[Dict[str, Any]], rows: List[Dict[str, Any]]) -> List[Di
     return out
 
 
+# ----------------------------------------------------------------------------------------------
+# Against other code (--compare-with)
+# ----------------------------------------------------------------------------------------------
+def run_reference(args, out: Path) -> Dict[str, Any]:
+    """Run ``args.compare_with``'s bench_localize on the same starts; its results.json.
+
+    In a subprocess with that checkout first on the path (its own native build), before this
+    code's run, on the same machine.
+    """
+    ref = Path(args.compare_with).expanduser().resolve()
+    script = ref / "tools" / "bench_localize.py"
+    if not script.is_file():
+        raise FileNotFoundError(f"--compare-with: no tools/bench_localize.py in {ref}")
+    cmd = [sys.executable, str(script), "--out", str(out)]
+    for name in ("scenes", "methods"):
+        cmd += [f"--{name}", ",".join(getattr(args, name))]
+    for name in ("starts", "paper_starts", "seed", "queries", "model", "matcher", "backend",
+                 "paper_max_iterations", "threads"):
+        if getattr(args, name) is not None:
+            cmd += [f"--{name.replace('_', '-')}", str(getattr(args, name))]
+    cmd += ["--rot", ",".join(map(str, args.rot)), "--trans", ",".join(map(str, args.trans))]
+    if args.dataset:
+        cmd += ["--dataset", str(args.dataset)]
+    env = dict(os.environ, PYTHONPATH=str(ref))
+    log(f"reference run: {' '.join(cmd)} (PYTHONPATH={ref})")
+    t = time.perf_counter()
+    subprocess.run(cmd, cwd=str(ref), env=env, check=True, stdout=subprocess.DEVNULL)
+    doc = json.loads((out / "results.json").read_text())
+    doc["path"], doc["seconds"] = str(ref), time.perf_counter() - t
+    return doc
+
+
+def _reference_c2w(rec: Dict[str, Any]) -> Optional[np.ndarray]:
+    """A reference record's estimate as c2w (older versions recorded w2c)."""
+    from icomma_plugin.pose.convert import invert_rigid
+
+    if rec.get("c2w") is not None:
+        return np.asarray(rec["c2w"], np.float64)
+    if rec.get("w2c") is not None:
+        return invert_rigid(np.asarray(rec["w2c"], np.float64))
+    return None
+
+
+def versus_reference(records, reference) -> List[Dict[str, Any]]:
+    """Per scene x method: this code / the reference, paired by start, and pose differences."""
+    out = []
+    ref = {(r["scene"], r["method"], r["start"]): r for r in reference
+           if not r.get("error") and r.get("render_path", "prepared") == "prepared"}
+    keys = sorted({(r["scene"], r["method"]) for r in records})
+    for scene, method in keys:
+        pairs = [(r, ref[(scene, method, r["start"])]) for r in records
+                 if (r["scene"], r["method"]) == (scene, method) and not r.get("error")
+                 and (scene, method, r["start"]) in ref]
+        if not pairs:
+            continue
+        diffs = [float(np.abs(np.asarray(a["c2w"]) - _reference_c2w(b)).max()) for a, b in pairs]
+        same_verdict = sum(a["status"] == b.get("status", b.get("verdict")) for a, b in pairs)
+        out.append({
+            "scene": scene, "method": method, "n": len(pairs),
+            "wall": _median(a["wall_s"] / b["wall_s"] for a, b in pairs if b["wall_s"] > 0),
+            "cpu": _median(a["cpu_s"] / b["cpu_s"] for a, b in pairs if b["cpu_s"] > 0),
+            "max_pose_diff": max(diffs), "identical_poses": sum(d == 0.0 for d in diffs),
+            "same_verdict": same_verdict,
+            "reference_wall_s": _median(b["wall_s"] for _, b in pairs),
+            "wall_s": _median(a["wall_s"] for a, _ in pairs),
+        })
+    return out
+
+
 def _f(v, digits=2, unit="") -> str:
     return "—" if v is None else f"{v:.{digits}f}{unit}"
 
@@ -556,6 +626,24 @@ def markdown(result: Dict[str, Any]) -> str:
                     ]
                 )
                 + " |"
+            )
+    if result.get("versus_reference"):
+        lines += [
+            "",
+            f"Against {result['reference']['path']} (commit "
+            f"{result['reference']['machine'].get('commit')}), the same starts run first by its "
+            "own bench_localize:",
+            "",
+            "| scene | method | starts | wall s (ref -> this) | wall ratio (paired median) | "
+            "CPU ratio | bit-identical poses | max pose difference | same verdict |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
+        for v in result["versus_reference"]:
+            lines.append(
+                f"| {v['scene']} | {v['method']} | {v['n']} | {_f(v['reference_wall_s'])} -> "
+                f"{_f(v['wall_s'])} | {_x(v['wall'])} | {_x(v['cpu'])} | "
+                f"{v['identical_poses']}/{v['n']} | {v['max_pose_diff']:.1e} | "
+                f"{v['same_verdict']}/{v['n']} |"
             )
     if result.get("render_timings"):
         lines += [
@@ -669,6 +757,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="torch threads (default: automatic, the cores the load leaves free)",
     )
     ap.add_argument(
+        "--compare-with",
+        type=Path,
+        default=None,
+        help="a checkout of other code (e.g. the last release, with its own native build): its "
+        "bench_localize runs the same starts first, and the report gives paired time ratios and "
+        "the largest pose difference",
+    )
+    ap.add_argument(
         "--out",
         type=Path,
         default=None,
@@ -723,10 +819,15 @@ def _main(args) -> int:
         result["load_after"] = load_average()
         result["rows"] = summarize(result["records"])
         result["ratios"] = ratios(result["records"], result["rows"])
+        if result.get("reference"):
+            result["versus_reference"] = versus_reference(result["records"],
+                                                          result["reference"]["records"])
         write_json_atomic(out_dir / "results.json", result)
         write_text_atomic(out_dir / "results.md", markdown(result))
 
     try:
+        if args.compare_with is not None:
+            result["reference"] = run_reference(args, out_dir / "reference")
         _run(args, result, matcher, save)
     except (ValueError, FileNotFoundError) as e:  # bad input: one line, no traceback
         print(f"error: {e}", file=sys.stderr)
