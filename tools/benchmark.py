@@ -102,6 +102,32 @@ def load_scene(cfg: DictConfig, spec: ProtocolSpec, backend: str):
     raise common.UserError(f"scene.kind must be model_folder or synthetic, got {s.kind!r}")
 
 
+def verdict_calibration(cfg: DictConfig, model):
+    """(calibrated VerdictConfig or None, where it came from) of the ``calibration`` key.
+
+    ``auto``: the model's stored calibration (docs/AUDIT.md) if it has one; ``none``; or a file.
+
+    Raises:
+        UserError: a calibration file that is missing, unreadable or for another model.
+    """
+    from icomma_plugin.localization.calibration import (
+        calibration_path,
+        load_calibration,
+        model_key,
+    )
+
+    choice = cfg.get("calibration")
+    if choice is None or str(choice).lower() in ("none", "false"):
+        return None, None
+    try:
+        if str(choice).lower() == "auto":
+            found = load_calibration(model)
+            return found, None if found is None else str(calibration_path(model_key(model)))
+        return load_calibration(model, path=str(choice)), str(choice)
+    except ValueError as e:
+        raise common.UserError(f"calibration: {e}") from None
+
+
 def headline(spec: ProtocolSpec, summary: Dict[str, Any]) -> float:
     """The protocol's headline number for sweepers (module docstring); NaN without results."""
     first = spec.methods[0]
@@ -155,6 +181,7 @@ def _run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
             "only %d queries available (protocol asks for %d)", len(scene.queries), spec.num_queries
         )
     done = load_done(cfg.resume) if cfg.get("resume") else {}
+    calibration, calibration_source = verdict_calibration(cfg, scene.model)
     info = scene.describe()
     writer = ResultsWriter(
         output_dir,
@@ -166,6 +193,8 @@ def _run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
         seed=seed,
         plots=bool(cfg.output.plots),
         plot_every=int(cfg.output.plot_every),
+        calibration=calibration,
+        calibration_source=calibration_source,
     )
     log.info(
         "%s (%s): %d runs on %s, translation scale %.4g (%s); output %s",

@@ -1,9 +1,11 @@
 """Summaries, markdown tables beside the paper's numbers, and plots.
 
-``summarize(spec, records)`` reduces the per-run records of one protocol to per-(interval,
-method) numbers; ``markdown(...)`` writes them next to the paper's cells (:mod:`.paper`) with the
-paper's source and a Δ column (ours - paper, only where the paper's value is known);
-``save_plots(...)`` draws the success-vs-iteration curves and the AUC / success / failure bars.
+``summarize(spec, records, calibration=None)`` reduces the per-run records of one protocol to
+per-(interval, method) numbers (the verdict's precision and recall also with a model's calibrated
+thresholds when one is given: ``localization/calibration.py``); ``markdown(...)`` writes them
+next to the paper's cells (:mod:`.paper`) with the paper's source and a Δ column (ours - paper,
+only where the paper's value is known); ``save_plots(...)`` draws the success-vs-iteration
+curves and the AUC / success / failure bars.
 """
 from __future__ import annotations
 
@@ -19,7 +21,8 @@ from .paper import NOT_FOUND, PaperValue, paper_value
 from .protocols import METHODS, ProtocolSpec
 from .runner import threshold_key
 
-__all__ = ["summarize", "table_rows", "markdown", "save_plots", "paper_method", "verdict_stats"]
+__all__ = ["calibrated_status", "summarize", "table_rows", "markdown", "save_plots",
+           "paper_method", "verdict_stats"]
 
 PERCENT_METRICS = (
     "success_rate",
@@ -27,7 +30,15 @@ PERCENT_METRICS = (
     "verdict_precision",
     "verdict_recall",
     "wrong_flagged",
+    "verdict_precision_calibrated",
+    "verdict_recall_calibrated",
+    "wrong_flagged_calibrated",
 )
+
+#: The metrics of the verdict with a model's calibrated thresholds (in a cell only when the
+#: summary was given a calibration).
+CALIBRATED_METRICS = ("verdict_precision_calibrated", "verdict_recall_calibrated",
+                      "wrong_flagged_calibrated")
 
 
 def _groups(spec: ProtocolSpec, records: Sequence[Dict[str, Any]]):
@@ -42,8 +53,13 @@ def _groups(spec: ProtocolSpec, records: Sequence[Dict[str, Any]]):
     return g
 
 
-def summarize(spec: ProtocolSpec, records: Sequence[Dict[str, Any]]) -> Dict[str, Any]:
-    """Per-(interval, method) numbers of one protocol (JSON-ready)."""
+def summarize(spec: ProtocolSpec, records: Sequence[Dict[str, Any]],
+              calibration=None) -> Dict[str, Any]:
+    """Per-(interval, method) numbers of one protocol (JSON-ready).
+
+    ``calibration``: a model's calibrated ``VerdictConfig`` (or None): the verdict statistics are
+    then also given with it (:func:`verdict_stats`).
+    """
     out: Dict[str, Any] = {"protocol": spec.name, "kind": spec.kind, "cells": []}
     L = spec.max_iterations + 1
     for (iv, m), rs in _groups(spec, records).items():
@@ -60,7 +76,7 @@ def summarize(spec: ProtocolSpec, records: Sequence[Dict[str, Any]]) -> Dict[str
             secs = [r.get("seconds") for r in rs if r.get("seconds") is not None]
             cell["median_seconds"] = float(np.median(secs)) if secs else None
             cell["mean_iterations"] = mean_or_none(r.get("iterations") for r in rs)
-            cell.update(verdict_stats(rs, spec.thresholds[0]))
+            cell.update(verdict_stats(rs, spec.thresholds[0], calibration))
         cell["num_errors"] = sum(1 for r in rs if r.get("error"))
         if spec.kind == "relative_pose":
             aucs = pose_auc(rot, spec.auc_thresholds) if rs else [None] * len(spec.auc_thresholds)
@@ -102,27 +118,54 @@ def summarize(spec: ProtocolSpec, records: Sequence[Dict[str, Any]]) -> Dict[str
     return out
 
 
-def verdict_stats(records: Sequence[Dict[str, Any]], threshold) -> Dict[str, Any]:
+def _trust(verdicts: Sequence[Optional[str]], ok: np.ndarray, suffix: str = ""
+           ) -> Dict[str, Any]:
+    """Counts, precision, recall and wrong poses flagged of ``verdicts`` against ``ok``."""
+    called = np.array([v == "ok" for v in verdicts], bool)
+    out: Dict[str, Any] = {
+        f"verdict_{k}{suffix}": sum(1 for v in verdicts if v == k)
+        for k in ("ok", "uncertain", "failed")
+    }
+    n_called, n_right, n_wrong = int(called.sum()), int(ok.sum()), int((~ok).sum())
+    out[f"verdict_precision{suffix}"] = float((called & ok).sum() / n_called) if n_called else None
+    out[f"verdict_recall{suffix}"] = float((called & ok).sum() / n_right) if n_right else None
+    flagged = np.array([v in ("uncertain", "failed") for v in verdicts], bool)
+    out[f"wrong_flagged{suffix}"] = float((flagged & ~ok).sum() / n_wrong) if n_wrong else None
+    return out
+
+
+def calibrated_status(record: Dict[str, Any], calibration) -> Optional[str]:
+    """A record's verdict under a model's calibrated thresholds.
+
+    Re-decided from its ``signals`` (``calibration.redecide``); the stricter of that and the
+    recorded status (a calibration never turns a doubt into ``ok``). As recorded when the record
+    has no score to re-decide from.
+    """
+    from ..localization.calibration import redecide, stricter
+
+    status = record.get("status")
+    v = redecide(record.get("signals") or {}, calibration)
+    return status if v is None else stricter(status, v.status)
+
+
+def verdict_stats(records: Sequence[Dict[str, Any]], threshold, calibration=None
+                  ) -> Dict[str, Any]:
     """How far the verdict can be trusted, against ground truth.
 
     Counts of ok / uncertain / failed, precision (right among the poses called ok), recall (called
     ok among the right poses), the share of wrong poses flagged (called uncertain or failed), and
-    the median final rotation error (all runs, and the successes).
+    the median final rotation error (all runs, and the successes). With ``calibration`` (a
+    model's calibrated ``VerdictConfig``), the counts, precision, recall and wrong poses flagged
+    again with each verdict re-decided under it (:func:`calibrated_status`; keys ``*_calibrated``).
     """
     a, b = threshold
     rot = [r.get("rot_err_deg") for r in records]
     trans = [r.get("trans_err_rel") for r in records]
     ok = success_mask(rot, trans, a, b) if records else np.zeros(0, bool)
-    verdicts = [r.get("status") for r in records]
-    called = np.array([v == "ok" for v in verdicts], bool)
-    out: Dict[str, Any] = {
-        f"verdict_{k}": sum(1 for v in verdicts if v == k) for k in ("ok", "uncertain", "failed")
-    }
-    n_called, n_right, n_wrong = int(called.sum()), int(ok.sum()), int((~ok).sum())
-    out["verdict_precision"] = float((called & ok).sum() / n_called) if n_called else None
-    out["verdict_recall"] = float((called & ok).sum() / n_right) if n_right else None
-    flagged = np.array([v in ("uncertain", "failed") for v in verdicts], bool)
-    out["wrong_flagged"] = float((flagged & ~ok).sum() / n_wrong) if n_wrong else None
+    out = _trust([r.get("status") for r in records], ok)
+    if calibration is not None:
+        out.update(_trust([calibrated_status(r, calibration) for r in records], ok,
+                          "_calibrated"))
     r_all = [x for x in rot if x is not None]
     out["median_rot_deg"] = float(np.median(r_all)) if r_all else None
     r_ok = [x for x, s in zip(rot, ok) if s and x is not None]
@@ -152,6 +195,7 @@ def _metrics_of(spec: ProtocolSpec, method: str) -> List[str]:
             "verdict_precision",
             "verdict_recall",
             "wrong_flagged",
+            *CALIBRATED_METRICS,
             "num_errors",
         ]
     )
@@ -182,6 +226,8 @@ def table_rows(
         for metric in _metrics_of(spec, cell["method"]):
             if cell["method"] == "essential" and not metric.startswith("auc"):
                 continue
+            if metric in CALIBRATED_METRICS and metric not in cell:
+                continue  # no calibration given
             pmetric = "success_rate" if metric == "success_rate" else metric
             pv: PaperValue = paper_value(
                 spec.name, cell["interval"], pm, pmetric, spec.paper_dataset

@@ -24,6 +24,7 @@ import datetime as _dt
 import json
 import logging
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
@@ -87,6 +88,8 @@ class ResultsWriter:
         seed: int,
         plots: bool = True,
         plot_every: int = 1,
+        calibration=None,
+        calibration_source: Optional[str] = None,
     ):
         self.out_dir = Path(out_dir)
         self.out_dir.mkdir(parents=True, exist_ok=True)
@@ -99,6 +102,8 @@ class ResultsWriter:
         self.plots = bool(plots)
         self.plot_every = max(1, int(plot_every))
         self.records: List[Dict[str, Any]] = []
+        self.calibration = calibration  # a model's calibrated VerdictConfig (report.verdict_stats)
+        self.calibration_source = calibration_source
         self.started = _now()
         self.t0 = time.perf_counter()
         self.files: List[str] = ["results.json", "results.md"]
@@ -116,6 +121,8 @@ class ResultsWriter:
                 float(self.scene.get("translation_scale", 1.0)),
             ),
             "seed": self.seed,
+            **({"verdict calibration": f"{self.calibration_source} (rows *_calibrated)"}
+               if self.calibration is not None else {}),
         }
 
     def add(self, record: Dict[str, Any]) -> None:
@@ -137,7 +144,7 @@ class ResultsWriter:
         Returns:
             The results document (results.json's content).
         """
-        summary = summarize(self.spec, self.records)
+        summary = summarize(self.spec, self.records, self.calibration)
         if plots if plots is not None else self.plots:
             try:
                 for f in save_plots(self.spec, summary, self.out_dir, self.matcher):
@@ -161,6 +168,8 @@ class ResultsWriter:
             ),
             "matcher": self.matcher,
             "localizer_config": self.localizer_config,
+            "verdict_calibration": None if self.calibration is None else {
+                "source": self.calibration_source, "verdict": asdict(self.calibration)},
             "config": self.config,
             "timings": {
                 "started": self.started,
