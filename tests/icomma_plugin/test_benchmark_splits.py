@@ -39,7 +39,7 @@ def test_resume_reuses_finished_runs_and_retries_the_ones_that_raised(tmp_path):
 
     p = tmp_path / "results.json"
     records = [
-        {"key": "a", "final_rot_deg": 0.1},
+        {"key": "a", "rot_err_deg": 0.1},
         {"key": "b", "error": {"type": "ValueError", "message": "x"}},
     ]
     p.write_text(json.dumps({"schema": SCHEMA, "records": records}))
