@@ -153,9 +153,9 @@ def one_torch_thread():
 def _candidate_cache_dir(tmp_path_factory):
     """``ICOMMA_CACHE_DIR`` at a folder of this session: no test writes into ~/.cache.
 
-    The Localizer keeps candidate indices on disk (``localization/candidate_cache.py``); the tool
-    runs a test starts as subprocesses inherit the variable too. A value set before the session
-    is restored afterwards.
+    The Localizer keeps candidate indices on disk (``localization/candidate_cache.py``); tool runs
+    that a test starts as subprocesses inherit the variable. A value set before the session is
+    restored afterwards.
     """
     before = os.environ.get("ICOMMA_CACHE_DIR")
     os.environ["ICOMMA_CACHE_DIR"] = str(tmp_path_factory.mktemp("icomma-cache"))
