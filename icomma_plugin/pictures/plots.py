@@ -184,16 +184,24 @@ def plot_trajectory(
                 a2.arrow(c[ax_a, 3], c[ax_b, 3], d[ax_a], d[ax_b], color="C0", width=scale * 0.05)
     if flagged is not None:
         _mark_flagged(a3, a2, (ax_a, ax_b), est, gt_c2w, flagged)
-    axis_names = "xyz"
+    _trajectory_axes(a3, a2, allp, span, (ax_a, ax_b))
+    if title:
+        fig.suptitle(title, fontsize=9)
+    return save_figure(fig, path)
+
+
+def _trajectory_axes(a3, a2, allp: np.ndarray, span: np.ndarray, axes2d) -> None:
+    """Equal axes around every point drawn (a circle stays a circle), labels, legend, title."""
+    ax_a, ax_b = axes2d
     mid, half = 0.5 * (allp.max(0) + allp.min(0)), 0.55 * float(max(span.max(), 1e-6))
-    a3.set_xlim(mid[0] - half, mid[0] + half)  # equal axes: a circle stays a circle
+    a3.set_xlim(mid[0] - half, mid[0] + half)
     a3.set_ylim(mid[1] - half, mid[1] + half)
     a3.set_zlim(mid[2] - half, mid[2] + half)
     a3.set_xlabel("x")
     a3.set_ylabel("y")
     a3.set_zlabel("z")
-    a2.set_xlabel(axis_names[ax_a])
-    a2.set_ylabel(axis_names[ax_b])
+    a2.set_xlabel("xyz"[ax_a])
+    a2.set_ylabel("xyz"[ax_b])
     a2.set_aspect("equal", adjustable="datalim")
     a2.grid(alpha=0.3)
     a2.legend(fontsize=7, loc="best")
@@ -201,10 +209,6 @@ def plot_trajectory(
         "seen along the narrowest axis (verdict colours: ok green, uncertain orange, failed red)",
         fontsize=8,
     )
-    if title:
-        fig.suptitle(title, fontsize=9)
-    return save_figure(fig, path)
-
 
 
 def _mark_flagged(a3, a2, axes2d, est, gt_c2w, flagged) -> None:
