@@ -152,6 +152,7 @@ setup(
         "icomma-fit = icomma_tools.fit_scene:main",
         "icomma-bench = icomma_tools.bench_rasterizer:main",
         "icomma-bench-localize = icomma_tools.bench_localize:main",
+        "icomma-audit = icomma_tools.audit:main",
     ]},
     install_requires=_install_requires(),
     extras_require={"test": [r for r in _requirements("requirements.txt")
