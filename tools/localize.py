@@ -89,6 +89,15 @@ def _cache_dir(cfg: DictConfig):
     return c.get("dir") or None
 
 
+def _verdict(cfg: DictConfig):
+    """The Localizer's ``verdict`` argument from ``cache.calibration`` (auto | none | a file)."""
+    c = common.container(cfg.get("cache")) or {}
+    v = c.get("calibration", "auto")
+    if v is None or str(v).lower() == "none":
+        return None
+    return "auto" if str(v).lower() == "auto" else str(v)
+
+
 def _step_bar(enabled: bool, total: Optional[int]):
     """(tqdm bar or None, trace-record hook updating it)."""
     if not enabled:
@@ -123,7 +132,7 @@ def _run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
     problem = load_problem(common.container(cfg.data), backend)
     if backend == "cuda":  # the CUDA kernel renders CUDA tensors; library code never moves data
         problem.model = problem.model.to("cuda")
-    localizer = problem.localizer(matcher, method, backend, _cache_dir(cfg))
+    localizer = problem.localizer(matcher, method, backend, _cache_dir(cfg), _verdict(cfg))
     opts = OutputOptions.from_dict(common.container(cfg.output))
     bar, hook = _step_bar(bool(cfg.output.progress),
                           getattr(method, "max_iterations", None) if method.needs_start else None)
@@ -193,7 +202,7 @@ def _worker_setup(cfg: DictConfig, data: Dict[str, Any], out: Path, sequence: bo
         thumbs=bool(oc.get("contact_sheet")) and not sequence,  # the sheet is a batch's
         thumb_side=int(oc.get("thumb_side") or 192), config=common.container(cfg),
         seed=int(cfg.seed), cache_dir=_cache_dir(cfg),
-        photos=str(data.get("photos") or "auto").lower(),
+        photos=str(data.get("photos") or "auto").lower(), verdict=_verdict(cfg),
     )
     return setup, mf, matcher
 

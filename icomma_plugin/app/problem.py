@@ -68,11 +68,12 @@ class Problem:
         """The query's name."""
         return self.query.name
 
-    def localizer(self, matcher, method, backend: str = "auto", cache_dir=None) -> Localizer:
-        """The Localizer of this problem's model, cameras, background and training side."""
+    def localizer(self, matcher, method, backend: str = "auto", cache_dir=None,
+                  verdict="auto") -> Localizer:
+        """The Localizer of this problem's model, cameras, background, training side, photos."""
         return Localizer(self.model, matcher, method, cameras=self.cameras, backend=backend,
                          background=self.bg, model_side=self.model_side, cache_dir=cache_dir,
-                         photos=self.photos)
+                         photos=self.photos, verdict=verdict)
 
 
 def _bg(white: bool) -> torch.Tensor:

@@ -2,9 +2,9 @@
 
 A single-photo call without a start pose would otherwise render and describe every candidate view
 (about 160 on a real capture, tens of seconds on a CPU) each time. The index is stored as one file
-per key in a cache folder (default ``~/.cache/icomma/candidates``; ``ICOMMA_CACHE_DIR`` or the
-Localizer's ``cache_dir`` move it; it is never written into the user's model folder unless that
-folder is given as the cache folder).
+per key in the ``candidates/`` folder of the cache folder (default ``~/.cache/icomma``;
+``ICOMMA_CACHE_DIR`` or the Localizer's ``cache_dir`` move it; it is never written into the user's
+model folder unless that folder is given as the cache folder).
 
 The key is a hash of everything the renders' features depend on: the model's content (a hash of
 its Gaussians), the candidate poses (the model's cameras, their names), the camera of the renders,

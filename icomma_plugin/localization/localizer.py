@@ -87,6 +87,23 @@ def source_photos(mf, white_background: bool) -> Optional[List[SourcePhoto]]:
     return [SourcePhoto.of_view(v) for v in scene.train] or None
 
 
+def _verdict_of(verdict, model: GaussianModel, cache_dir):
+    """The verdict thresholds a Localizer uses (its ``verdict`` argument), or None."""
+    from .calibration import load_calibration
+    from .verify import VerdictConfig
+
+    if verdict is None or isinstance(verdict, VerdictConfig):
+        return verdict
+    if isinstance(verdict, str) and verdict == "auto":
+        if cache_dir is False:
+            return None
+        return load_calibration(model, None if cache_dir in (None, True) else cache_dir)
+    if isinstance(verdict, (str, Path)):
+        return load_calibration(model, path=verdict)
+    raise ValueError("verdict must be a VerdictConfig, a calibration file, 'auto' or None, got "
+                     f"{type(verdict).__name__}")
+
+
 class Localizer:
     """Localize photos in one 3DGS model (module docstring).
 
@@ -101,13 +118,17 @@ class Localizer:
         background: background colour ``[3]`` (default black).
         model_side: the longer side [px] of the images the model was fitted on: the methods work
             at no more than this resolution (a sharper photo adds cost, not accuracy).
-        cache_dir: where the candidate index is kept on disk: None for the default
-            (``candidate_cache.default_cache_dir()``), False to keep it in memory only.
+        cache_dir: the cache folder: the candidate index is kept in its ``candidates/`` and a
+            calibration of the verdict is looked for in its ``calibration/``; None for the
+            default (``candidate_cache.default_cache_dir()``, ``~/.cache/icomma``), False to keep
+            the index in memory only (and read no calibration unless given).
         photos: the photos the model was fitted from (``SourcePhoto``s or dataset views; never
             held-out views): anchors of the candidate ranking and of the geometric stage
             (``anchors.py``). None: renders only.
-        verdict: thresholds of the verdict for this model (a calibration,
-            ``localization/calibration.py``), replacing the method's.
+        verdict: thresholds of the verdict for this model, replacing the method's: a
+            ``VerdictConfig``, the path of a calibration file (``localization/calibration.py``,
+            written by ``icomma-audit``), ``"auto"`` (the model's calibration in the cache folder
+            when there is one) or None (the method's thresholds).
 
     Raises:
         ValueError: naming the argument: not a model, an unknown backend, a method that cannot
@@ -126,10 +147,9 @@ class Localizer:
         model_side: Optional[int] = None,
         cache_dir: Union[str, Path, None, bool] = None,
         photos: Optional[Sequence[Any]] = None,
-        verdict=None,
+        verdict="auto",
     ):
         from ..checks import check_choice, check_int
-        from .verify import VerdictConfig
 
         if not isinstance(model, GaussianModel):
             raise ValueError(f"model must be a GaussianModel, got {type(model).__name__}")
@@ -137,11 +157,9 @@ class Localizer:
         if not isinstance(self.method, (RobustConfig, LocalizerConfig)):
             raise ValueError("method must be a RobustConfig or a LocalizerConfig, got "
                              f"{type(self.method).__name__}")
-        self._verdict = verdict
-        if verdict is not None:
-            if not isinstance(verdict, VerdictConfig):
-                raise ValueError(f"verdict must be a VerdictConfig, got {type(verdict).__name__}")
-            self.method = dataclasses.replace(self.method, verdict=verdict)
+        self._verdict = _verdict_of(verdict, model, cache_dir)
+        if self._verdict is not None:
+            self.method = dataclasses.replace(self.method, verdict=self._verdict)
         problem = self.method.needs(matcher)
         if problem:
             raise ValueError(problem)
@@ -160,8 +178,9 @@ class Localizer:
         self.photos = None if not photos else PhotoAnchors(
             [p if isinstance(p, SourcePhoto) else SourcePhoto.of_view(p) for p in photos],
             self.background)
+        root = None if cache_dir in (None, True) else cache_dir
         self.cache = None if cache_dir is False else CandidateCache(
-            None if cache_dir in (None, True) else cache_dir)
+            None if root is None else Path(str(root)).expanduser() / "candidates")
         self._scenes: Dict[Optional[int], Any] = {}
         self._indices: Dict[Any, CandidateIndex] = {}
         self._model_id: Optional[str] = None
@@ -173,7 +192,7 @@ class Localizer:
                           white_background: Optional[bool] = None, backend: str = "auto",
                           cache_dir: Union[str, Path, None, bool] = None,
                           photos: Union[str, Sequence[Any], None] = "auto",
-                          verdict=None) -> "Localizer":
+                          verdict="auto") -> "Localizer":
         """A localizer for a 3DGS model folder (a ``ModelFolder`` or its path).
 
         Its cameras, training side and background (``cfg_args``, unless ``white_background`` is

@@ -119,7 +119,7 @@ def test_cameras_with_photos_are_ranked_by_their_photos(demo, xfeat, tmp_path):
     renders = Localizer(model, xfeat, cameras=cams, cache_dir=tmp_path)
     renders.candidate_index(scene.intrinsics, cfg)
     assert renders.candidate_builds == 1  # another key: photos are part of it
-    assert len(list(tmp_path.glob("*.pt"))) == 2
+    assert len(list((tmp_path / "candidates").glob("*.pt"))) == 2
 
 
 def _outcome(w2c, inliers, pnp):

@@ -51,7 +51,7 @@ def test_the_index_is_built_once_and_shared_by_queries_and_cameras(demo, xfeat, 
     assert loc.candidate_builds == 1
     assert a.verdict.status == "ok" and a.rot_err_deg < 0.1, a.verdict.reason
     assert b.stage_seconds["candidates"] < a.stage_seconds["candidates"]
-    assert len(list(tmp_path.glob("*.pt"))) == 1
+    assert len(list((tmp_path / "candidates").glob("*.pt"))) == 1
 
 
 def test_a_second_localizer_loads_the_index_from_disk(demo, xfeat, tmp_path):
@@ -89,7 +89,7 @@ def test_the_index_is_rebuilt_when_a_key_changes(demo, xfeat, tmp_path):
         loc = Localizer(m, xfeat, SMALL, cameras=c, cache_dir=tmp_path)
         loc.candidate_index(scene.intrinsics, cfg)
         assert loc.candidate_builds == 1
-    assert len(list(tmp_path.glob("*.pt"))) == 4
+    assert len(list((tmp_path / "candidates").glob("*.pt"))) == 4
 
 
 def test_the_cache_goes_where_it_is_told_never_into_the_model_folder(demo, xfeat, tmp_path,
@@ -110,12 +110,12 @@ def test_a_damaged_cache_file_is_rebuilt(demo, xfeat, tmp_path, caplog):
     scene, model, cams = demo
     loc = Localizer(model, xfeat, SMALL, cameras=cams, cache_dir=tmp_path)
     loc.candidate_index(scene.intrinsics, SMALL.candidates)
-    (f,) = tmp_path.glob("*.pt")
+    (f,) = (tmp_path / "candidates").glob("*.pt")
     f.write_bytes(b"not a torch file")
     again = Localizer(model, xfeat, SMALL, cameras=cams, cache_dir=tmp_path)
     again.candidate_index(scene.intrinsics, SMALL.candidates)
     assert again.candidate_builds == 1 and "unreadable" in caplog.text
-    assert CandidateCache(tmp_path).load(f.stem) is not None
+    assert CandidateCache(tmp_path / "candidates").load(f.stem) is not None
 
 
 def _slow_build(directory, marker_dir, fields):
@@ -184,3 +184,24 @@ def test_preconditions_are_checked_once_when_built(demo, xfeat):
     paper = Localizer(model, None, LocalizerConfig(use_matching=False))
     with pytest.raises(ValueError, match="needs a start pose"):
         paper.localize(_query(scene))
+
+
+def test_a_stored_calibration_of_the_model_is_its_verdict(demo, xfeat, tmp_path):
+    """The Localizer uses the model's calibration when its cache folder has one (verdict=auto)."""
+    from icomma_plugin.localization.calibration import Calibration, save_calibration
+    from icomma_plugin.localization.verify import VerdictConfig
+
+    scene, model, cams = demo
+    strict = VerdictConfig(ok_inliers=500, ok_mean_px=0.2)
+    save_calibration(Calibration(strict, VerdictConfig()), model, cache_dir=tmp_path)
+    loc = Localizer(model, xfeat, SMALL, cameras=cams, cache_dir=tmp_path)
+    assert loc.method.verdict == strict
+    res = loc.localize(_query(scene), gt_c2w=scene.gt_c2w)
+    assert res.rot_err_deg < 0.1 and res.verdict.status == "uncertain"  # right, not ok here
+    assert "(< 500)" in res.verdict.reason
+    plain = Localizer(model, xfeat, SMALL, cameras=cams, cache_dir=tmp_path, verdict=None)
+    assert plain.method.verdict == VerdictConfig()
+    assert Localizer(model, xfeat, SMALL, cache_dir=False).method.verdict == VerdictConfig()
+    other = Localizer(model, xfeat, SMALL, verdict=tmp_path / "calibration" /
+                      next((tmp_path / "calibration").iterdir()).name, cache_dir=False)
+    assert other.method.verdict == strict

@@ -50,6 +50,7 @@ class WorkerSetup:
     every photo (``seed + index``), so results do not depend on the worker a photo lands on.
     cache_dir: the Localizer's candidate cache (None: the default folder; False: none).
     photos: ``auto`` (the model's source photos as anchors, when found) or ``none``.
+    verdict: the Localizer's verdict thresholds (``auto``: the model's calibration, when any).
     """
 
     model_path: str
@@ -68,6 +69,7 @@ class WorkerSetup:
     seed: Optional[int] = 0
     cache_dir: Any = None
     photos: str = "auto"
+    verdict: Any = "auto"
 
 
 @contextlib.contextmanager
@@ -99,7 +101,7 @@ class BatchWorker:
         self.localizer = Localizer.from_model_folder(
             self.mf, matcher, setup.method, white_background=setup.white_background,
             backend=setup.backend, cache_dir=setup.cache_dir,
-            photos="auto" if setup.photos == "auto" else None)
+            photos="auto" if setup.photos == "auto" else None, verdict=setup.verdict)
         self.model, self.bg = self.localizer.model, self.localizer.background
         self.cameras = list(self.mf.cameras or [])
         self.scene_scale = cameras_extent([e.c2w for e in self.cameras]) if self.cameras else None
