@@ -107,6 +107,9 @@ def _localizer(cfg: DictConfig, mf, white: bool, views, backend: str):
     problem = method.needs(matcher)
     if problem:
         raise common.UserError(problem)
+    if method.needs_start and cfg.no_start:
+        raise common.UserError(f"optimizer={method.name} needs a start pose: set no_start=false "
+                               "(and starts >= 1), or use optimizer=robust")
     mode = str(cfg.get("photos") or "none").lower()
     if mode not in ("auto", "none"):
         raise common.UserError(f"photos must be auto or none, got {cfg.get('photos')!r}")

@@ -217,6 +217,7 @@ def test_bad_input_is_one_error_naming_the_key(capture, tmp_path):
         ([f"model_path={capture['model']}", f"dataset={tmp_path}"], "dataset: unrecognised"),
         ([f"model_path={capture['model']}", "pivot=moon"], "pivot must be one of"),
         ([f"model_path={capture['model']}", "matcher=none"], "needs a matcher"),
+        ([f"model_path={capture['model']}", "optimizer=icomma"], "needs a start pose"),
         ([f"model_path={capture['model']}", "calibration.margin=2"], "margin"),
     ):
         with pytest.raises(ValueError, match=message):
