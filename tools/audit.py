@@ -119,6 +119,15 @@ def _localizer(cfg: DictConfig, mf, white: bool, views, backend: str):
         verdict=method.verdict)
 
 
+def _digest(mapping) -> str:
+    """A short hash of a config mapping (what a resumed audit must share with the first run)."""
+    import hashlib
+    import json
+
+    text = json.dumps(mapping, sort_keys=True, default=str)
+    return hashlib.blake2b(text.encode(), digest_size=8).hexdigest()
+
+
 def _thumbnail_writer(out: Path, localizer, side: int, backend: str):
     """on_camera hook: ``thumbs/<camera>.png``, the photo blended with its recorded-pose render."""
     from icomma_plugin.app.batch.records import safe_name
@@ -142,6 +151,7 @@ def run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
 def _run(cfg: DictConfig, out: Path) -> Dict[str, Any]:
     from icomma_plugin.app.audit import audit_pictures, run_audit, select_views
     from icomma_plugin.app.problem import open_model_folder, scene_centre_of
+    from icomma_plugin.io.atomic import write_json_atomic
     from icomma_plugin.localization.calibration import model_key
     from icomma_plugin.pose.convert import cameras_extent
 
@@ -162,8 +172,8 @@ def _run(cfg: DictConfig, out: Path) -> Dict[str, Any]:
 
     oc = common.container(cfg.output)
     identity = {"model_path": str(Path(mf.path).resolve()), "model": model_key(mf.model),
-                "dataset": str(root.resolve()), "method": localizer.method.name,
-                "matcher": getattr(localizer.matcher, "name", None), "photos": cfg.photos}
+                "dataset": str(root.resolve()), "method": _digest(localizer.method.to_dict()),
+                "matcher": _digest(common.container(cfg.get("matcher"))), "photos": cfg.photos}
     hook = _thumbnail_writer(out, localizer, int(oc.get("thumb_side") or 160), backend) \
         if oc.get("contact_sheet") else None
     doc = run_audit(localizer, views, plan, rule, out, scene_scale=scale,
@@ -172,10 +182,9 @@ def _run(cfg: DictConfig, out: Path) -> Dict[str, Any]:
                               "train_photos": len(train)},
                     identity=identity, on_camera=hook, progress=bool(oc.get("progress")))
     doc["calibration"] = _calibrate(cfg, doc, mf.model, out, calibration)
-    doc["files"] = audit_pictures(out, doc, [e.c2w for e in mf.cameras] or None) \
-        if oc.get("contact_sheet") or oc.get("trajectory_plot") else {}
-    from icomma_plugin.io.atomic import write_json_atomic
-
+    doc["files"] = audit_pictures(out, doc, [e.c2w for e in mf.cameras] or None,
+                                  sheet=bool(oc.get("contact_sheet")),
+                                  trajectory=bool(oc.get("trajectory_plot")))
     write_json_atomic(out / "audit.json", doc)
     doc["output_dir"] = str(out)
     return doc

@@ -459,14 +459,16 @@ class _Progress:
 
 
 def audit_pictures(out_dir, doc: Mapping[str, Any], cameras_c2w: Optional[Sequence] = None,
-                   title: str = "") -> Dict[str, str]:
+                   title: str = "", sheet: bool = True, trajectory: bool = True
+                   ) -> Dict[str, str]:
     """The contact sheet and the trajectory plot of an audit (flagged cameras marked).
 
     The sheet's thumbnails are ``thumbs/<camera>.png`` when present (written by the tool: each
     photo blended with the render at its recorded pose). The plot shows ``cameras_c2w`` (all the
     model's cameras; default: the audited ones) in grey, the audited cameras' recorded centres
     (dashed) and localized ones (verdict colours), the flagged ringed and joined to their record.
-    Returns ``{picture: file name}``; a picture that cannot be drawn is logged, never fatal.
+    ``sheet`` / ``trajectory``: draw that picture. Returns ``{picture: file name}``; a picture
+    that cannot be drawn is logged, never fatal.
     """
     from ..pictures import contact_sheet, plot_trajectory
     from .batch.records import safe_name
@@ -481,10 +483,13 @@ def audit_pictures(out_dir, doc: Mapping[str, Any], cameras_c2w: Optional[Sequen
                    "rot_err_deg": c.get("rot_err_deg"), "trans_err_rel": c.get("trans_err_rel"),
                    "thumb": f"thumbs/{safe_name(c['camera'])}.png"} for c in cams]
     try:
-        contact_sheet(out / "contact_sheet.png", sheet_rows, out, flags=flags)
-        files["contact_sheet"] = "contact_sheet.png"
+        if sheet:
+            contact_sheet(out / "contact_sheet.png", sheet_rows, out, flags=flags)
+            files["contact_sheet"] = "contact_sheet.png"
     except Exception as e:  # noqa: BLE001 - a picture never fails the audit
         logger.warning("no contact sheet: %s: %s", type(e).__name__, e)
+    if not trajectory:
+        return files
     try:
         plot_trajectory(
             out / "trajectory.png",

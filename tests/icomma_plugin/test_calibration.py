@@ -205,3 +205,31 @@ def test_markdown_rows_of_the_calibrated_verdict_only_with_a_calibration():
     md = markdown(spec, summarize(spec, recs, cal.verdict), "xfeat")
     assert "| r20-40 | robust | verdict_precision | 10 | 90.0% |" in md
     assert "| r20-40 | robust | verdict_precision_calibrated | 10 | 100.0% |" in md
+
+
+def test_the_benchmark_tool_finds_the_models_calibration(monkeypatch, tmp_path):
+    import importlib.util
+    import sys
+
+    from omegaconf import OmegaConf
+
+    from tests.helpers.paths import REPO
+
+    name = "icomma_tools_benchmark"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, REPO / "tools" / "benchmark.py")
+        sys.modules[name] = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(sys.modules[name])
+    find = sys.modules[name].verdict_calibration
+    monkeypatch.setenv("ICOMMA_CACHE_DIR", str(tmp_path))
+    model, other = random_gaussians(50, seed=3), random_gaussians(50, seed=4)
+    auto = OmegaConf.create({"calibration": "auto"})
+    none = OmegaConf.create({"calibration": "none"})
+    assert find(auto, model) == (None, None)  # no calibration stored for this model
+    cal = calibrate(_strong_model_rows(), GLOBAL)
+    p = save_calibration(cal, model)
+    assert find(auto, model) == (cal.verdict, str(p))
+    assert find(none, model) == (None, None)
+    assert find(OmegaConf.create({"calibration": str(p)}), model)[0] == cal.verdict
+    with pytest.raises(ValueError, match="calibration: .*for another model"):
+        find(OmegaConf.create({"calibration": str(p)}), other)
