@@ -97,30 +97,46 @@ def test_video_falls_back_to_gif_when_no_encoder_works(tmp_path, monkeypatch):
 # ---------------------------------------------------------------------------- relocalization
 
 
+class _FakeLocalizer:
+    """The worker's localizer: the default method, called by the tracking mode's cheap try."""
+
+    def __init__(self, worker):
+        from icomma_plugin.localize import RobustConfig
+
+        self.worker, self.method, self.model_side = worker, RobustConfig(), None
+
+    def localize(self, query, init_c2w=None, gt_c2w=None, progress=None, method=None):
+        assert method is not None  # the tracking mode's own config; the full one is the worker's
+        return self.worker.result(query, init_c2w, fast=True)
+
+
 class _FakeWorker:
-    """localize() fails from a start pose and succeeds without one (the candidate views)."""
+    """Fails from a start pose on f2.png and succeeds without one (the candidate views)."""
 
     def __init__(self, truth):
         self.truth, self.calls = truth, []
         self.setup = SimpleNamespace(resize=None)
         self.scene_scale = 1.0
-        self.localizer = SimpleNamespace(method=SimpleNamespace(needs_start=False))
+        self.localizer = _FakeLocalizer(self)
 
     def problem(self, task, query):
         return SimpleNamespace(
             name=task.name, query=query, init_c2w=task.init_c2w, gt_c2w=None, scene_scale=1.0
         )
 
-    def localize(self, problem, init_c2w):
-        self.calls.append((problem.name, init_c2w is None))
-        ok = init_c2w is None or problem.name != "f2.png"
+    def result(self, query, init_c2w, fast):
+        self.calls.append((query.name, init_c2w is None, fast))
+        ok = init_c2w is None or query.name != "f2.png"
         status = "ok" if ok else "failed"
-        c2w = self.truth[problem.name] if ok else np.eye(4)
+        c2w = self.truth[query.name] if ok else np.eye(4)
         return LocalizationResult(
-            name=problem.name, c2w=c2w, verdict=Verdict(status, status), method="fake",
+            name=query.name, c2w=c2w, verdict=Verdict(status, status), method="fake",
             matcher=None, iterations=1, stop_reason="converged", seconds=0.0,
-            intrinsics=problem.query.intrinsics, init_c2w=init_c2w,
+            intrinsics=query.intrinsics, init_c2w=init_c2w,
         )
+
+    def localize(self, problem, init_c2w):
+        return self.result(problem.query, init_c2w, fast=False)
 
     def write_pictures(self, problem, result, seconds):
         return None, None
@@ -150,7 +166,11 @@ def test_a_failed_frame_is_relocalized_from_candidates(tmp_path):
     rows = ledger.all_rows()
     assert [r["status"] for r in rows] == ["ok"] * 4 and summ.relocalized == 1
     assert [r["relocalized"] for r in rows] == [False, False, True, False]
-    assert ("f2.png", False) in w.calls and ("f2.png", True) in w.calls
+    # the tracking mode's cheap try first; the full method from the start, then from the
+    # candidate views (no start), only for the frame whose cheap try was not ok
+    assert w.calls == [("f0.png", False, True), ("f1.png", False, True), ("f2.png", False, True),
+                       ("f2.png", False, False), ("f2.png", True, False), ("f3.png", False, True)]
+    assert summ.fast_ok == 3
     assert np.allclose(rows[3]["predicted_c2w"], truth["f3.png"])  # velocity from f1, f2
     w2 = _FakeWorker(truth)
     ledger2 = PosesLedger(tmp_path / "out2", {"kind": "sequence"}, 4)
@@ -160,9 +180,10 @@ def test_a_failed_frame_is_relocalized_from_candidates(tmp_path):
         ledger2,
         lambda s: Intrinsics(8, 8, 8.0, 8.0),
         init_c2w=np.eye(4),
-        cfg=TrackingConfig(relocalize=False),
+        cfg=TrackingConfig(relocalize=False, fast=False),
     )
     assert [r["status"] for r in ledger2.all_rows()][2] == "failed"
+    assert ("f2.png", True, False) not in w2.calls and not any(c[2] for c in w2.calls)
 
 
 # ------------------------------------------------------------------------------------ real tracking
