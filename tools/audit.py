@@ -236,9 +236,11 @@ def summary(doc: Dict[str, Any]) -> str:
         if c.get("flag"):
             lines.append(f"    {c['camera']}: {c['flag']}: {c['reason']}")
     if s.get("median_rot_err_deg_unflagged") is not None:
+        scatter = s.get("median_ok_scatter_deg")
         lines.append(f"  unflagged cameras: median rotation off the record "
                      f"{s['median_rot_err_deg_unflagged']:.3f} deg; ok poses off the record "
-                     f"{s['ok_off_record_unflagged']}")
+                     f"{s['ok_off_record_unflagged']}" + ("" if scatter is None else
+                     f"; a photo's ok poses within {scatter:.3f} deg of each other (median)"))
     if cal.get("stored"):
         moved = ", ".join(f"{k} {a:g} -> {b:g}" for k, (a, b) in cal["changed"].items())
         lines.append(f"  calibration ({cal['counts']['used']} right ok poses): "

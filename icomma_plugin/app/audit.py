@@ -188,6 +188,15 @@ def _consensus(ok: Sequence[Mapping[str, Any]], rule: FlagRule, scale: float
     return best, groups[best]
 
 
+def _scatter(ok: Sequence[Mapping[str, Any]], scale: float) -> Tuple[Optional[float],
+                                                                        Optional[float]]:
+    """(deg, radii): the largest rotation and centre distance between two ``ok`` poses."""
+    if len(ok) < 2:
+        return None, None
+    pairs = [_apart(a, b, scale) for i, a in enumerate(ok) for b in ok[i + 1:]]
+    return max(p[0] for p in pairs), max(p[1] for p in pairs)
+
+
 def _median(values: Iterable[Optional[float]]) -> Optional[float]:
     v = [float(x) for x in values if x is not None]
     return float(np.median(v)) if v else None
@@ -229,7 +238,9 @@ def summarize_camera(name: str, rows: Sequence[Mapping[str, Any]], rule: FlagRul
     """One camera's summary: agreement with the record, verdicts, signals and the flag.
 
     ``rows`` are its runs (the one row schema: ``status``, ``c2w``, ``rot_err_deg`` and
-    ``trans_err_rel`` against the recorded pose). The flag rule (docs/AUDIT.md):
+    ``trans_err_rel`` against the recorded pose). ``ok_scatter_deg`` / ``ok_scatter_radii``: the
+    largest distance between two of its ``ok`` poses (how reproducible the localization is, to
+    set beside its distance to the record). The flag rule (docs/AUDIT.md):
 
     1. no run ``ok``: ``no_trustworthy_pose``;
     2. else the consensus is the largest group of ``ok`` poses within ``rule.rot_deg`` /
@@ -248,6 +259,7 @@ def summarize_camera(name: str, rows: Sequence[Mapping[str, Any]], rule: FlagRul
     done = [r for r in rows if not r.get("error") and r.get("c2w") is not None]
     ok = [r for r in done if r.get("status") == "ok"]
     part = _flag(name, rows, ok, rule, scene_scale)
+    scatter_deg, scatter_radii = _scatter(ok, scene_scale)
     cons = part["consensus"]
     shown = (next(r for r in ok if r.get("start") == cons["start"]) if cons else
              max(done, key=lambda r: r.get("inliers") or 0) if done else None)
@@ -260,6 +272,8 @@ def summarize_camera(name: str, rows: Sequence[Mapping[str, Any]], rule: FlagRul
         "rot_err_deg": _median(r.get("rot_err_deg") for r in (ok or done)),
         "trans_err_rel": _median(r.get("trans_err_rel") for r in (ok or done)),
         "errors_of": "ok runs" if ok else "all runs",
+        "ok_scatter_deg": scatter_deg,
+        "ok_scatter_radii": scatter_radii,
         **part,
         "shown_start": None if shown is None else shown.get("start"),
         "status": None if shown is None else shown.get("status"),
@@ -289,6 +303,7 @@ def audit_summary(cameras: Sequence[Mapping[str, Any]], rows: Sequence[Mapping[s
                                        and not _agrees_with_record(r, rule)),
         "median_rot_err_deg_unflagged": _median(
             c.get("rot_err_deg") for c in cameras if not c.get("flag")),
+        "median_ok_scatter_deg": _median(c.get("ok_scatter_deg") for c in cameras),
     }
 
 

@@ -85,6 +85,7 @@ def test_poses_agreeing_with_the_record_are_not_flagged():
     assert s["flag"] is None and s["reason"] is None
     assert s["verdicts"] == {"ok": 3, "uncertain": 0, "failed": 0} and s["ok_agreeing"] == 3
     assert s["rot_err_deg"] == pytest.approx(0.1) and s["consensus"]["size"] == 3
+    assert 0.0 < s["ok_scatter_deg"] <= 0.2 and s["ok_scatter_radii"] < 0.001
 
 
 def test_confident_poses_that_agree_with_each_other_not_the_record_are_a_registration_error():
