@@ -251,8 +251,8 @@ def main(argv=None) -> int:
         from tqdm import tqdm
 
         bar = tqdm(total=config.iterations, dynamic_ncols=True, mininterval=1.0)
-    log.info("recipe %s: %d iterations, coarse-to-fine %s, initial scales <= %s rad",
-             args.recipe, config.iterations, list(config.coarse_to_fine), config.init_max_angle)
+    log.info("recipe %s: %d iterations, coarse-to-fine %s, initial scales <= %s px",
+             args.recipe, config.iterations, list(config.coarse_to_fine), config.init_max_pixels)
     t_start = time.perf_counter()
 
     def progress(it, total, info):

@@ -57,9 +57,9 @@ class FitConfig:
     num_sweep_points: int = 20_000
     max_init_points: int = 200_000  # a bigger dataset cloud is subsampled
     init_opacity: float = 0.1
-    # initial scales at most this angle (radians) seen from the nearest camera
-    # (init.init_scale_limits; None: upstream's nearest-neighbour scales as they are)
-    init_max_angle: Optional[float] = None
+    # initial scales at most this many pixels seen from the nearest camera, at the fitted
+    # resolution (init.init_scale_limits; None: upstream's nearest-neighbour scales as they are)
+    init_max_pixels: Optional[float] = None
     # far field (photographed captures only): this many points on a shell beyond the cameras,
     # coloured by the photos (init.far_field_points); its radius is the LLFF far bound, else
     # far_field_factor x the largest camera distance from the scene centre. 0: none.
@@ -127,10 +127,10 @@ class FitConfig:
         if not (isinstance(self.far_field_factor, (int, float)) and self.far_field_factor > 1.0):
             raise ValueError(f"FitConfig.far_field_factor must be > 1 (beyond the cameras), got "
                              f"{self.far_field_factor!r}")
-        if self.init_max_angle is not None and not (
-                isinstance(self.init_max_angle, (int, float)) and 0 < self.init_max_angle < 1):
-            raise ValueError(f"FitConfig.init_max_angle must be None or in (0, 1) radians, got "
-                             f"{self.init_max_angle!r}")
+        if self.init_max_pixels is not None and not (
+                isinstance(self.init_max_pixels, (int, float)) and self.init_max_pixels > 0):
+            raise ValueError(f"FitConfig.init_max_pixels must be None or > 0, got "
+                             f"{self.init_max_pixels!r}")
         if self.exposure not in (None, True, False):
             raise ValueError(f"FitConfig.exposure must be None (auto), True or False, got "
                              f"{self.exposure!r}")
@@ -196,10 +196,11 @@ class FitConfig:
 
 
 # What a photographed capture adds to `FitConfig.scaled_schedule` (docs/FITTING.md measures each):
-# initial Gaussians no wider than 0.02 rad seen from the cameras (SfM outliers and the far
-# field would otherwise cover much of each image: 4x the render time at the start on bird) and
-# coarse-to-fine (1/4 size until 10 % of the run, 1/2 until 30 %).
-CAPTURE_RECIPE = {"init_max_angle": 0.02, "coarse_to_fine": (0.1, 0.3)}
+# initial Gaussians no wider than 3 px seen from the nearest camera (the nearest-neighbour
+# scales of a plane sweep, SfM outliers or the far field cover much of each image: 7x the time
+# of the first steps on goldcape) and coarse-to-fine (1/4 size until 10 % of the run, 1/2
+# until 30 %).
+CAPTURE_RECIPE = {"init_max_pixels": 3.0, "coarse_to_fine": (0.1, 0.3)}
 
 # auto_iterations: steps per training view, and the bounds of the count
 STEPS_PER_VIEW = 50

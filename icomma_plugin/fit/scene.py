@@ -288,9 +288,10 @@ def fit_scene(
     t_init = time.perf_counter()
     cloud = initial_points(scene, train, config)
     max_scale = None
-    if config.init_max_angle is not None:
+    if config.init_max_pixels is not None:
         centres = np.stack([v.campos for v in scene.train])
-        max_scale = init_scale_limits(cloud.xyz, centres, config.init_max_angle)
+        fx = float(np.mean([v.intrinsics.fx for v in train]))
+        max_scale = init_scale_limits(cloud.xyz, centres, config.init_max_pixels / fx)
     init = model_from_points(cloud.xyz, cloud.rgb, config.sh_degree, config.init_opacity,
                              device=dev, max_scale=max_scale)
     seconds_init = time.perf_counter() - t_init

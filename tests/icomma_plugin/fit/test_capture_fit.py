@@ -340,3 +340,20 @@ def test_write_grid(tmp_path):
     assert np.abs(im[:40, 30:60].astype(int) - im[:40, :30]).max() <= 1  # render == photo
     with pytest.raises(ValueError, match="pairs"):
         write_grid(tmp_path / "x.png", [])
+
+
+def test_initial_scales_bounded_by_their_angle_from_the_cameras():
+    from icomma_plugin.fit.init import init_scale_limits
+
+    xyz = np.array([[10.0, 0, 0], [1.0, 0, 0], [1.0, 0.05, 0], [1.0, 0, 0.05], [30.0, 5, 0]])
+    lim = init_scale_limits(xyz, np.zeros((1, 3)), 0.01)
+    np.testing.assert_allclose(lim[:2], [0.1, 0.01])
+    free = model_from_points(xyz, np.full((5, 3), 0.5), sh_degree=0)
+    held = model_from_points(xyz, np.full((5, 3), 0.5), sh_degree=0, max_scale=lim)
+    s_free, s_held = free.scale_log.exp()[:, 0], held.scale_log.exp()[:, 0]
+    assert float(s_free[0]) > 0.5 and float(s_held[0]) == pytest.approx(0.1, rel=1e-5)
+    torch.testing.assert_close(s_held, torch.minimum(s_free, torch.as_tensor(lim).float()))
+    with pytest.raises(ValueError, match="max_scale"):
+        model_from_points(xyz, np.full((5, 3), 0.5), max_scale=lim[:3])
+    with pytest.raises(ValueError, match="angle"):
+        init_scale_limits(xyz, np.zeros((1, 3)), 0.0)

@@ -35,7 +35,7 @@ def test_for_capture():
     assert photo.iterations == render.iterations == auto_iterations(100, 200 * 200)
     for k, v in CAPTURE_RECIPE.items():
         assert getattr(photo, k) == v
-    assert render.coarse_to_fine == () and render.init_max_angle is None
+    assert render.coarse_to_fine == () and render.init_max_pixels is None
     fixed = FitConfig.for_capture(100, 200, 200, iterations=1234, coarse_to_fine=())
     assert fixed.iterations == 1234 and fixed.coarse_to_fine == ()
     assert fixed.densify_until_iter == round(0.5 * 1234)  # the scaled schedule
