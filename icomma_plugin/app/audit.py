@@ -202,14 +202,28 @@ def _median(values: Iterable[Optional[float]]) -> Optional[float]:
     return float(np.median(v)) if v else None
 
 
+def _untrusted_reason(rows: Sequence[Mapping[str, Any]]) -> str:
+    """Why a camera without an ``ok`` pose is flagged: the counts, where its poses are, the doubt.
+
+    The doubt is the reason of the run with the most agreeing matches.
+    """
+    counts = {v: sum(1 for r in rows if r.get("status") == v) for v in VERDICTS}
+    rot = _median(r.get("rot_err_deg") for r in rows)
+    trans = _median(r.get("trans_err_rel") for r in rows)
+    best = max(rows, key=lambda r: r.get("inliers") or 0)
+    where = "" if rot is None or trans is None else (
+        f"; its poses are {rot:.2f} deg / {trans:.3f} radii from the record (median)")
+    doubt = f"; best run: {best.get('reason')}" if best.get("reason") else ""
+    return (f"no trustworthy pose from any of {len(rows)} starts ({counts['uncertain']} "
+            f"uncertain, {counts['failed']} failed{where}{doubt}): a region the model renders "
+            "badly, or a photo that does not show the scene")
+
+
 def _flag(name: str, rows, ok, rule: FlagRule, scale: float) -> Dict[str, Any]:
     """The flag part of a camera's summary (see :func:`summarize_camera`)."""
-    counts = {v: sum(1 for r in rows if r.get("status") == v) for v in VERDICTS}
     if not ok:
         return {"flag": "no_trustworthy_pose", "consensus": None,
-                "reason": f"no trustworthy pose from any of {len(rows)} starts "
-                          f"({counts['uncertain']} uncertain, {counts['failed']} failed): a "
-                          "region the model renders badly, or a photo that does not show the scene"}
+                "reason": _untrusted_reason(rows)}
     medoid, group = _consensus(ok, rule, scale)
     need = min(rule.min_ok, len(rows))
     cons = ok[medoid]

@@ -106,9 +106,12 @@ def test_confident_poses_that_agree_with_each_other_not_the_record_are_a_registr
 
 
 def test_no_ok_pose_from_any_start_is_a_region_the_model_renders_badly():
-    s = _flag([_run(RECORDED, "uncertain"), _run(_off(30), "failed", "start0")])
+    doubted = dict(_run(RECORDED, "uncertain"), reason="check this pose: mean displacement 0.82 px")
+    s = _flag([doubted, _run(_off(30), "failed", "start0")])
     assert s["flag"] == "no_trustworthy_pose"
-    assert "no trustworthy pose from any of 2 starts (1 uncertain, 1 failed)" in s["reason"]
+    assert "no trustworthy pose from any of 2 starts (1 uncertain, 1 failed; its poses are " \
+        "15.00 deg / 0.000 radii from the record (median); best run: check this pose: mean " \
+        "displacement 0.82 px)" in s["reason"]
     assert s["status"] == "uncertain"  # the summary shows the run with the most inliers
 
 
