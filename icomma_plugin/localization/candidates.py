@@ -20,7 +20,7 @@ import torch
 from ..camera import Intrinsics
 from ..checks import check_bool, check_int, check_real
 from ..matchers.base import Features, mutual_nn_count
-from ..pose.convert import same_pose
+from ..pose.convert import invert_rigid, same_pose
 from ..pose.views import sample_views, scene_frame
 from .anchors import name_stem
 from .state import LocalizationState
@@ -158,7 +158,7 @@ class CandidateIndex:
                     feats.append(use.features(j, max(intr.width, intr.height), state.matcher))
                     continue
                 with torch.no_grad():
-                    out = state.render(np.linalg.inv(T), intrinsics=intr)
+                    out = state.render(invert_rigid(T), intrinsics=intr)
                 if float(out.alpha.mean()) < 0.01:
                     feats.append(None)  # sees nothing of the scene
                     continue
@@ -221,7 +221,7 @@ class CandidateIndex:
 
     def start_w2c(self, index: int, quarter_turns: int = 0) -> np.ndarray:
         """The start pose (w2c) of candidate ``index`` for a photo that matched it turned."""
-        return rolled_w2c(np.linalg.inv(self.c2w[index]), quarter_turns)
+        return rolled_w2c(invert_rigid(self.c2w[index]), quarter_turns)
 
     def to_state(self) -> Dict[str, Any]:
         """The index as tensors, lists and numbers (``torch.load`` reads it with weights_only)."""

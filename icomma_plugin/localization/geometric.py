@@ -14,7 +14,6 @@ verification that follow check it).
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass, field
 from typing import List, Optional, Tuple
 
@@ -22,8 +21,8 @@ import numpy as np
 import torch
 
 from ..checks import check_bool, check_choice, check_int, check_real
-from ..pose.convert import rotation_error_deg
-from .geometry import PnPResult, lift_keypoints, solve_pnp
+from ..pose.convert import invert_rigid, rotation_error_deg
+from .geometry import PnPResult, lift_keypoints, median_depth, solve_pnp
 from .state import LocalizationState, Observation
 from .types import Stage
 from .verify import PoseScore, score_observation
@@ -121,7 +120,7 @@ class GeometricOutcome:
 
 
 def _motion(w2c_a: np.ndarray, w2c_b: np.ndarray):
-    ca, cb = np.linalg.inv(w2c_a), np.linalg.inv(w2c_b)
+    ca, cb = invert_rigid(w2c_a), invert_rigid(w2c_b)
     return float(rotation_error_deg(ca, cb)), float(np.linalg.norm(ca[:3, 3] - cb[:3, 3]))
 
 
@@ -145,7 +144,7 @@ def _render_correspondences(state: LocalizationState, obs: Observation, cfg: Geo
                 window=1,
             ).detach()
     with state.timed("pnp"):
-        c2w = np.linalg.inv(obs.w2c)
+        c2w = invert_rigid(obs.w2c)
         pts, keep = lift_keypoints(kpts0, obs.depth, obs.alpha, intr, torch.as_tensor(c2w),
                                    cfg.min_alpha, cfg.max_depth_jump)
         return pts.cpu().numpy(), kpts1[keep].double().cpu().numpy()
@@ -164,7 +163,7 @@ def pnp_from_observation(state: LocalizationState, obs: Observation, cfg: Geomet
     if cfg.anchors != "photos" or photos is None:
         pts, pix = _render_correspondences(state, obs, cfg, subpixel)
     if photos is not None:
-        X, x, _ = photos(state, obs.scale, np.linalg.inv(obs.w2c), cfg)
+        X, x, _ = photos(state, obs.scale, invert_rigid(obs.w2c), cfg)
         pts, pix = np.concatenate([pts, X]), np.concatenate([pix, x])
     if len(pts) < cfg.min_pnp_inliers:
         return None
@@ -216,7 +215,7 @@ def run_geometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Geometri
         if pnp is None:
             break
         drot, dtrans = _motion(w2c, pnp.w2c)
-        depth = scene_depth if scene_depth else _median_depth(obs)
+        depth = scene_depth if scene_depth else median_depth(obs.depth, obs.alpha)
         w2c = pnp.w2c
         if drot < cfg.stop_rot_deg and dtrans < cfg.stop_trans_rel * depth:
             converged = True
@@ -232,10 +231,3 @@ def run_geometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Geometri
         start_cov,
         inliers_per_round,
     )
-
-
-def _median_depth(obs: Observation) -> float:
-    sel = obs.alpha > 0.5
-    if bool(sel.any()):
-        return float(obs.depth[sel].median())
-    return 1.0 if not math.isfinite(float(obs.depth.max())) else max(float(obs.depth.max()), 1.0)

@@ -367,7 +367,7 @@ class _PaperLoop:
         cfg, P = self.cfg, self.cfg.converge_patience
         if P <= 0 or len(self.history) != P + 1 or it + 1 < max(cfg.min_iterations, P):
             return False
-        a, b = np.linalg.inv(self.history[0]), np.linalg.inv(self.history[-1])
+        a, b = invert_rigid(self.history[0]), invert_rigid(self.history[-1])
         drot = float(rotation_error_deg(a, b))
         dtrans = float(np.linalg.norm(a[:3, 3] - b[:3, 3]))
         return drot < cfg.converge_rot_deg and \

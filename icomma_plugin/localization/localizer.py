@@ -237,7 +237,7 @@ class Localizer:
         if not isinstance(query, Query):
             raise ValueError(f"query must be a Query, got {type(query).__name__}")
         cfg = self._method(method).at_model_side(query.intrinsics, self.model_side)
-        init_w2c = None if init_c2w is None else np.linalg.inv(as_rigid(init_c2w, "init_c2w"))
+        init_w2c = None if init_c2w is None else invert_rigid(as_rigid(init_c2w, "init_c2w"))
         gt = None if gt_c2w is None else as_rigid(gt_c2w, "gt_c2w")
         if init_w2c is None and cfg.needs_start:
             raise ValueError(f"the paper's method (optimizer={cfg.name}) needs a start pose "

@@ -23,7 +23,7 @@ import numpy as np
 
 from ..camera import Intrinsics
 from ..checks import check_bool, check_choice, check_int, check_real, config_from_dict
-from ..pose.convert import rotation_error_deg
+from ..pose.convert import invert_rigid, rotation_error_deg
 from .candidates import CandidateConfig, usable
 from .geometric import GeometricConfig, GeometricOutcome, run_geometric
 from .geometry import median_depth
@@ -175,12 +175,12 @@ def _rival(hyps: List[Tuple[str, GeometricOutcome]], best: Optional[GeometricOut
     """The hypothesis far from ``best`` whose support is within ``tie`` of the best's, if any."""
     if best is None or best.score is None:
         return None
-    best_c2w = np.linalg.inv(best.w2c)
+    best_c2w = invert_rigid(best.w2c)
     rivals = []
     for name, g in hyps:
         if g is best or g.score is None:
             continue
-        apart = float(rotation_error_deg(np.linalg.inv(g.w2c), best_c2w))
+        apart = float(rotation_error_deg(invert_rigid(g.w2c), best_c2w))
         if apart > cfg.candidates.rival_deg and _support(g) >= (1.0 - tie) * _support(best):
             rivals.append({"start": name, "rot_deg_apart": apart, "support": _support(g),
                            "best_support": _support(best), "inliers": g.score.inliers})
@@ -258,13 +258,13 @@ class _Search:
             return
         counts = index.last_counts
         top = max(counts[order[0][0]], 1)
-        best_c2w = np.linalg.inv(self.best.w2c)
+        best_c2w = invert_rigid(self.best.w2c)
         for idx, turns in order[: 2 * cc.top_k]:
             if counts[idx] < cc.rival_share * top:
                 return  # ranked in decreasing count: no later one ranks close
             if idx in ran or index.features[idx] is None:
                 continue
-            start_c2w = np.linalg.inv(index.start_w2c(idx, turns))
+            start_c2w = invert_rigid(index.start_w2c(idx, turns))
             if float(rotation_error_deg(start_c2w, best_c2w)) > cc.rival_deg:
                 self._run_candidate(index, idx, turns, len(self.hyps) + 1, " (rival)")
                 return

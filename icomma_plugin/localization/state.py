@@ -19,7 +19,7 @@ import torch
 
 from ..camera import Intrinsics
 from ..gaussians import GaussianModel
-from ..pose.convert import rotation_error_deg, translation_error
+from ..pose.convert import invert_rigid, rotation_error_deg, translation_error
 from .types import Query, Stage, TraceRecord
 
 __all__ = ["LocalizationState", "Observation"]
@@ -220,7 +220,7 @@ class LocalizationState:
         """(rotation error deg, camera-centre distance) against the ground truth, if known."""
         if self.gt_c2w is None:
             return None, None
-        c2w = np.linalg.inv(w2c)
+        c2w = invert_rigid(w2c)
         return float(rotation_error_deg(c2w, self.gt_c2w)), float(
             translation_error(c2w, self.gt_c2w)
         )
