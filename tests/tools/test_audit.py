@@ -267,3 +267,23 @@ def test_the_corrupted_cameras_are_flagged_and_the_others_are_not(capture, tmp_p
     again = _audit(capture, out, "output.contact_sheet=false", "output.trajectory_plot=false")
     assert (out / "audit.jsonl").read_text().count("\n") == lines
     assert again["summary"] == doc["summary"]
+
+
+def test_the_pictures_mark_only_the_flagged_cameras(tmp_path):
+    from icomma_plugin.pictures import contact_sheet, plot_trajectory
+
+    rows = [{"name": f"p{i}", "status": "ok", "rot_err_deg": 0.1, "trans_err_rel": 0.001}
+            for i in range(3)]
+    p = contact_sheet(tmp_path / "s.png", rows, tmp_path, columns=3, cell=64, border=4,
+                      flags={"p1": "registration"})
+    a = np.asarray(Image.open(p).convert("RGB"))
+    magenta = np.all(a == (255, 0, 255), axis=-1)
+    pitch, header = 72, 24
+    per_cell = [magenta[header:, i * pitch:(i + 1) * pitch].sum() for i in range(3)]
+    assert per_cell[0] == 0 and per_cell[2] == 0 and per_cell[1] > 4 * 60
+    cams = [RECORDED, TRUE]
+    with pytest.raises(ValueError, match="flagged must have one bool per estimated pose"):
+        plot_trajectory(tmp_path / "t.png", cams, cams, cams, flagged=[True])
+    plot_trajectory(tmp_path / "t.png", [TRUE, RECORDED], cams, cams, flagged=[True, False],
+                    labels={"truth": "recorded"})
+    assert (tmp_path / "t.png").is_file()
