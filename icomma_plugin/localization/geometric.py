@@ -54,13 +54,18 @@ class GeometricConfig:
         from the answer integer keypoints are precise enough, and refining costs time).
     inlier_px: displacement below which a match agrees with a pose (the score; see verify.py).
     stop_rot_deg, stop_trans_rel: a proposal that moves the pose less than this (rotation, and
-        centre motion relative to the scene depth) ends the stage.
+        centre motion relative to the scene depth) ends the stage. 0.25 deg: the rounds after it
+        moved lego poses by 0.03-0.08 deg, back and forth, and the refinement gets there anyway
+        (0.05 deg took 13 steps where 0.25 takes 8, same accuracy; docs/SPEED.md).
     anchors: which 2D-3D correspondences the PnP takes: ``renders`` (the render at the current
         pose matched to the query), ``photos`` (the model's source photos nearest the current pose
         matched to the query, lifted with the model's depth at their cameras: ``anchors.py``) or
         ``both`` (pooled). Without source photos, ``renders``.
     anchor_photos: source photos matched per round; anchor_max_angle_deg: only photos whose
         optical axis is within this angle of the current pose's.
+    coarse_scale: the first rounds render and match at this share of the working resolution
+        (1: all at the working resolution) until a proposal moves the pose by less than
+        ``coarse_until_deg``: far from the answer, a quarter of the pixels finds the way.
     """
 
     max_rounds: int = 8
@@ -73,11 +78,13 @@ class GeometricConfig:
     subpixel: bool = True
     subpixel_inliers: int = 30
     inlier_px: float = 2.0
-    stop_rot_deg: float = 0.05
-    stop_trans_rel: float = 1e-3
+    stop_rot_deg: float = 0.25
+    stop_trans_rel: float = 5e-3
     anchors: str = "both"
     anchor_photos: int = 2
     anchor_max_angle_deg: float = 60.0
+    coarse_scale: float = 1.0
+    coarse_until_deg: float = 2.0
 
     def __post_init__(self):
         n = "GeometricConfig."
@@ -97,6 +104,8 @@ class GeometricConfig:
         check_choice(self.anchors, n + "anchors", ANCHORS)
         check_int(self.anchor_photos, n + "anchor_photos", 0)
         check_real(self.anchor_max_angle_deg, n + "anchor_max_angle_deg", 0.0, 180.0)
+        check_real(self.coarse_scale, n + "coarse_scale", 0.0, 1.0, lo_open=True)
+        check_real(self.coarse_until_deg, n + "coarse_until_deg", 0.0)
 
 
 @dataclass
@@ -176,19 +185,26 @@ def pnp_from_observation(state: LocalizationState, obs: Observation, cfg: Geomet
 def run_geometric(state: LocalizationState, w2c_start: np.ndarray, cfg: GeometricConfig,
                   scale: float = 1.0, scene_depth: Optional[float] = None,
                   hypothesis: Optional[int] = None) -> GeometricOutcome:
-    """Render-match-PnP rounds from ``w2c_start`` (see the module docstring)."""
+    """Render-match-PnP rounds from ``w2c_start`` (see the module docstring).
+
+    With ``cfg.coarse_scale`` < 1 the rounds start at that share of ``scale`` and move to
+    ``scale`` once a proposal moves the pose by less than ``cfg.coarse_until_deg``; scores of
+    the two resolutions are not compared (the first round at ``scale`` is taken as it is).
+    """
     w2c = np.asarray(w2c_start, np.float64)
     best_w2c, best_obs, best_score = w2c, None, None
     first_inliers, start_cov, converged = 0, 0.0, False
     inliers_per_round: List[int] = []
     rounds = 0
+    level = scale * cfg.coarse_scale if cfg.coarse_scale < 1.0 else scale
     for r in range(cfg.max_rounds):
         rounds = r + 1
-        obs = state.observe(w2c, scale)
+        obs = state.observe(w2c, level)
         sc = score_observation(obs, state, cfg.inlier_px)
         if r == 0:
             start_cov = sc.coverage
-        accepted = sc.better_than(best_score)
+        new_level = best_obs is not None and best_obs.scale != level
+        accepted = new_level or sc.better_than(best_score)
         rec = state.new_record(
             Stage.GEOMETRIC,
             w2c,
@@ -196,7 +212,7 @@ def run_geometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Geometri
             inliers=sc.inliers,
             accepted=accepted,
             hypothesis=hypothesis,
-            scale=scale,
+            scale=level,
         )
         if not accepted:
             state.record(rec)
@@ -217,6 +233,10 @@ def run_geometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Geometri
         drot, dtrans = _motion(w2c, pnp.w2c)
         depth = scene_depth if scene_depth else median_depth(obs.depth, obs.alpha)
         w2c = pnp.w2c
+        if level != scale:
+            if drot < cfg.coarse_until_deg:
+                level = scale  # near enough: the next rounds at the working resolution
+            continue
         if drot < cfg.stop_rot_deg and dtrans < cfg.stop_trans_rel * depth:
             converged = True
             best_w2c = w2c  # the last, tiny step (checked by the refinement and verification)

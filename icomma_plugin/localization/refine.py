@@ -60,13 +60,18 @@ class RefineConfig:
         stage the pose is within ~0.2 deg, and on a fitted scene the optimum of a blurred or
         downscaled comparison lies elsewhere (lego: a sigma-4 level moved 0.10 deg poses to 0.27
         deg), so coarse levels cost time and accuracy there (docs/BENCHMARK.md).
-    iterations: LM iterations at most, per level (same length as ``scales``).
+    iterations: LM iterations at most, per level (same length as ``scales``). 3: from the
+        geometric stage's pose the error stops falling after the third step on lego (6 took 30 %
+        more time for the same median error; docs/SPEED.md).
     lambda_init: initial LM damping (relative to the Hessian's diagonal).
     hessian: ``"finite_difference"``: Gauss-Newton from the exact Jacobian of the render by
         forward differences (6 extra forward renders); ``"motion_field"``: the cheap model of the
         module docstring (no extra render; its Jacobian is 15-30 % short and 0.9-0.97 aligned on
         the demo scene, so it needs several times as many steps).
     fd_step: forward-difference step of the twist (radians / world units).
+    hessian_scale: the finite-difference Jacobian is rendered at this share of the level's
+        resolution (1: at it); the Gauss-Newton matrix is a mean over pixels, so a coarser one
+        approximates it at a fraction of the cost (7 renders at a quarter of the pixels at 0.5).
     hessian_every: recompute the finite-difference Hessian after this many accepted steps (0:
         once per level; each recompute costs 6 renders). The motion-field Hessian is recomputed
         at every accepted step (free).
@@ -83,10 +88,11 @@ class RefineConfig:
 
     scales: Tuple[float, ...] = (1.0,)
     blur: Tuple[float, ...] = (0.0,)
-    iterations: Tuple[int, ...] = (6,)
+    iterations: Tuple[int, ...] = (3,)
     lambda_init: float = 1e-4
     hessian: str = "finite_difference"
     fd_step: float = 1e-3
+    hessian_scale: float = 1.0
     hessian_every: int = 0
     secant: bool = True
     stop_rot_deg: float = 3e-3
@@ -112,6 +118,7 @@ class RefineConfig:
             raise ValueError(f"RefineConfig.iterations must be >= 0, got {self.iterations}")
         check_real(self.lambda_init, "RefineConfig.lambda_init", 0.0, lo_open=True)
         check_real(self.fd_step, "RefineConfig.fd_step", 0.0, 0.1, lo_open=True)
+        check_real(self.hessian_scale, "RefineConfig.hessian_scale", 0.0, 1.0, lo_open=True)
         check_int(self.hessian_every, "RefineConfig.hessian_every", 0)
         check_bool(self.secant, "RefineConfig.secant")
         for name in ("stop_rot_deg", "stop_trans_rel", "still_rot_deg", "still_trans_rel"):
@@ -205,6 +212,12 @@ def _hessian(state, cfg, w2c, scale, out, mask, intr, blur):
         return gauss_newton_hessian(
             gaussian_blur(out.color.detach(), blur), out.depth, out.alpha, mask, intr
         )
+    if cfg.hessian_scale < 1.0:  # the Jacobian of a coarser render
+        scale = scale * cfg.hessian_scale
+        blur = blur * cfg.hessian_scale
+        with torch.no_grad():
+            out = state.render(torch.as_tensor(w2c, dtype=torch.float64), scale)
+        mask = coverage_mask(Observation(w2c, scale, out.color, out.depth, out.alpha), state)
     # finite differences of the render: J[:, k] = (I(exp(h e_k) w2c) - I(w2c)) / h
     base = gaussian_blur(out.color.detach().double(), blur)
     cols = []

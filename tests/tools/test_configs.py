@@ -220,7 +220,11 @@ def test_data_init_none_reaches_the_problem(tmp_path):
     )
     problem = load_problem(_tools_common().container(cfg.data))
     assert problem.init_c2w is None and problem.gt_c2w is not None
-    assert len(problem.candidate_c2ws()) == len(problem.cameras) > 0
+    from icomma_plugin.pose.convert import same_pose
+
+    # every model camera is a candidate view: none sits at the query's own pose
+    assert len(problem.cameras) > 0
+    assert not any(same_pose(e.c2w, problem.gt_c2w) for e in problem.cameras)
 
 
 def test_only_tools_import_hydra():
