@@ -221,6 +221,31 @@ def evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def make_progress(bar, log_every: int):
+    """The fit's progress callback: a tqdm bar (or None) and a log line every `log_every`."""
+    t_start = time.perf_counter()
+
+    def progress(it, total, info):
+        if bar is not None:
+            bar.n = it
+            post = {
+                "loss": f"{info.get('loss', float('nan')):.4f}",
+                "N": int(info.get("num_gaussians", 0)),
+            }
+            if "psnr" in info:
+                post["psnr"] = f"{info['psnr']:.2f}"
+            bar.set_postfix(post, refresh=False)
+            bar.refresh()
+        if log_every and (it % log_every == 0 or it == total):
+            log.info(
+                "iteration %d/%d: loss %.4f, train-view PSNR %.2f dB, %d Gaussians, %.0f s",
+                it, total, info.get("loss", float("nan")), info.get("psnr", float("nan")),
+                int(info.get("num_gaussians", 0)), time.perf_counter() - t_start,
+            )
+
+    return progress
+
+
 def main(argv=None) -> int:
     """Fit (or with --evaluate, measure) a model folder. Returns the exit status."""
     args = parse_args(argv)
@@ -253,30 +278,7 @@ def main(argv=None) -> int:
         bar = tqdm(total=config.iterations, dynamic_ncols=True, mininterval=1.0)
     log.info("recipe %s: %d iterations, coarse-to-fine %s, initial scales <= %s px",
              args.recipe, config.iterations, list(config.coarse_to_fine), config.init_max_pixels)
-    t_start = time.perf_counter()
-
-    def progress(it, total, info):
-        if bar is not None:
-            bar.n = it
-            post = {
-                "loss": f"{info.get('loss', float('nan')):.4f}",
-                "N": int(info.get("num_gaussians", 0)),
-            }
-            if "psnr" in info:
-                post["psnr"] = f"{info['psnr']:.2f}"
-            bar.set_postfix(post, refresh=False)
-            bar.refresh()
-        if args.log_every and (it % args.log_every == 0 or it == total):
-            log.info(
-                "iteration %d/%d: loss %.4f, train-view PSNR %.2f dB, %d Gaussians, %.0f s",
-                it,
-                total,
-                info.get("loss", float("nan")),
-                info.get("psnr", float("nan")),
-                int(info.get("num_gaussians", 0)),
-                time.perf_counter() - t_start,
-            )
-
+    progress = make_progress(bar, args.log_every)
     t0 = time.perf_counter()
     try:
         res = fit_scene(

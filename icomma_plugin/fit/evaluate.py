@@ -87,7 +87,7 @@ def evaluate_views(render_fn: RenderFn, views: Sequence, exposures: Optional[Map
 
 
 def write_grid(path: PathLike, pairs: Sequence, max_side: int = 320) -> Path:
-    """A PNG with one row per view: photo | render | |difference| x 4.
+    """A PNG with one row per view: photo | render | error (mean |difference| x 4, grey).
 
     Args:
         path: the PNG to write (its folder is created).
@@ -101,7 +101,8 @@ def write_grid(path: PathLike, pairs: Sequence, max_side: int = 320) -> Path:
     rows: List[np.ndarray] = []
     for view, render in pairs:
         photo = view.image.detach().cpu().float()
-        diff = ((render.cpu().float() - photo).abs() * 4.0).clamp(0.0, 1.0)
+        err = (render.cpu().float() - photo).abs().mean(dim=0, keepdim=True)
+        diff = (err * 4.0).clamp(0.0, 1.0).expand(3, -1, -1)
         tiles = [photo, render.cpu().float(), diff]
         h, w = photo.shape[1:]
         s = min(1.0, max_side / max(h, w))

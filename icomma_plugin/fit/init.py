@@ -137,6 +137,36 @@ def _sample(img: torch.Tensor, u: np.ndarray, r: np.ndarray) -> torch.Tensor:
     return out[0, :, :, 0].reshape(3, *u.shape)
 
 
+def _mean_costs(X: np.ndarray, ref: torch.Tensor, arrays, blurred) -> np.ndarray:
+    """[P, D] mean colour difference of each depth hypothesis X [P, D, 3] over the neighbours.
+
+    Each hypothesis is projected into every neighbour view (its `_view_arrays` and blurred
+    image); the cost is the mean L1 distance to the reference colours `ref` [3, P] over the
+    views where it lands on a valid pixel in front of the camera, and inf where fewer than
+    half of the neighbours (at least 2) see it.
+    """
+    cost = np.zeros(X.shape[:2])
+    seen = np.zeros(X.shape[:2])
+    for (Kk, wk, _, vk), img in zip(arrays, blurred):
+        xc = X @ wk[:3, :3].T + wk[:3, 3]
+        z = xc[..., 2]
+        zs = np.where(z > 1e-6, z, 1.0)
+        uk = Kk[0, 0] * xc[..., 0] / zs + Kk[0, 2]
+        vk_ = Kk[1, 1] * xc[..., 1] / zs + Kk[1, 2]
+        Hk, Wk = img.shape[1:]
+        inside = (z > 1e-6) & (uk >= 0) & (uk <= Wk - 1) & (vk_ >= 0) & (vk_ <= Hk - 1)
+        if vk is not None:
+            ii = np.clip(np.rint(vk_).astype(int), 0, Hk - 1)
+            jj = np.clip(np.rint(uk).astype(int), 0, Wk - 1)
+            inside &= vk[ii, jj]
+        smp = _sample(img, np.where(inside, uk, 0.0), np.where(inside, vk_, 0.0))
+        d = (smp - ref[:, :, None]).abs().mean(0).numpy()
+        cost += np.where(inside, d, 0.0)
+        seen += inside
+    need = max(2, (len(arrays) + 1) // 2)
+    return np.where(seen >= need, cost / np.maximum(seen, 1), np.inf)
+
+
 def plane_sweep_points(
     views,
     center: Sequence[float],
@@ -217,27 +247,7 @@ def plane_sweep_points(
         nb = [k for k in np.argsort(dist)[:neighbours] if np.isfinite(dist[k])]
         if not nb:
             continue
-        cost = np.zeros(X.shape[:2])
-        seen = np.zeros(X.shape[:2])
-        for k in nb:
-            Kk, wk, _, vk = arrays[k]
-            xc = X @ wk[:3, :3].T + wk[:3, 3]
-            z = xc[..., 2]
-            zs = np.where(z > 1e-6, z, 1.0)
-            uk = Kk[0, 0] * xc[..., 0] / zs + Kk[0, 2]
-            vk_ = Kk[1, 1] * xc[..., 1] / zs + Kk[1, 2]
-            Hk, Wk = blurred[k].shape[1:]
-            inside = (z > 1e-6) & (uk >= 0) & (uk <= Wk - 1) & (vk_ >= 0) & (vk_ <= Hk - 1)
-            if vk is not None:
-                ii = np.clip(np.rint(vk_).astype(int), 0, Hk - 1)
-                jj = np.clip(np.rint(uk).astype(int), 0, Wk - 1)
-                inside &= vk[ii, jj]
-            smp = _sample(blurred[k], np.where(inside, uk, 0.0), np.where(inside, vk_, 0.0))
-            d = (smp - ref[:, :, None]).abs().mean(0).numpy()
-            cost += np.where(inside, d, 0.0)
-            seen += inside
-        need = max(2, (len(nb) + 1) // 2)
-        mean_cost = np.where(seen >= need, cost / np.maximum(seen, 1), np.inf)
+        mean_cost = _mean_costs(X, ref, [arrays[k] for k in nb], [blurred[k] for k in nb])
         best = np.argmin(mean_cost, axis=1)
         bc = mean_cost[np.arange(len(best)), best]
         finite = np.where(np.isfinite(mean_cost), mean_cost, np.nan)

@@ -267,33 +267,12 @@ def fit_scene(
     config = config or FitConfig()
     src, final = _check_paths(source_path, model_path, overwrite)
     scene = _read_scene(src, white_background, dataset_kwargs)
-    # validate the resolution before loading anything heavy
-    w0 = scene.train[0].intrinsics.width
-    resolution_scale(resolution, downscale, w0)
-    tiny = tiny_resolution_message(resolution, downscale, scene.train[0].intrinsics)
-    if tiny:
-        log.warning("%s", tiny)
     bg = (1.0, 1.0, 1.0) if scene.white_background else (0.0, 0.0, 0.0)
     dev = torch.device(device) if device is not None else torch.device("cpu")
-
-    log.info("loading %d train views of %s", len(scene.train), src)
-    train = views_to_fit(
-        scene.train, resolution, downscale, bg, device=dev, keep_alpha=config.random_background
-    )
-    test_idx = _subset(len(scene.test), config.eval_views)
-    test = views_to_fit([scene.test[i] for i in test_idx], resolution, downscale, bg, device=dev)
-    log.info("images at %dx%d; %d test views for evaluation", train[0].intrinsics.width,
-             train[0].intrinsics.height, len(test))
-
+    train, test = _load_views(scene, config, resolution, downscale, bg, dev)
+    w0 = scene.train[0].intrinsics.width
     t_init = time.perf_counter()
-    cloud = initial_points(scene, train, config)
-    max_scale = None
-    if config.init_max_pixels is not None:
-        centres = np.stack([v.campos for v in scene.train])
-        fx = float(np.mean([v.intrinsics.fx for v in train]))
-        max_scale = init_scale_limits(cloud.xyz, centres, config.init_max_pixels / fx)
-    init = model_from_points(cloud.xyz, cloud.rgb, config.sh_degree, config.init_opacity,
-                             device=dev, max_scale=max_scale)
+    cloud, init = _initial_model(scene, train, config, dev)
     seconds_init = time.perf_counter() - t_init
     extent = scene.scene_radius()
     log.info("init: %d points (%s, %d far field, %.1f s); scene extent %.3f", init.num_gaussians,
@@ -341,6 +320,36 @@ def fit_scene(
     _publish(staging, final, overwrite)
     log.info("model folder written: %s", final)
     return SceneFitResult(model_path=final, fit=result, metrics=metrics)
+
+
+def _load_views(scene, config: FitConfig, resolution, downscale, bg, dev):
+    """(train, test) FitViews at the requested resolution; the resolution is checked first."""
+    resolution_scale(resolution, downscale, scene.train[0].intrinsics.width)
+    tiny = tiny_resolution_message(resolution, downscale, scene.train[0].intrinsics)
+    if tiny:
+        log.warning("%s", tiny)
+    log.info("loading %d train views of %s", len(scene.train), scene.root)
+    train = views_to_fit(
+        scene.train, resolution, downscale, bg, device=dev, keep_alpha=config.random_background
+    )
+    test_idx = _subset(len(scene.test), config.eval_views)
+    test = views_to_fit([scene.test[i] for i in test_idx], resolution, downscale, bg, device=dev)
+    log.info("images at %dx%d; %d test views for evaluation", train[0].intrinsics.width,
+             train[0].intrinsics.height, len(test))
+    return train, test
+
+
+def _initial_model(scene, train, config: FitConfig, dev):
+    """(InitCloud, GaussianModel) of the start (`init.initial_points`, bounded scales)."""
+    cloud = initial_points(scene, train, config)
+    max_scale = None
+    if config.init_max_pixels is not None:
+        centres = np.stack([v.campos for v in scene.train])
+        fx = float(np.mean([v.intrinsics.fx for v in train]))
+        max_scale = init_scale_limits(cloud.xyz, centres, config.init_max_pixels / fx)
+    init = model_from_points(cloud.xyz, cloud.rgb, config.sh_degree, config.init_opacity,
+                             device=dev, max_scale=max_scale)
+    return cloud, init
 
 
 def _fit_metrics(trainer: Trainer, result: FitResult, train, test, cloud: InitCloud) -> Dict:

@@ -198,16 +198,10 @@ class Trainer:
         self.progress_every = max(1, int(progress_every))
         init = init.with_sh_degree(config.sh_degree) if init.sh_degree != config.sh_degree else init
         self.state = GaussianTrainState(
-            init,
-            self.extent,
-            position_lr=config.position_lr_init,
-            feature_lr=config.feature_lr,
-            opacity_lr=config.opacity_lr,
-            scaling_lr=config.scaling_lr,
-            rotation_lr=config.rotation_lr,
-            eps=config.adam_eps,
-            percent_dense=config.percent_dense,
-            seed=config.seed,
+            init, self.extent, position_lr=config.position_lr_init, feature_lr=config.feature_lr,
+            opacity_lr=config.opacity_lr, scaling_lr=config.scaling_lr,
+            rotation_lr=config.rotation_lr, eps=config.adam_eps,
+            percent_dense=config.percent_dense, seed=config.seed,
         )
         self.device = init.device
         self.dtype = init.dtype
@@ -219,26 +213,24 @@ class Trainer:
         self._stack: List[int] = []
         self.iteration = 0
         self.history: List[Dict[str, float]] = []
-        self.timings = {
-            "render": 0.0,
-            "loss": 0.0,
-            "backward": 0.0,
-            "stats": 0.0,
-            "densify": 0.0,
-            "adam": 0.0,
-        }
+        self.timings = dict.fromkeys(
+            ("render", "loss", "backward", "stats", "densify", "adam", "exposure"), 0.0)
         self.max_steps = config.position_lr_max_steps or config.iterations
         pixels = sum(v.intrinsics.width * v.intrinsics.height for v in self.train_views)
         self.max_gaussians = min(config.max_gaussians, max(1, int(
             config.max_gaussians_per_pixel * pixels / len(self.train_views))))
+        self._setup_capture_parts(scene_centre, exposure)
+
+    def _setup_capture_parts(self, scene_centre: Optional[Sequence[float]], exposure: bool):
+        """The centre of the distance-scaled thresholds, exposures, the coarse-level cache."""
+        c = self.config
         self.centre = None
-        if scene_centre is not None and config.distance_scaled_thresholds:
+        if scene_centre is not None and c.distance_scaled_thresholds:
             self.centre = torch.as_tensor(scene_centre, dtype=self.dtype, device=self.device)
-        self.exposure = ExposureState(len(self.train_views), config.exposure_lr_init,
-                                      config.exposure_lr_final, self.max_steps, self.dtype,
+        self.exposure = ExposureState(len(self.train_views), c.exposure_lr_init,
+                                      c.exposure_lr_final, self.max_steps, self.dtype,
                                       self.device) if exposure else None
         self._levels: Dict[int, List[FitView]] = {1: self.train_views}
-        self.timings["exposure"] = 0.0
 
     # ------------------------------------------------------------------ helpers
     def _next_index(self) -> int:
@@ -269,6 +261,34 @@ class Trainer:
             expon_lr(iteration, c.position_lr_init * self.extent, c.position_lr_final * self.extent,
                      self.max_steps, 0, c.position_lr_delay_mult),
         )
+
+    def _loss_and_grad(self, index: int, color: torch.Tensor, gt: torch.Tensor,
+                       valid: Optional[torch.Tensor]):
+        """(loss, d loss / d render, the render as compared) of training view `index`.
+
+        With exposure, the render goes through the view's colour transform first.
+        """
+        c = self.config
+        if self.exposure is None:
+            loss, grad = photometric_loss_and_grad(color, gt, c.lambda_dssim, valid)
+            return loss, grad, color
+        shown = self.exposure.apply(index, color)
+        loss, dshown = photometric_loss_and_grad(shown, gt, c.lambda_dssim, valid)
+        return loss, self.exposure.backward(index, color, dshown), shown
+
+    def _densify(self, it: int) -> None:
+        """Densification, pruning and opacity reset due at iteration `it` (upstream schedule)."""
+        c = self.config
+        if it > c.densify_from_iter and it % c.densification_interval == 0:
+            size = c.max_screen_size if it > c.opacity_reset_interval else None
+            d = self.state.densify_and_prune(c.densify_grad_threshold, c.min_opacity, self.extent,
+                                             size, self.max_gaussians, centre=self.centre)
+            log.debug("iteration %d densify: %s", it, d)
+        if it % c.opacity_reset_interval == 0 or (
+            self.white_background and it == c.densify_from_iter
+        ):
+            self.state.reset_opacity()
+            log.debug("iteration %d: opacity reset", it)
 
     # ------------------------------------------------------------------ one step
     def train_step(self) -> Dict[str, float]:
@@ -303,14 +323,7 @@ class Trainer:
         if c.random_background and view.alpha is not None:
             gt = gt + (bg - self.background).view(3, 1, 1) * (1.0 - view.alpha)  # re-composite
         # loss and its image gradient in closed form (no autograd graph for L1 / SSIM)
-        color = out.color.detach()
-        if self.exposure is not None:
-            shown = self.exposure.apply(index, color)
-            loss, dshown = photometric_loss_and_grad(shown, gt, c.lambda_dssim, view.valid)
-            dloss = self.exposure.backward(index, color, dshown)
-        else:
-            shown = color
-            loss, dloss = photometric_loss_and_grad(color, gt, c.lambda_dssim, view.valid)
+        loss, dloss, shown = self._loss_and_grad(index, out.color.detach(), gt, view.valid)
         t2 = time.perf_counter()
         out.color.backward(dloss)
         t3 = time.perf_counter()
@@ -320,22 +333,7 @@ class Trainer:
                 st.add_densification_stats(means2D.grad, out.radii)
                 t4 = time.perf_counter()
                 tm["stats"] += t4 - t3
-                if it > c.densify_from_iter and it % c.densification_interval == 0:
-                    size = c.max_screen_size if it > c.opacity_reset_interval else None
-                    d = st.densify_and_prune(
-                        c.densify_grad_threshold,
-                        c.min_opacity,
-                        self.extent,
-                        size,
-                        self.max_gaussians,
-                        centre=self.centre,
-                    )
-                    log.debug("iteration %d densify: %s", it, d)
-                if it % c.opacity_reset_interval == 0 or (
-                    self.white_background and it == c.densify_from_iter
-                ):
-                    st.reset_opacity()
-                    log.debug("iteration %d: opacity reset", it)
+                self._densify(it)
                 tm["densify"] += time.perf_counter() - t4
             t5 = time.perf_counter()
             st.step()

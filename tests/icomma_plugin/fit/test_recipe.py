@@ -55,3 +55,28 @@ def test_tool_builds_the_recipe_of_the_capture():
     assert cfg.iterations == 5000 and cfg.coarse_to_fine == ()
     with pytest.raises(ValueError, match="unknown FitConfig field"):
         build_config(parse_args(["-m", "x", "--set", "nope=1"]), cap)
+
+
+def test_tool_fits_then_evaluates_with_a_grid(tmp_path, capsys):
+    """tools/fit_scene.py end to end on a tiny capture: the capture recipe, then --evaluate."""
+    import json
+
+    from tests.icomma_plugin.fit.test_capture_fit import _write_llff
+    from tools.fit_scene import main
+
+    _write_llff(tmp_path / "data", n=8, size=64)
+    model = tmp_path / "model"
+    assert main(["-s", str(tmp_path / "data"), "-m", str(model), "--iterations", "20",
+                 "--threads", "1", "--no-progress", "--set", "num_sweep_points=300",
+                 "--set", "far_field_points=300"]) == 0
+    fitted = json.loads(capsys.readouterr().out)
+    assert fitted["iterations"] == 20 and fitted["test_psnr_right_half_exposure"] is not None
+    metrics = json.loads((model / "metrics.json").read_text())
+    assert metrics["config"]["coarse_to_fine"] == [0.1, 0.3]  # the capture recipe
+    assert metrics["config"]["init_max_pixels"] == 3.0
+    assert main(["-m", str(model), "--evaluate", "--threads", "1"]) == 0
+    ev = json.loads(capsys.readouterr().out)
+    assert ev["test_psnr"] == pytest.approx(fitted["test_psnr"], abs=1e-3)
+    grid = model / "eval_test_grid.png"
+    assert ev["grid"] == str(grid) and grid.is_file()
+    assert main(["-m", str(tmp_path / "nowhere"), "--evaluate", "--threads", "1"]) == 2
