@@ -155,13 +155,14 @@ class PhotoAnchors:
         return order[:k]
 
     def correspondences(self, state, scale: float, c2w: np.ndarray, k: int, cfg,
-                        exclude: FrozenSet[int] = frozenset()
+                        exclude: FrozenSet[int] = frozenset(), subpixel: bool = False
                         ) -> Tuple[np.ndarray, np.ndarray, List[str]]:
         """2D-3D correspondences of the query from the ``k`` photos nearest ``c2w``.
 
         The query (at working ``scale``) is matched against each photo (at the query's working
         size); the photo's keypoints are lifted with the model's depth at its camera
-        (``cfg.min_alpha``, ``cfg.max_depth_jump``).
+        (``cfg.min_alpha``, ``cfg.max_depth_jump``), refined to sub-pixel positions against the
+        query first with ``subpixel`` (as the render's keypoints are).
 
         Returns:
             (world points [N, 3], query pixels [N, 2], names of the photos used).
@@ -176,8 +177,16 @@ class PhotoAnchors:
             if len(m) < cfg.min_pnp_inliers:
                 continue
             depth, alpha, intr = self.depth(i, side, state)
+            kpts0 = m.kpts0
+            if subpixel:
+                from ..matchers.refine import refine_render_keypoints
+
+                with state.timed("pnp"):
+                    photo = self.image(i, side).rgb.to(q.rgb)
+                    kpts0 = refine_render_keypoints(photo, q.rgb, m.kpts0.to(photo.dtype),
+                                                    m.kpts1.to(photo.dtype), window=1).detach()
             with state.timed("pnp"):
-                X, keep = lift_keypoints(m.kpts0.double(), depth, alpha, intr,
+                X, keep = lift_keypoints(kpts0.double(), depth, alpha, intr,
                                          torch.as_tensor(self.photos[i].c2w), cfg.min_alpha,
                                          cfg.max_depth_jump)
             if int(keep.sum()) == 0:

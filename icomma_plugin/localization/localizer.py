@@ -313,9 +313,10 @@ class Localizer:
         return index, index.own_cameras(gt_c2w, state.query.name)
 
     def _anchors_for(self, state: LocalizationState, scale: float, c2w: np.ndarray, cfg,
-                     own: frozenset):
+                     own: frozenset, subpixel: bool = False):
         """The source photos' correspondences of ``state``'s query near ``c2w`` (``anchors``)."""
-        return self.photos.correspondences(state, scale, c2w, cfg.anchor_photos, cfg, own)
+        return self.photos.correspondences(state, scale, c2w, cfg.anchor_photos, cfg, own,
+                                           subpixel)
 
     def candidate_index(self, intrinsics: Intrinsics, cfg: Optional[CandidateConfig] = None,
                         state: Optional[LocalizationState] = None, *,
