@@ -42,12 +42,17 @@ bench: setup
 	$(BIN)/python tools/bench_rasterizer.py
 
 # The benchmark's models (docs/BENCHMARK.md): lego fitted at 200x200 from its train split, and the
-# fox capture at 270x480 (held-out frames are the queries). Skipped when already there.
+# real captures (held-out frames are the queries) with the capture recipe of docs/FITTING.md:
+# fox at 270x480, bird at 272x480, goldcape at 228x228. Skipped when already there.
 scenes: setup
 	test -f $(SCENES)/lego_200/cfg_args || $(BIN)/python tools/fit_scene.py \
 		-s $(SHARED_DATA)/nerf_synthetic/lego_400 -m $(SCENES)/lego_200 -r 2 --iterations 7000
 	test -f $(SCENES)/fox_270/cfg_args || $(BIN)/python tools/fit_scene.py \
 		-s $(SHARED_DATA)/fox -m $(SCENES)/fox_270 -r 4
+	test -f $(SCENES)/bird_272/cfg_args || $(BIN)/python tools/fit_scene.py \
+		-s $(SHARED_DATA)/bird -m $(SCENES)/bird_272 -r 2
+	test -f $(SCENES)/goldcape_228/cfg_args || $(BIN)/python tools/fit_scene.py \
+		-s $(SHARED_DATA)/goldcape -m $(SCENES)/goldcape_228 -r 4
 
 clean-native:
 	rm -rf build gaussian_renderer_pose/_C*.so $(VENV)/.native-built

@@ -810,7 +810,8 @@ def _main(args) -> int:
         "blocks": {},
         "render_timings": {},
         "args": {
-            k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(args).items() if k != "out"
+            k: (list(v) if isinstance(v, tuple) else str(v) if isinstance(v, Path) else v)
+            for k, v in vars(args).items() if k != "out"
         },
     }
     log(f"threads {torch.get_num_threads()}, load {result['load_before']}")

@@ -18,7 +18,8 @@ from .losses import photometric_loss, psnr, ssim
 from .evaluate import evaluate_model_folder, evaluate_views, write_grid
 from .exposure import ExposureState, fit_affine_colour
 from .init import InitCloud, far_field_points, initial_points
-from .scene import ModelFolderExistsError, SceneFitResult, fit_scene, resolution_scale
+from .scene import ModelFolderExistsError, SceneFitResult, fit_scene
+from .views import resolution_scale
 from .state import GaussianTrainState, expon_lr
 from .trainer import FitResult, FitView, Trainer, render_state
 

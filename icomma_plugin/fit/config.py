@@ -203,10 +203,12 @@ class FitConfig:
 CAPTURE_RECIPE = {"init_max_pixels": 3.0, "coarse_to_fine": (0.1, 0.3)}
 
 # auto_iterations: steps per training view, and the bounds of the count
-STEPS_PER_VIEW = 50
+STEPS_PER_VIEW = 100
 MIN_ITERATIONS, MAX_ITERATIONS = 3000, 10_000
-# ... and the pixel-steps a run may take (width x height x iterations): a CPU time budget
-PIXEL_STEPS = 600e6
+# ... and the pixel-steps a run may take (width x height x iterations): a CPU time budget. Lego
+# at 200x200 took 0.083 s a step on one idle thread (docs/FITTING.md), ~2 us a pixel-step:
+# 400e6 is about 8 minutes on two threads.
+PIXEL_STEPS = 400e6
 
 
 def auto_iterations(num_views: int, pixels: int) -> int:

@@ -165,7 +165,7 @@ def evaluate_model_folder(model_path: PathLike, source_path: Optional[PathLike] 
     from ..io.datasets import read_dataset
     from ..io.model_folder import load_model_folder
     from ..render import render
-    from .scene import tiny_resolution_message, views_to_fit
+    from .views import tiny_resolution_message, views_to_fit
 
     folder = load_model_folder(model_path, iteration)
     src = source_path if source_path is not None else folder.cfg.get("source_path")

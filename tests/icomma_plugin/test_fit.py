@@ -410,7 +410,7 @@ def test_bad_inputs(tmp_path, tiny_dataset):
 
 def test_lego_split_and_resolution_smoke(lego_root):
     """The shared lego scene loads at 200x200 for fitting (no fit: that is tools/fit_scene.py)."""
-    from icomma_plugin.fit.scene import views_to_fit
+    from icomma_plugin.fit.views import views_to_fit
     from icomma_plugin.io.datasets import read_dataset
 
     scene = read_dataset(lego_root, white_background=True)
@@ -575,7 +575,7 @@ def test_fit_scene_on_transforms_json_capture(tmp_path):
     from PIL import Image
 
     from icomma_plugin.fit import fit_scene
-    from icomma_plugin.fit.scene import views_to_fit
+    from icomma_plugin.fit.views import views_to_fit
     from icomma_plugin.io.datasets import read_dataset
 
     rendered = _render_views(_gt_model(), _ring_poses(9), size=32)

@@ -134,8 +134,8 @@ def test_demo_runs_from_another_folder(installed):
     for name in ("overlay_final.png", "convergence.png", "trace.csv"):
         assert (run_dir / name).is_file(), name
     res = json.loads(results[0].read_text())
-    assert res["success"] is True, res
-    assert res["final_rotation_error_deg"] < 0.5 < 20.0 <= res["initial_rotation_error_deg"]
+    assert res["status"] == "ok", res
+    assert res["rot_err_deg"] < 0.5 < 20.0 <= res["init_rot_err_deg"]
     assert (work / "outputs" / "demo_scene" / "demo.json").is_file()
     assert str(run_dir) in p.stdout
     # Nothing written into the installed package.
