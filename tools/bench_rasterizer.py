@@ -158,7 +158,19 @@ def _digest(fn: Callable, scene: Dict[str, object]) -> Dict[str, object]:
         return hashlib.sha256(data).hexdigest()[:16]
 
     grads = [tensors[k].grad for k in POSE_INPUTS]
+    from gaussian_renderer_pose import _ops
+
+    settings = scene["settings"]
+    with torch.no_grad():
+        state = _ops.rasterize_forward(
+            *(tensors[k].detach() if tensors[k] is not None else None for k in (
+                "means3D", "opacities", "shs", "colors_precomp", "scales", "rotations",
+                "cov3D_precomp", "bg", "viewmatrix", "projmatrix", "campos")),
+            settings["image_height"], settings["image_width"], settings["tanfovx"],
+            settings["tanfovy"], settings["scale_modifier"], settings["sh_degree"],
+            settings["prefiltered"], settings["antialiasing"])[4:]
     return {"images": sha(color, invdepth, depth_acc, alpha, radii), "camera_grad": sha(*grads),
+            "state": sha(*state),
             "color_sum": float(color.detach().double().sum()),
             "camera_grad_values": [float(v) for g in grads for v in g.flatten()]}
 
@@ -290,6 +302,7 @@ def compare_checkouts(roots: List[Path], scenes: List[Tuple[int, int]], thread_c
                         "same_images": [d["images"] == digests[0]["images"] for d in digests],
                         "same_camera_grad": [d["camera_grad"] == digests[0]["camera_grad"]
                                              for d in digests],
+                        "same_state": [d["state"] == digests[0]["state"] for d in digests],
                         "digests": digests,
                     })
     finally:
@@ -302,8 +315,8 @@ def compare_checkouts(roots: List[Path], scenes: List[Tuple[int, int]], thread_c
 def _print_comparison(names: List[str], rows: List[Dict[str, object]], repeats: int) -> None:
     """The markdown table of :func:`compare_checkouts`."""
     print(f"median of {repeats} interleaved calls after a warm-up; ns/G = wall ns per Gaussian; "
-          f"ratios: {names[0]} / other; 'same': images / pose-only camera gradient bits equal "
-          f"to {names[0]}'s")
+          f"ratios: {names[0]} / other; 'same': images / pose-only camera gradient / saved "
+          f"forward state (geom, binning, ...) bits equal to {names[0]}'s")
     header = ["Gaussians", "image", "threads", "mode"]
     for n in names:
         header += [f"{n} ms", f"{n} ns/G", f"{n} CPU ms"]
@@ -317,8 +330,8 @@ def _print_comparison(names: List[str], rows: List[Dict[str, object]], repeats: 
         for ms, cpu in zip(r["ms"], r["cpu_ms"]):
             cells += [f"{ms:.1f}", f"{ms * 1e6 / P:.0f}", f"{cpu:.1f}"]
         for i in range(1, len(names)):
-            same = ("yes" if r["same_images"][i] else "NO") + " / " + (
-                "yes" if r["same_camera_grad"][i] else "NO")
+            same = " / ".join("yes" if r[k][i] else "NO"
+                              for k in ("same_images", "same_camera_grad", "same_state"))
             cells += [f"{r['ms'][0] / r['ms'][i]:.2f}x", f"{r['cpu_ms'][0] / r['cpu_ms'][i]:.2f}x",
                       same]
         print("| " + " | ".join(cells) + " |")

@@ -1,24 +1,34 @@
 // Tile-based multi-threaded CPU rasterizer: forward and full backward (incl. camera gradient).
-// Loops only: the per-Gaussian maths lives in ../common/{math,sh,raster}.h. See ../ops.h for the API.
+// Loops only: the per-Gaussian maths lives in ../common/{math,sh,raster}.h (and its vector twin in
+// preprocess_simd.h). See ../ops.h for the API; DESIGN.md "CPU kernel" for the layout.
 //
-// Pipeline (forward):
-//   1. preprocess, parallel over Gaussians: cull, project, cov2D/conic, radius, tile rect, colour.
-//   2. binning: visible Gaussians radix-sorted by view depth (stable -> ties by index), then
-//      per-tile lists filled in that order (parallel over tile rows). Entry = (gaussian, slot);
-//      the slot (offsets[g] + position in g's rect) is where the backward of that tile writes g's
-//      partial gradient, so no two threads ever write the same memory.
+// Pipeline (forward; steps 1-2 over fixed contiguous chunks of Gaussians, one per thread):
+//   1. preprocess: cull, project, cov2D/conic, radius, tile rect, colour, on vectors of kLanes
+//      Gaussians (preprocess_simd.h; the same bits as the scalar preprocess_gaussian); writes the
+//      geom record and a 32-byte tile footprint (rect, tile count, depth key) per Gaussian; then
+//      the slot offsets and the visible Gaussians in index order.
+//   2. binning (binning.h): the visible Gaussians radix-sorted by view depth (stable -> ties by
+//      index), then a stable counting sort by tile fills the per-tile lists in that order.
+//      Entry = (gaussian, slot); the slot (offsets[g] + position in g's rect) is where the
+//      backward of that tile writes g's partial gradient, so no two threads ever write the same
+//      memory.
 //   3. render, parallel over tiles (dynamic): each tile walks its list front to back, and for each
-//      Gaussian updates the 16-wide pixel rows that its alpha >= 1/255 ellipse can reach (one
-//      16-lane vector per row, branch-free masked updates; exp by a vectorised polynomial);
-//      stops when every pixel of the tile is done.
+//      Gaussian updates the pixel rows that its alpha >= 1/255 ellipse can reach and that still
+//      have an active pixel (kRowVecs vectors a row, branch-free masked updates; exp by a
+//      vectorised polynomial); stops when every pixel of the tile is done.
 // Backward:
 //   4. per tile, walk the list back to front from the last contributor (upstream renderCUDA bwd,
-//      T recovered by division), reduce each Gaussian's per-pixel terms over the tile in a fixed
-//      order and store them in its slot.
-//   5. per Gaussian (parallel over fixed-size blocks): sum its slots in tile order, chain through
-//      the per-Gaussian VJPs; camera terms summed per block in double, then blocks in order.
-//      Without compute_gaussian_grads only the camera terms are computed (no Gaussian gradient
-//      is allocated, zero-filled or written); with neither flag the step is skipped.
+//      T recovered by division), over the rows that hold a pixel the entry reaches; reduce each
+//      Gaussian's per-pixel terms over the tile in a fixed order, store them in its slot and mark
+//      the slot live.
+//   5. per Gaussian (parallel over fixed-size blocks): sum its live slots in tile order (a
+//      Gaussian with none reaches no pixel and is skipped), chain through the per-Gaussian VJPs;
+//      camera terms summed per block in double, then blocks in order. Without
+//      compute_gaussian_grads only the camera terms are computed (no Gaussian gradient is
+//      allocated, zero-filled or written); with neither flag the step is skipped.
+// Temporaries live in per-thread scratch arrays kept between calls, the large outputs in blocks
+// recycled through a process-wide cache (cpu_support.h): a render of a large model does not fault
+// in and zero fresh pages. GRP_CPU_TIMING=1 prints each call's phase times to stderr.
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
 
@@ -39,6 +49,8 @@
 #include "../ops.h"
 #include "binning.h"
 #include "cpu_support.h"
+#include "preprocess_simd.h"
+#include "simd.h"
 
 namespace grp {
 namespace {
@@ -88,23 +100,38 @@ struct ChunkCounts {
   int64_t tiles = 0;    // their (tile, Gaussian) pairs
 };
 
+// Stores the preprocess result of Gaussian g (its record is at gd) and counts it.
+inline void store_preprocessed(int64_t g, const PreprocessResult& r, const float* gd,
+                               int32_t* radii, cpu::TileFootprint* footprints, ChunkCounts& n) {
+  radii[g] = r.radius;
+  cpu::TileFootprint& f = footprints[g];
+  for (int k = 0; k < 4; ++k) f.rect[k] = r.rect[k];
+  f.offset = r.area;
+  std::memcpy(&f.depth_key, gd + kGZ, 4);
+  if (r.radius > 0) {
+    ++n.visible;
+    n.tiles += r.area;
+  }
+}
+
 void preprocess(const RasterArgs& in, int nchunks, float* geom, int32_t* radii,
                 cpu::TileFootprint* footprints, ChunkCounts* counts) {
   cpu::for_each_chunk(nchunks, [&](int c) {
     ChunkCounts n;
     const int64_t e = cpu::chunk_begin(in.P, c + 1, nchunks);
-    for (int64_t g = cpu::chunk_begin(in.P, c, nchunks); g < e; ++g) {
+    int64_t g = cpu::chunk_begin(in.P, c, nchunks);
+    if (in.cov3d == nullptr) {  // whole vectors of Gaussians (preprocess_simd.h)
+      PreprocessResult res[cpu::kLanes];
+      for (; g + cpu::kLanes <= e; g += cpu::kLanes) {
+        cpu::preprocess_lanes(in, g, geom, res);
+        for (int i = 0; i < cpu::kLanes; ++i)
+          store_preprocessed(g + i, res[i], geom + kGStride * (g + i), radii, footprints, n);
+      }
+    }
+    for (; g < e; ++g) {
       float* gd = geom + kGStride * g;
       const PreprocessResult r = preprocess_gaussian(in, g, in.viewmatrix, in.projmatrix, gd);
-      radii[g] = r.radius;
-      cpu::TileFootprint& f = footprints[g];
-      for (int k = 0; k < 4; ++k) f.rect[k] = r.rect[k];
-      f.offset = r.area;
-      std::memcpy(&f.depth_key, gd + kGZ, 4);
-      if (r.radius > 0) {
-        ++n.visible;
-        n.tiles += r.area;
-      }
+      store_preprocessed(g, r, gd, radii, footprints, n);
     }
     counts[c] = n;
   });
@@ -148,53 +175,16 @@ struct ForwardScratch {
 };
 
 // ------------------------------------------------------------------------------------------------
-// Vectors of the machine's native width (GCC/Clang vector extensions: 16 lanes with AVX-512, 8
-// with AVX, 4 otherwise); a tile row is kRowVecs of them. Every lane does the same IEEE maths
-// whatever the width. (A 16-lane type on an AVX2 machine is lowered in pieces, and GCC turns its
-// comparisons and selects into lane-by-lane scalar code: several times slower.)
+// A tile row is kRowVecs vectors of the machine's width (simd.h).
 // ------------------------------------------------------------------------------------------------
-#if defined(__AVX512F__)
-constexpr int kLanes = 16;
-#elif defined(__AVX__)
-constexpr int kLanes = 8;
-#else
-constexpr int kLanes = 4;
-#endif
+using cpu::kLanes;
+using cpu::splat;
+using cpu::splat_i;
+using cpu::vexp_nonpos;
+using cpu::vf;
+using cpu::vi;
 constexpr int kRowVecs = kBlockX / kLanes;
 static_assert(kRowVecs * kLanes == kBlockX, "a tile row is a whole number of vectors");
-typedef float vf __attribute__((vector_size(4 * kLanes)));
-typedef int32_t vi __attribute__((vector_size(4 * kLanes)));
-
-inline vf splat(float v) {
-  vf r;
-  for (int i = 0; i < kLanes; ++i) r[i] = v;
-  return r;
-}
-inline vi splat_i(int32_t v) {
-  vi r;
-  for (int i = 0; i < kLanes; ++i) r[i] = v;
-  return r;
-}
-
-// Vector twin of exp_nonpos (common/math.h): same reduction and polynomial, lane-wise.
-inline vf vexp_nonpos(vf x) {
-  x = x < splat(-87.f) ? splat(-87.f) : x;
-  x = x > splat(0.f) ? splat(0.f) : x;
-  const vf v = x * 1.44269504088896341f;
-  const vi n = __builtin_convertvector(v - 0.5f, vi);  // round to nearest for v <= 0
-  const vf fn = __builtin_convertvector(n, vf);
-  vf r = x - fn * 0.693359375f;
-  r = r - fn * -2.12194440e-4f;
-  vf p = splat(1.9875691500e-4f);
-  p = p * r + 1.3981999507e-3f;
-  p = p * r + 8.3334519073e-3f;
-  p = p * r + 4.1665795894e-2f;
-  p = p * r + 1.6666665459e-1f;
-  p = p * r + 5.0000001201e-1f;
-  const vf y = p * r * r + r + 1.0f;
-  const vi bits = (n + 127) << 23;
-  return y * (vf)bits;
-}
 
 // True when some lane of v[0..kRowVecs) is non-zero.
 inline bool any_lane(const vi* v) {
