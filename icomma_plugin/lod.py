@@ -5,10 +5,13 @@
   (``densify_and_split``). ``mode="upstream"`` is upstream's rule literally (children at
   ``R (s * eps)``, ``eps ~ N(0, I)``, scale ``s / (0.8 N)``, the parent's opacity, colour and
   rotation); it does not render the parent's image (children that small and that opaque
-  speckle it: 16-27 dB on the demo scene). ``mode="preserve"`` (default) renders the same image:
-  children sampled with a std of ``spread * s``, their scale moment-matched
-  (``s sqrt(1 - spread^2)``, so the mixture has the parent's covariance) and their opacity fitted
-  so that the N stacked children compose to the parent's alpha profile (:func:`stacked_opacity`).
+  speckle it: 16-27 dB on the demo scene, 20-25 dB on fitted lego at 300k).
+  ``mode="preserve"`` (default) aims at the same image: children sampled with a std of
+  ``spread * s``, their scale moment-matched (``s sqrt(1 - spread^2)``, so the mixture has the
+  parent's covariance) and their opacity fitted so that the N stacked children compose to the
+  parent's alpha profile (:func:`stacked_opacity`); the extra children go mostly to opaque
+  Gaussians (``opacity_power``). On fitted lego (52,701 Gaussians): 37-39 dB at 300k, 31-33 dB
+  at 1M (docs/SPEED.md).
 - :func:`reduce_model`: a reduced model for rendering at a working resolution: Gaussians that
   can never reach alpha 1/255 are left out; Gaussians whose footprint from every given camera is
   far below a pixel are merged per world cell of about a pixel (moment-matched: weights opacity x
@@ -76,11 +79,14 @@ def stacked_opacity(opacity: torch.Tensor, n: int, samples: int = 200) -> torch.
 
 
 def _children_per_gaussian(P: int, factor: Optional[int], target: Optional[int],
-                           generator: torch.Generator) -> torch.Tensor:
+                           generator: torch.Generator,
+                           weights: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Children of each of the P Gaussians.
 
-    ``factor`` each, or ``target`` in all (the extra child of ``target mod P`` Gaussians drawn at
-    random).
+    ``factor`` each; or ``target`` in all: without ``weights``, ``target // P`` each and one more
+    for ``target mod P`` Gaussians drawn at random; with ``weights`` [P] (>= 0, not all 0), one
+    each and the other ``target - P`` in proportion to the weights (the rounding remainder to the
+    largest weights, ties by index).
     """
     if (factor is None) == (target is None):
         raise ValueError("split_gaussians: give exactly one of factor and target")
@@ -88,41 +94,54 @@ def _children_per_gaussian(P: int, factor: Optional[int], target: Optional[int],
         check_int(factor, "factor", 1)
         return torch.full((P,), factor, dtype=torch.long)
     check_int(target, "target", P)
-    counts = torch.full((P,), target // P, dtype=torch.long)
-    extra = torch.randperm(P, generator=generator)[: target - int(counts.sum())]
+    if weights is None or P == 0 or not float(weights.sum()) > 0:
+        counts = torch.full((P,), target // P if P else 0, dtype=torch.long)
+        extra = torch.randperm(P, generator=generator)[: target - int(counts.sum())]
+    else:
+        w = weights.to(torch.float64)
+        counts = 1 + torch.floor((target - P) * w / w.sum()).long()
+        extra = torch.argsort(-w, stable=True)[: target - int(counts.sum())]
     counts[extra] += 1
     return counts
 
 
 def split_gaussians(model: GaussianModel, factor: Optional[int] = None,
                     target: Optional[int] = None, generator: Optional[torch.Generator] = None,
-                    mode: str = "preserve", spread: float = 0.3) -> GaussianModel:
+                    mode: str = "preserve", spread: float = 0.3,
+                    opacity_power: Optional[float] = None) -> GaussianModel:
     """The model with every Gaussian split into children (module docstring).
 
     Args:
         model: the Gaussians (CPU).
         factor: children per Gaussian (>= 1); or
-        target: the number of Gaussians wanted (>= P): ``target // P`` children each, one more
-            for ``target mod P`` of them chosen at random.
+        target: the number of Gaussians wanted (>= P); see ``opacity_power``.
         generator: random source (a fixed seed gives the same model); None = a fresh one, seed 0.
         mode: ``"preserve"`` (renders the parent's image) or ``"upstream"`` (upstream's rule).
         spread: ``"preserve"`` only: std of the children's offsets, relative to the parent's
             scales, in (0, 1).
+        opacity_power: with ``target``: the children beyond one each go to the Gaussians in
+            proportion to opacity ** opacity_power (0 = evenly). None = 4 in ``"preserve"`` mode
+            (a stack of many faint copies loses its tails to the rasterizer's 1/255 alpha cut,
+            so faint Gaussians are split least), 0 in ``"upstream"`` mode.
 
     Returns:
         A new model; the children of Gaussian i are consecutive, in the order of the parents.
 
     Raises:
         ValueError: both or neither of factor / target, a factor < 1, a target < P, an unknown
-            mode or a spread outside (0, 1).
+            mode, a spread outside (0, 1) or a negative opacity_power.
     """
     if not isinstance(model, GaussianModel):
         raise ValueError(f"model must be a GaussianModel, got {type(model).__name__}")
     check_choice(mode, "mode", SPLIT_MODES)
     check_real(spread, "spread", 0.0, 1.0, lo_open=True, hi_open=True)
+    if opacity_power is None:
+        opacity_power = 4.0 if mode == "preserve" else 0.0
+    check_real(opacity_power, "opacity_power", 0.0)
     gen = generator if generator is not None else torch.Generator().manual_seed(0)
     P = model.num_gaussians
-    counts = _children_per_gaussian(P, factor, target, gen)
+    weights = model.opacities().detach()[:, 0] ** opacity_power if opacity_power > 0 else None
+    counts = _children_per_gaussian(P, factor, target, gen, weights)
     parent = torch.repeat_interleave(torch.arange(P), counts)
     n = counts[parent]  # children of each child's parent
     scales = model.scales().detach()[parent]

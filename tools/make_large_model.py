@@ -40,6 +40,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                     help="split rule (icomma_plugin.lod.split_gaussians)")
     ap.add_argument("--spread", type=float, default=0.3,
                     help="preserve mode: std of the children's offsets / the parent's scales")
+    ap.add_argument("--opacity-power", type=float, default=None,
+                    help="extra children in proportion to opacity ** this (default: 4 in "
+                         "preserve mode, 0 in upstream mode)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--check-cameras", type=int, default=4,
                     help="cameras of cameras.json rendered for the check (evenly spaced)")
@@ -90,6 +93,7 @@ def main(argv=None) -> int:
         return 2
     t0 = time.perf_counter()
     split = split_gaussians(mf.model, target=a.target, mode=a.mode, spread=a.spread,
+                            opacity_power=a.opacity_power,
                             generator=torch.Generator().manual_seed(a.seed))
     split_s = time.perf_counter() - t0
     step = max(1, len(mf.cameras) // max(1, a.check_cameras))
@@ -108,10 +112,15 @@ def main(argv=None) -> int:
         return 1
     out = a.out.expanduser()
     cfg = dict(mf.cfg, model_path=str(out))
-    ply = write_model_folder(out, split, cfg, mf.cameras, mf.iteration, overwrite=a.overwrite)
+    try:
+        ply = write_model_folder(out, split, cfg, mf.cameras, mf.iteration, overwrite=a.overwrite)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     write_json_atomic(out / "split.json", {
         "source": str(mf.path), "source_gaussians": mf.model.num_gaussians,
-        "gaussians": split.num_gaussians, "mode": a.mode, "spread": a.spread, "seed": a.seed,
+        "gaussians": split.num_gaussians, "mode": a.mode, "spread": a.spread,
+        "opacity_power": a.opacity_power, "seed": a.seed,
         "min_psnr_db": worst if math.isfinite(worst) else None, "checks": rows})
     print(f"wrote {ply}")
     return 0

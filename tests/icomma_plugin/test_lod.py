@@ -94,6 +94,20 @@ def test_split_counts_and_parents():
     assert all(torch.equal(x, y) for x, y in zip(a.tensors().values(), b.tensors().values()))
 
 
+def test_split_gives_opaque_gaussians_more_children():
+    m = _model(torch.randn(4, 3), torch.full((4, 3), 0.1), [0.1, 0.9, 0.5, 0.9])
+    counts = torch.unique_consecutive(split_gaussians(m, target=40).sh_dc[:, 0, 0],
+                                      return_counts=True)[1].tolist()
+    w = torch.tensor([0.1, 0.9, 0.5, 0.9]) ** 4
+    expect = (1 + torch.floor(36 * w / w.sum())).long()
+    expect[torch.argsort(-w, stable=True)[: 40 - int(expect.sum())]] += 1
+    assert counts == expect.tolist() and sum(counts) == 40 and counts[1] > counts[2] > counts[0]
+    even = split_gaussians(m, target=40, opacity_power=0.0)
+    assert torch.unique_consecutive(even.sh_dc[:, 0, 0], return_counts=True)[1].tolist() == [10] * 4
+    with pytest.raises(ValueError, match="opacity_power"):
+        split_gaussians(m, target=40, opacity_power=-1.0)
+
+
 @pytest.mark.parametrize("kwargs, match", [
     (dict(), "exactly one of"),
     (dict(factor=2, target=20), "exactly one of"),
