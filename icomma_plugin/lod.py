@@ -16,8 +16,8 @@
   can never reach alpha 1/255 are left out; Gaussians whose footprint from every given camera is
   far below a pixel are merged per world cell of about a pixel (moment-matched: weights opacity x
   volume for the mean, covariance and SH; the opacity of the stack, ``1 - prod(1 - o_i)``);
-  optionally a cap on the count (the cells grow until it holds). Deterministic for a given model,
-  cameras and :class:`LodConfig`.
+  optionally a cap on the count (the merge threshold grows until it holds). Deterministic for a
+  given model, cameras and :class:`LodConfig`.
 """
 from __future__ import annotations
 
@@ -182,10 +182,13 @@ class LodConfig:
             alpha threshold: they never reach a pixel, so leaving them out is exact).
         merge_below_px: Gaussians whose largest projected std (pixels, the largest scale over the
             nearest depth among the cameras that see them) is below it are merged; 0 = none.
-        cell_px: size of a merge cell in pixels at the nearest depth of its Gaussians (cells of
-            a power-of-two ladder of world sizes, so cells of neighbouring depths nest).
-        max_gaussians: cap on the count (None = none): the cells and the merge threshold grow by
-            ``cap_growth`` until the reduced model holds it (at most ``cap_rounds`` times).
+        cell_px: size of a merge cell in pixels at the nearest depth of its Gaussians, and
+        cell_sigmas: at least this many of the Gaussian's largest std (cells of a power-of-two
+            ladder of world sizes, so cells of neighbouring depths and sizes nest).
+        max_gaussians: cap on the count (None = none): the merge threshold ``merge_below_px``
+            grows by ``cap_growth`` until the reduced model holds it (the cells follow the sizes
+            of the Gaussians merged), then, once every seen Gaussian is a candidate, ``cell_px``
+            grows (at most ``cap_rounds`` rounds in all).
         cap_growth, cap_rounds: see ``max_gaussians``.
         drop_unseen: leave out Gaussians that no given camera sees (centre behind the near plane
             or outside the image by more than 3 std); off by default: a localization renders
@@ -195,6 +198,7 @@ class LodConfig:
     min_opacity: float = 1.0 / 255.0
     merge_below_px: float = 0.35
     cell_px: float = 1.0
+    cell_sigmas: float = 1.0
     max_gaussians: Optional[int] = None
     cap_growth: float = 1.5
     cap_rounds: int = 12
@@ -204,6 +208,7 @@ class LodConfig:
         check_real(self.min_opacity, "LodConfig.min_opacity", 0.0, 1.0, hi_open=True)
         check_real(self.merge_below_px, "LodConfig.merge_below_px", 0.0)
         check_real(self.cell_px, "LodConfig.cell_px", 0.0, lo_open=True)
+        check_real(self.cell_sigmas, "LodConfig.cell_sigmas", 0.0)
         if self.max_gaussians is not None:
             check_int(self.max_gaussians, "LodConfig.max_gaussians", 1)
         check_real(self.cap_growth, "LodConfig.cap_growth", 1.0, lo_open=True)
@@ -221,7 +226,8 @@ class LodInfo:
         dropped_unseen: left out as seen by no camera (``drop_unseen``).
         merged_inputs: Gaussians merged; merged_outputs: the Gaussians they became.
         kept: Gaussians passed through unchanged.
-        scale: growth applied to ``merge_below_px`` and ``cell_px`` by the cap (1 = none).
+        merge_scale, cell_scale: growth applied by the cap to ``merge_below_px`` and to
+            ``cell_px`` (1 = none).
         capped: the cap still did not hold after ``cap_rounds`` (the model is above it).
         seconds: wall time.
     """
@@ -233,7 +239,8 @@ class LodInfo:
     merged_inputs: int
     merged_outputs: int
     kept: int
-    scale: float
+    merge_scale: float
+    cell_scale: float
     capped: bool
     seconds: float
 
@@ -357,14 +364,16 @@ def _merge(model: GaussianModel, members: torch.Tensor, cluster: torch.Tensor) -
 
 def _reduce_once(model: GaussianModel, keep: torch.Tensor, near: torch.Tensor,
                  sigma_px: torch.Tensor, focal: float, merge_px: float,
-                 cell_px: float) -> Tuple[GaussianModel, int, int]:
+                 cell_px: float, cell_sigmas: float) -> Tuple[GaussianModel, int, int]:
     """Kept Gaussians unchanged, the small seen ones merged per cell.
 
     Returns the model, the number of merged inputs and of merged outputs.
     """
     small = keep & torch.isfinite(near) & (sigma_px < merge_px)
     members = torch.nonzero(small).flatten()
-    cluster = _cell_ids(model.means.detach()[members], cell_px * near[members] / focal)
+    max_scale = model.scales().detach()[members].max(-1).values.to(torch.float64)
+    cell = torch.maximum(cell_px * near[members] / focal, cell_sigmas * max_scale)
+    cluster = _cell_ids(model.means.detach()[members], cell)
     sizes = torch.bincount(cluster, minlength=int(cluster.max()) + 1 if cluster.numel() else 0)
     alone = sizes[cluster] == 1
     passthrough = keep.clone()
@@ -415,19 +424,27 @@ def reduce_model(model: GaussianModel, intrinsics: Intrinsics,
     if cfg.drop_unseen:
         keep = keep & torch.isfinite(near)
     focal = float(max(intrinsics.fx, intrinsics.fy))
-    scale, rounds = 1.0, 0
+    seen = keep & torch.isfinite(near)
+    largest = float(sigma_px[seen].max()) if bool(seen.any()) else 0.0
+    merge_scale, cell_scale, rounds = 1.0, 1.0, 0
     while True:
         out, merged_in, merged_out = _reduce_once(
-            model, keep, near, sigma_px, focal, cfg.merge_below_px * scale, cfg.cell_px * scale)
+            model, keep, near, sigma_px, focal, cfg.merge_below_px * merge_scale,
+            cfg.cell_px * cell_scale, cfg.cell_sigmas)
         over = cfg.max_gaussians is not None and out.num_gaussians > cfg.max_gaussians
         if not over or rounds >= cfg.cap_rounds:
             break
-        scale *= cfg.cap_growth
+        # the threshold first; once every seen Gaussian is a candidate, the cells
+        if cfg.merge_below_px * merge_scale <= largest:
+            merge_scale *= cfg.cap_growth
+        else:
+            cell_scale *= cfg.cap_growth
         rounds += 1
     info = LodInfo(
         input_count=model.num_gaussians, output_count=out.num_gaussians,
         dropped_opacity=dropped_opacity, dropped_unseen=int(unseen.sum()) if cfg.drop_unseen else 0,
         merged_inputs=merged_in, merged_outputs=merged_out,
-        kept=out.num_gaussians - merged_out, scale=scale, capped=over,
+        kept=out.num_gaussians - merged_out, merge_scale=merge_scale, cell_scale=cell_scale,
+        capped=over,
         seconds=time.perf_counter() - t0)
     return out, info

@@ -242,7 +242,12 @@ def test_cap_on_the_count():
     m = _dust()
     intr, c2w = _camera(eye=(0.0, -16.0, 0.0))
     red, info = reduce_model(m, intr, [c2w], LodConfig(max_gaussians=100))
-    assert red.num_gaussians <= 100 and info.scale > 1.0 and not info.capped
+    assert red.num_gaussians <= 100 and info.cell_scale > 1.0 and not info.capped
+    # a cap that the threshold alone meets leaves the cells at their size
+    big = _model(torch.rand(400, 3, generator=torch.Generator().manual_seed(2)) - 0.5,
+                 torch.full((400, 3), 0.1), torch.full((400,), 0.5))
+    red, info = reduce_model(big, intr, [c2w], LodConfig(max_gaussians=300))
+    assert red.num_gaussians <= 300 and info.merge_scale > 1.0 and info.cell_scale == 1.0
 
 
 def test_drop_unseen():
@@ -258,6 +263,7 @@ def test_drop_unseen():
     (dict(min_opacity=1.0), "min_opacity"),
     (dict(merge_below_px=-1.0), "merge_below_px"),
     (dict(cell_px=0.0), "cell_px"),
+    (dict(cell_sigmas=-1.0), "cell_sigmas"),
     (dict(max_gaussians=0), "max_gaussians"),
     (dict(cap_growth=1.0), "cap_growth"),
     (dict(drop_unseen=1), "drop_unseen"),
