@@ -362,13 +362,25 @@ def _merge(model: GaussianModel, members: torch.Tensor, cluster: torch.Tensor) -
         _rotmat_to_quat(evecs).to(dt), model.sh_degree)
 
 
-def _reduce_once(model: GaussianModel, keep: torch.Tensor, near: torch.Tensor,
-                 sigma_px: torch.Tensor, focal: float, merge_px: float,
-                 cell_px: float, cell_sigmas: float) -> Tuple[GaussianModel, int, int]:
-    """Kept Gaussians unchanged, the small seen ones merged per cell.
+@dataclass
+class _MergePlan:
+    """Which Gaussians pass through and which merge into which cluster."""
 
-    Returns the model, the number of merged inputs and of merged outputs.
-    """
+    passthrough: torch.Tensor  # bool [P]
+    grouped: torch.Tensor  # indices of the merged Gaussians
+    ids: torch.Tensor  # their cluster, 0 .. clusters - 1
+    clusters: int
+
+    @property
+    def count(self) -> int:
+        """Gaussians of the reduced model."""
+        return int(self.passthrough.sum()) + self.clusters
+
+
+def _plan_merge(model: GaussianModel, keep: torch.Tensor, near: torch.Tensor,
+                sigma_px: torch.Tensor, focal: float, merge_px: float, cell_px: float,
+                cell_sigmas: float) -> _MergePlan:
+    """Kept Gaussians pass through, the small seen ones sharing a cell merge."""
     small = keep & torch.isfinite(near) & (sigma_px < merge_px)
     members = torch.nonzero(small).flatten()
     max_scale = model.scales().detach()[members].max(-1).values.to(torch.float64)
@@ -376,15 +388,19 @@ def _reduce_once(model: GaussianModel, keep: torch.Tensor, near: torch.Tensor,
     cluster = _cell_ids(model.means.detach()[members], cell)
     sizes = torch.bincount(cluster, minlength=int(cluster.max()) + 1 if cluster.numel() else 0)
     alone = sizes[cluster] == 1
-    passthrough = keep.clone()
-    passthrough[members[~alone]] = False
     grouped = members[~alone]
-    if grouped.numel() == 0:
-        return model.index(passthrough), 0, 0
+    passthrough = keep.clone()
+    passthrough[grouped] = False
     ids = torch.unique(cluster[~alone], return_inverse=True)[1]
-    merged = _merge(model, grouped, ids)
-    out = GaussianModel.concatenate([model.index(passthrough), merged])
-    return out, int(grouped.numel()), merged.num_gaussians
+    return _MergePlan(passthrough, grouped, ids, int(ids.max()) + 1 if ids.numel() else 0)
+
+
+def _apply(model: GaussianModel, plan: _MergePlan) -> GaussianModel:
+    """The reduced model of a plan: the passed-through Gaussians, then the merged ones."""
+    if plan.grouped.numel() == 0:
+        return model.index(plan.passthrough)
+    return GaussianModel.concatenate([model.index(plan.passthrough),
+                                      _merge(model, plan.grouped, plan.ids)])
 
 
 def reduce_model(model: GaussianModel, intrinsics: Intrinsics,
@@ -428,10 +444,9 @@ def reduce_model(model: GaussianModel, intrinsics: Intrinsics,
     largest = float(sigma_px[seen].max()) if bool(seen.any()) else 0.0
     merge_scale, cell_scale, rounds = 1.0, 1.0, 0
     while True:
-        out, merged_in, merged_out = _reduce_once(
-            model, keep, near, sigma_px, focal, cfg.merge_below_px * merge_scale,
-            cfg.cell_px * cell_scale, cfg.cell_sigmas)
-        over = cfg.max_gaussians is not None and out.num_gaussians > cfg.max_gaussians
+        plan = _plan_merge(model, keep, near, sigma_px, focal, cfg.merge_below_px * merge_scale,
+                           cfg.cell_px * cell_scale, cfg.cell_sigmas)
+        over = cfg.max_gaussians is not None and plan.count > cfg.max_gaussians
         if not over or rounds >= cfg.cap_rounds:
             break
         # the threshold first; once every seen Gaussian is a candidate, the cells
@@ -440,6 +455,8 @@ def reduce_model(model: GaussianModel, intrinsics: Intrinsics,
         else:
             cell_scale *= cfg.cap_growth
         rounds += 1
+    out = _apply(model, plan)
+    merged_in, merged_out = int(plan.grouped.numel()), plan.clusters
     info = LodInfo(
         input_count=model.num_gaussians, output_count=out.num_gaussians,
         dropped_opacity=dropped_opacity, dropped_unseen=int(unseen.sum()) if cfg.drop_unseen else 0,
