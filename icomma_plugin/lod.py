@@ -274,20 +274,24 @@ def _footprints(means: torch.Tensor, max_scale: torch.Tensor, intrinsics: Intrin
     Returns ``(near, sigma_px)``: the depth (inf when no camera sees it) and the largest scale
     projected at that depth [px].
     """
-    near = torch.full((means.shape[0],), math.inf, dtype=torch.float64)
-    m = means.to(torch.float64)
+    f32 = torch.float32
+    near = torch.full((means.shape[0],), math.inf, dtype=f32)
+    m = means.detach().to(f32)
+    margin = 3.0 * max_scale.detach().to(f32)
+    W, H = intrinsics.width, intrinsics.height
     for k in range(c2w.shape[0]):
-        R, t = c2w[k, :3, :3], c2w[k, :3, 3]
+        R, t = c2w[k, :3, :3].to(f32), c2w[k, :3, 3].to(f32)
         cam = (m - t) @ R  # world -> camera (OpenCV axes)
         z = cam[:, 2]
-        margin = 3.0 * max_scale.to(torch.float64)
-        u = intrinsics.fx * cam[:, 0] / z.clamp_min(1e-9) + intrinsics.cx_px
-        v = intrinsics.fy * cam[:, 1] / z.clamp_min(1e-9) + intrinsics.cy_px
-        slack_x = intrinsics.fx * margin / z.clamp_min(1e-9)
-        slack_y = intrinsics.fy * margin / z.clamp_min(1e-9)
-        seen = (z > 0.2) & (u > -slack_x - 0.5) & (u < intrinsics.width - 0.5 + slack_x) & (
-            v > -slack_y - 0.5) & (v < intrinsics.height - 0.5 + slack_y)
+        inv_z = 1.0 / z.clamp_min(1e-9)
+        u = (intrinsics.fx * inv_z) * cam[:, 0] + intrinsics.cx_px
+        v = (intrinsics.fy * inv_z) * cam[:, 1] + intrinsics.cy_px
+        slack_x = (intrinsics.fx * inv_z) * margin + 0.5
+        slack_y = (intrinsics.fy * inv_z) * margin + 0.5
+        seen = (z > 0.2) & ((u + slack_x) > 0) & ((u - slack_x) < W) & ((v + slack_y) > 0) & (
+            (v - slack_y) < H)
         near = torch.where(seen, torch.minimum(near, z), near)
+    near = near.to(torch.float64)
     focal = max(intrinsics.fx, intrinsics.fy)
     sigma_px = focal * max_scale.to(torch.float64) / near
     return near, sigma_px
@@ -326,7 +330,15 @@ def _cell_ids(means: torch.Tensor, cell_world: torch.Tensor) -> torch.Tensor:
     level = torch.floor(torch.log2(cell_world))
     coords = torch.floor(means.to(torch.float64) / torch.exp2(level)[:, None])
     key = torch.cat([level[:, None], coords], 1).to(torch.int64)
-    return torch.unique(key, dim=0, return_inverse=True)[1]
+    if key.shape[0] == 0:
+        return torch.zeros(0, dtype=torch.int64)
+    lo = key.min(0).values
+    span = (key.max(0).values - lo + 1).tolist()
+    if math.prod(span) >= 2 ** 62:  # rows too spread out to pack in one int64
+        return torch.unique(key, dim=0, return_inverse=True)[1]
+    k = key - lo
+    flat = ((k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2]) * span[3] + k[:, 3]
+    return torch.unique(flat, return_inverse=True)[1]  # the same (lexicographic) order
 
 
 def _merge(model: GaussianModel, members: torch.Tensor, cluster: torch.Tensor) -> GaussianModel:
@@ -377,14 +389,14 @@ class _MergePlan:
         return int(self.passthrough.sum()) + self.clusters
 
 
-def _plan_merge(model: GaussianModel, keep: torch.Tensor, near: torch.Tensor,
-                sigma_px: torch.Tensor, focal: float, merge_px: float, cell_px: float,
-                cell_sigmas: float) -> _MergePlan:
+def _plan_merge(model: GaussianModel, max_scale: torch.Tensor, keep: torch.Tensor,
+                near: torch.Tensor, sigma_px: torch.Tensor, focal: float, merge_px: float,
+                cell_px: float, cell_sigmas: float) -> _MergePlan:
     """Kept Gaussians pass through, the small seen ones sharing a cell merge."""
     small = keep & torch.isfinite(near) & (sigma_px < merge_px)
     members = torch.nonzero(small).flatten()
-    max_scale = model.scales().detach()[members].max(-1).values.to(torch.float64)
-    cell = torch.maximum(cell_px * near[members] / focal, cell_sigmas * max_scale)
+    cell = torch.maximum(cell_px * near[members] / focal,
+                         cell_sigmas * max_scale[members].to(torch.float64))
     cluster = _cell_ids(model.means.detach()[members], cell)
     sizes = torch.bincount(cluster, minlength=int(cluster.max()) + 1 if cluster.numel() else 0)
     alone = sizes[cluster] == 1
@@ -444,8 +456,9 @@ def reduce_model(model: GaussianModel, intrinsics: Intrinsics,
     largest = float(sigma_px[seen].max()) if bool(seen.any()) else 0.0
     merge_scale, cell_scale, rounds = 1.0, 1.0, 0
     while True:
-        plan = _plan_merge(model, keep, near, sigma_px, focal, cfg.merge_below_px * merge_scale,
-                           cfg.cell_px * cell_scale, cfg.cell_sigmas)
+        plan = _plan_merge(model, max_scale, keep, near, sigma_px, focal,
+                           cfg.merge_below_px * merge_scale, cfg.cell_px * cell_scale,
+                           cfg.cell_sigmas)
         over = cfg.max_gaussians is not None and plan.count > cfg.max_gaussians
         if not over or rounds >= cfg.cap_rounds:
             break
