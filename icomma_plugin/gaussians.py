@@ -11,7 +11,17 @@ from typing import Optional
 
 import torch
 
+from gaussian_renderer_pose.reference.projection import quat_to_rotmat_unnormalised
+
 SH_C0 = 0.28209479177387814
+
+
+def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices [P, 3, 3] of quaternions (w, x, y, z) [P, 4], normalised first.
+
+    The rasterizer's formula, which takes quaternions as stored.
+    """
+    return quat_to_rotmat_unnormalised(torch.nn.functional.normalize(q, dim=-1))
 
 
 def num_sh_coeffs(degree: int) -> int:

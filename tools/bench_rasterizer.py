@@ -14,16 +14,29 @@ The "cuda" backend (native CUDA kernel; scene copied to the GPU once, timings br
 torch.cuda.synchronize) is added to the default backends when it is usable here; the table then
 also gives the cpu/cuda speed ratio of the same run.
 
+`--checkouts OLD,NEW` compares the native CPU backend of two (or more) checkouts of this
+repository, each built in place, in ONE run: every checkout's kernel runs in its own worker
+process (this script with `--worker ROOT`), the calls are interleaved (one call of each checkout in
+turn, alternating which goes first), and the table gives, per scene, thread count and mode, the
+wall ms, ns per Gaussian, process CPU ms and the ratios to the first checkout, and whether the
+forward image and the pose-only camera gradient are the same bits.
+
 Examples:
     python tools/bench_rasterizer.py                       # full table
     python tools/bench_rasterizer.py --quick               # small, fast
     python tools/bench_rasterizer.py --backends cpu --threads 2 --json bench_out/raster.json
     python tools/bench_rasterizer.py --backends cuda,cpu --sizes 300000 --resolutions 800  # GPU
+    python tools/bench_rasterizer.py --checkouts ../old,. --sizes 300000,1000000 \
+        --resolutions 200,800 --thread-counts 1,2 --repeats 7 --modes fwd,fwd+pose-only
 """
 from __future__ import annotations
 
 import argparse
+import hashlib
+import json
+import os
 import statistics
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -132,6 +145,227 @@ def time_modes(fn: Callable, scene: Dict[str, object], modes: List[str], repeats
     return {mode: statistics.median(t) for mode, t in times.items()}
 
 
+# ----------------------------------------------------------------------------------------------
+# --checkouts: the native CPU kernels of several checkouts in one run, one worker process each,
+# the calls interleaved.
+# ----------------------------------------------------------------------------------------------
+def _digest(fn: Callable, scene: Dict[str, object]) -> Dict[str, object]:
+    """Hashes of the forward images and of the pose-only camera gradient of one call."""
+    tensors = {k: v for k, v in scene.items() if k != "settings"}
+    for k in POSE_INPUTS:
+        tensors[k] = tensors[k].detach().clone().requires_grad_(True)
+    color, radii, invdepth, depth_acc, alpha = fn(**tensors, **scene["settings"])
+    (color.square().sum() + invdepth.sum()).backward()
+
+    def sha(*ts: torch.Tensor) -> str:
+        data = b"".join(t.detach().contiguous().numpy().tobytes() for t in ts)
+        return hashlib.sha256(data).hexdigest()[:16]
+
+    grads = [tensors[k].grad for k in POSE_INPUTS]
+    from gaussian_renderer_pose import _ops
+
+    settings = scene["settings"]
+    with torch.no_grad():
+        state = _ops.rasterize_forward(
+            *(tensors[k].detach() if tensors[k] is not None else None for k in (
+                "means3D", "opacities", "shs", "colors_precomp", "scales", "rotations",
+                "cov3D_precomp", "bg", "viewmatrix", "projmatrix", "campos")),
+            settings["image_height"], settings["image_width"], settings["tanfovx"],
+            settings["tanfovy"], settings["scale_modifier"], settings["sh_degree"],
+            settings["prefiltered"], settings["antialiasing"])[4:]
+    return {"images": sha(color, invdepth, depth_acc, alpha, radii), "camera_grad": sha(*grads),
+            "state": sha(*state),
+            "color_sum": float(color.detach().double().sum()),
+            "camera_grad_values": [float(v) for g in grads for v in g.flatten()]}
+
+
+def worker_loop(root: Path) -> int:
+    """Serve requests (JSON lines on stdin, replies on stdout) with the CPU kernel of ``root``.
+
+    Requests: ``{"cmd": "scene", "gaussians", "resolution", "seed"}``, ``{"cmd": "time", "mode",
+    "threads"}`` -> ``{"ms", "cpu_ms"}`` (wall and process CPU time of one call), ``{"cmd":
+    "digest"}`` -> :func:`_digest`, ``{"cmd": "quit"}``.
+    """
+    sys.path.insert(0, str(root))
+    import gaussian_renderer_pose
+    from gaussian_renderer_pose._native import rasterize_gaussians_native
+    try:  # the checkout compared may predate the app package
+        from icomma_plugin.app.demo_scene import raster_bench_scene
+    except ImportError:
+        from icomma_plugin.demo_scene import raster_bench_scene
+
+    where = Path(gaussian_renderer_pose.__file__).resolve().parent
+    print(json.dumps({"package": str(where)}), flush=True)
+    scene = None
+    for line in sys.stdin:
+        req = json.loads(line)
+        if req["cmd"] == "quit":
+            break
+        if req["cmd"] == "scene":
+            scene = raster_bench_scene(req["gaussians"], req["resolution"], seed=req["seed"])
+            reply: Dict[str, object] = {}
+        elif req["cmd"] == "time":
+            torch.set_num_threads(req["threads"])
+            cpu0 = time.process_time()
+            ms = run_once(rasterize_gaussians_native, scene, req["mode"])
+            reply = {"ms": ms, "cpu_ms": (time.process_time() - cpu0) * 1e3}
+        else:
+            reply = _digest(rasterize_gaussians_native, scene)
+        print(json.dumps(reply), flush=True)
+    return 0
+
+
+class _Worker:
+    """A worker process serving the CPU kernel of one checkout (see :func:`worker_loop`)."""
+
+    def __init__(self, root: Path):
+        self.root = root
+        self.proc = subprocess.Popen(
+            [sys.executable, str(Path(__file__).resolve()), "--worker", str(root)],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=str(root),
+            env={**os.environ, "PYTHONPATH": str(root)},
+        )
+        package = Path(self._read()["package"])
+        if package.parent != root:
+            self.close()
+            raise ValueError(f"--checkouts: {root} imported gaussian_renderer_pose from {package}")
+        self.name = f"{root.name}@{_git_describe(root)}"
+
+    def _read(self) -> Dict[str, object]:
+        line = self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError(f"bench worker for {self.root} exited (rc {self.proc.poll()})")
+        return json.loads(line)
+
+    def ask(self, **request) -> Dict[str, object]:
+        """Send one request and return the reply."""
+        self.proc.stdin.write(json.dumps(request) + "\n")
+        self.proc.stdin.flush()
+        return self._read()
+
+    def close(self) -> None:
+        """Stop the worker."""
+        if self.proc.poll() is None:
+            try:
+                self.ask(cmd="quit")
+            except (BrokenPipeError, RuntimeError):
+                pass
+            self.proc.wait(timeout=60)
+
+
+def _git_describe(root: Path) -> str:
+    """Short commit of ``root`` ("+" when its tracked files differ from it), or "?"."""
+    try:
+        head = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"],
+                              capture_output=True, text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(root), "diff", "--quiet", "HEAD"],
+                               capture_output=True).returncode != 0
+    except (OSError, subprocess.CalledProcessError):
+        return "?"
+    return head + ("+" if dirty else "")
+
+
+def _time_interleaved(workers: List[_Worker], modes: List[str], threads: int,
+                      repeats: int) -> Dict[Tuple[int, str], Tuple[float, float]]:
+    """(worker index, mode) -> median (wall ms, CPU ms) over ``repeats`` rounds after a warm-up.
+
+    Each round calls every worker once per mode, the workers' order reversed every other round.
+    """
+    for w in workers:
+        for mode in modes:
+            w.ask(cmd="time", mode=mode, threads=threads)
+    samples: Dict[Tuple[int, str], List[Tuple[float, float]]] = {
+        (i, m): [] for i in range(len(workers)) for m in modes}
+    for rnd in range(repeats):
+        order = list(range(len(workers)))
+        if rnd % 2:
+            order.reverse()
+        for mode in modes:
+            for i in order:
+                r = workers[i].ask(cmd="time", mode=mode, threads=threads)
+                samples[(i, mode)].append((r["ms"], r["cpu_ms"]))
+    return {key: (statistics.median(v[0] for v in vals), statistics.median(v[1] for v in vals))
+            for key, vals in samples.items()}
+
+
+def compare_checkouts(roots: List[Path], scenes: List[Tuple[int, int]], thread_counts: List[int],
+                      modes: List[str], repeats: int, seed: int) -> List[Dict[str, object]]:
+    """Time the CPU kernels of ``roots`` interleaved; prints a markdown table, returns its rows."""
+    workers = [_Worker(r) for r in roots]
+    rows: List[Dict[str, object]] = []
+    try:
+        for P, R in scenes:
+            for w in workers:
+                w.ask(cmd="scene", gaussians=P, resolution=R, seed=seed)
+            digests = [w.ask(cmd="digest") for w in workers]
+            for threads in thread_counts:
+                log(f"[{P} x {R}^2, {threads} threads] {', '.join(modes)} ...")
+                med = _time_interleaved(workers, modes, threads, repeats)
+                for mode in modes:
+                    rows.append({
+                        "gaussians": P, "resolution": R, "threads": threads, "mode": mode,
+                        "ms": [med[(i, mode)][0] for i in range(len(workers))],
+                        "cpu_ms": [med[(i, mode)][1] for i in range(len(workers))],
+                        "same_images": [d["images"] == digests[0]["images"] for d in digests],
+                        "same_camera_grad": [d["camera_grad"] == digests[0]["camera_grad"]
+                                             for d in digests],
+                        "same_state": [d["state"] == digests[0]["state"] for d in digests],
+                        "digests": digests,
+                    })
+    finally:
+        for w in workers:
+            w.close()
+    _print_comparison([w.name for w in workers], rows, repeats)
+    return rows
+
+
+def _print_comparison(names: List[str], rows: List[Dict[str, object]], repeats: int) -> None:
+    """The markdown table of :func:`compare_checkouts`."""
+    print(f"median of {repeats} interleaved calls after a warm-up; ns/G = wall ns per Gaussian; "
+          f"ratios: {names[0]} / other; 'same': images / pose-only camera gradient / saved "
+          f"forward state (geom, binning, ...) bits equal to {names[0]}'s")
+    header = ["Gaussians", "image", "threads", "mode"]
+    for n in names:
+        header += [f"{n} ms", f"{n} ns/G", f"{n} CPU ms"]
+    for n in names[1:]:
+        header += [f"wall ratio {n}", f"CPU ratio {n}", f"same {n}"]
+    print("| " + " | ".join(header) + " |")
+    print("|" + "---|" * len(header))
+    for r in rows:
+        P = r["gaussians"]
+        cells = [f"{P:,}", f"{r['resolution']}x{r['resolution']}", str(r["threads"]), r["mode"]]
+        for ms, cpu in zip(r["ms"], r["cpu_ms"]):
+            cells += [f"{ms:.1f}", f"{ms * 1e6 / P:.0f}", f"{cpu:.1f}"]
+        for i in range(1, len(names)):
+            same = " / ".join("yes" if r[k][i] else "NO"
+                              for k in ("same_images", "same_camera_grad", "same_state"))
+            cells += [f"{r['ms'][0] / r['ms'][i]:.2f}x", f"{r['cpu_ms'][0] / r['cpu_ms'][i]:.2f}x",
+                      same]
+        print("| " + " | ".join(cells) + " |")
+
+
+def _run_comparison(args: argparse.Namespace) -> int:
+    """The ``--checkouts`` mode of :func:`main`."""
+    roots = [Path(p).resolve() for p in args.checkouts.split(",") if p.strip()]
+    for r in roots:
+        if not (r / "gaussian_renderer_pose").is_dir():
+            raise SystemExit(f"--checkouts: {r} is not a checkout of this repository")
+    modes = [m.strip() for m in args.modes.split(",") if m.strip()]
+    bad = [m for m in modes if m not in MODES]
+    if bad:
+        raise SystemExit(f"--modes: unknown {bad}; known: {', '.join(MODES)}")
+    default_threads = str(args.threads or torch.get_num_threads())
+    thread_counts = [int(t) for t in (args.thread_counts or default_threads).split(",") if t]
+    scenes = [(int(p), int(r)) for p in args.sizes.split(",") if p
+              for r in args.resolutions.split(",") if r]
+    rows = compare_checkouts(roots, scenes, thread_counts, modes, args.repeats, args.seed)
+    if args.json is not None:
+        write_json_atomic(args.json, {"checkouts": [str(r) for r in roots],
+                                      "repeats": args.repeats, "results": rows})
+        log(f"wrote {args.json}")
+    return 0
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     """Command line entry point; returns the exit status."""
     ap = argparse.ArgumentParser(
@@ -152,7 +386,20 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument("--json", type=Path, default=None, help="also write the results here (atomic)")
     ap.add_argument("--quick", action="store_true", help="small scenes, 2 repeats")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--checkouts", default=None,
+                    help="comma list of repository roots (each built in place): compare their "
+                         "native CPU kernels, interleaved, in one run (first = the baseline)")
+    ap.add_argument("--thread-counts", default=None,
+                    help="with --checkouts: comma list of thread counts (default: --threads, "
+                         "else torch's)")
+    ap.add_argument("--modes", default=",".join(MODES),
+                    help=f"with --checkouts: comma list of modes out of {', '.join(MODES)}")
+    ap.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.worker is not None:
+        return worker_loop(args.worker.resolve())
+    if args.checkouts is not None:
+        return _run_comparison(args)
 
     if args.threads is not None:
         torch.set_num_threads(args.threads)

@@ -22,7 +22,7 @@ from typing import Callable, Dict, Optional
 
 import torch
 
-from ..gaussians import GaussianModel
+from ..gaussians import GaussianModel, quat_to_rotmat
 
 log = logging.getLogger(__name__)
 
@@ -32,20 +32,6 @@ PARAM_NAMES = ("means", "sh_dc", "sh_rest", "opacity_logit", "scale_log", "quat"
 def inverse_sigmoid(x: torch.Tensor) -> torch.Tensor:
     """log(x / (1 - x)), the logit (upstream's name)."""
     return torch.log(x / (1 - x))
-
-
-def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices [P, 3, 3] of quaternions (w, x, y, z) [P, 4] (normalised here)."""
-    q = torch.nn.functional.normalize(q, dim=-1)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).view(-1, 3, 3)
 
 
 def expon_lr(step: int, lr_init: float, lr_final: float, max_steps: int,

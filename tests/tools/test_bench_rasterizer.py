@@ -29,3 +29,23 @@ def test_tiny_table_and_json(tmp_path, capsys):
     assert len(table) == 4  # header, rule, two scenes
     assert "—" in table[3]
     assert len(table[0].split("|")) == len(table[2].split("|"))
+
+
+def test_checkouts_compared_interleaved(tmp_path, capsys):
+    """--checkouts with this checkout twice: both workers time every mode, same bits."""
+    from tests.helpers.paths import REPO
+    from tools.bench_rasterizer import main
+
+    out = tmp_path / "cmp.json"
+    rc = main(["--checkouts", f"{REPO},{REPO}", "--sizes", "300", "--resolutions", "32",
+               "--repeats", "2", "--thread-counts", "1", "--modes", "fwd,fwd+pose-only",
+               "--json", str(out)])
+    assert rc == 0
+    data = json.loads(out.read_text())
+    assert [(r["mode"], r["threads"]) for r in data["results"]] == [("fwd", 1),
+                                                                   ("fwd+pose-only", 1)]
+    for r in data["results"]:
+        assert len(r["ms"]) == 2 and min(r["ms"]) > 0 and min(r["cpu_ms"]) > 0
+        assert r["same_images"] == r["same_camera_grad"] == r["same_state"] == [True, True]
+    table = [line for line in capsys.readouterr().out.splitlines() if line.startswith("|")]
+    assert len(table) == 4 and "yes / yes / yes" in table[2]

@@ -102,40 +102,30 @@ GRP_FORCE_INLINE PreprocessResult culled_record(float* gd) {
   return {0, 0, {0, 0, 0, 0}};
 }
 
-// Preprocess of Gaussian g (cull, project, cov2D/conic, radius, tile rect, colour) with V / Pm the
-// view / projection matrices (a.viewmatrix / a.projmatrix or copies of them). Writes the whole geom
-// record gd[kGStride], zeros where culled and in the padding, so that the saved state is a
-// function of the inputs (never uninitialised memory).
-GRP_FORCE_INLINE PreprocessResult preprocess_gaussian(const RasterArgs& a, int64_t g,
-                                                      const float* V, const float* Pm, float* gd) {
-  PreprocessResult res = {0, 0, {0, 0, 0, 0}};
-  const Vec3 m = load3(a.means + 3 * g);
-  const Vec3 t = transform_point_4x3(V, m);
-  if (!(t.z > kNearPlane)) return culled_record(gd);  // also culls NaN
-  const Vec4 ph = transform_point_4x4(Pm, m);
-  const float p_w = 1.0f / (ph.w + kProjEps);
-  const Vec3 ndc = {ph.x * p_w, ph.y * p_w, ph.z * p_w};
-  const Sym3 cov3 = gaussian_cov3d(a, g);
-  Cov2DCtx ctx;
-  const Sym2 cov2 = compute_cov2d(t, a.focal_x, a.focal_y, a.tanfovx, a.tanfovy, cov3, V, ctx);
-  const ConicResult cr = dilate_and_invert(cov2, a.antialiasing);
-  if (cr.det == 0.0f) return culled_record(gd);
-  const float radius = screen_radius(cr.dilated, cr.det);
-  const Vec2 pix = {ndc2pix(ndc.x, a.W), ndc2pix(ndc.y, a.H)};
+// The screen-space culls of a projected Gaussian (radius below 1 or absurd, centre absurd, no tile
+// touched); false when culled, else res gets the radius, the tile rect and its area.
+GRP_FORCE_INLINE bool screen_footprint(const RasterArgs& a, Vec2 pix, float radius,
+                                       PreprocessResult& res) {
   // !(|v| <= 1e9) also rejects NaN and +-inf.
   if (!(radius >= 1.f) || radius > 1e9f || !(fabsf(pix.x) <= 1e9f) || !(fabsf(pix.y) <= 1e9f))
-    return culled_record(gd);
+    return false;
   int minx, miny, maxx, maxy;
   get_rect(pix, (int)radius, a.grid_x, a.grid_y, minx, miny, maxx, maxy);
   const int64_t area = (int64_t)(maxx - minx) * (maxy - miny);
-  if (area == 0) return culled_record(gd);
-  Vec3 rgb;
-  if (a.colors != nullptr) {
-    rgb = load3(a.colors + 3 * g);
-  } else {
-    rgb = eval_sh(a.sh_degree, a.shs + g * a.M * 3, m, load3(a.campos));
-    rgb = {rgb.x < 0.f ? 0.f : rgb.x, rgb.y < 0.f ? 0.f : rgb.y, rgb.z < 0.f ? 0.f : rgb.z};
-  }
+  if (area == 0) return false;
+  res.radius = (int32_t)radius;
+  res.area = area;
+  res.rect[0] = minx;
+  res.rect[1] = miny;
+  res.rect[2] = maxx;
+  res.rect[3] = maxy;
+  return true;
+}
+
+// Writes the geom record gd[kGStride] of visible Gaussian g: pixel centre, conic, effective
+// opacity, colour rgb (clamped), depth tz, the alpha >= 1/255 box, zero padding.
+GRP_FORCE_INLINE void write_geom_record(const RasterArgs& a, int64_t g, Vec2 pix,
+                                        const ConicResult& cr, Vec3 rgb, float tz, float* gd) {
   const float o = a.opac[g] * cr.coef;
   gd[kGPx] = pix.x;
   gd[kGPy] = pix.y;
@@ -146,8 +136,8 @@ GRP_FORCE_INLINE PreprocessResult preprocess_gaussian(const RasterArgs& a, int64
   gd[kGR] = rgb.x;
   gd[kGG] = rgb.y;
   gd[kGB] = rgb.z;
-  gd[kGZ] = t.z;
-  gd[kGInvZ] = 1.0f / t.z;
+  gd[kGZ] = tz;
+  gd[kGInvZ] = 1.0f / tz;
   // Conservative half extents of {d : o exp(-d^T conic d / 2) >= 1/255}; pixels outside can never
   // pass the alpha test, so skipping them is exact (the GPU evaluates every pixel of the tile, which
   // is exact as well). Negative = contributes nowhere.
@@ -165,12 +155,38 @@ GRP_FORCE_INLINE PreprocessResult preprocess_gaussian(const RasterArgs& a, int64
   gd[kGBoxX] = bx;
   gd[kGBoxY] = by;
   for (int k = kGBoxY + 1; k < kGStride; ++k) gd[k] = 0.f;  // padding
-  res.radius = (int32_t)radius;
-  res.area = area;
-  res.rect[0] = minx;
-  res.rect[1] = miny;
-  res.rect[2] = maxx;
-  res.rect[3] = maxy;
+}
+
+// The colour of Gaussian g seen from campos (precomputed, or SH clamped at 0).
+GRP_FORCE_INLINE Vec3 gaussian_colour(const RasterArgs& a, int64_t g, Vec3 m) {
+  if (a.colors != nullptr) return load3(a.colors + 3 * g);
+  const Vec3 rgb = eval_sh(a.sh_degree, a.shs + g * a.M * 3, m, load3(a.campos));
+  return {rgb.x < 0.f ? 0.f : rgb.x, rgb.y < 0.f ? 0.f : rgb.y, rgb.z < 0.f ? 0.f : rgb.z};
+}
+
+// Preprocess of Gaussian g (cull, project, cov2D/conic, radius, tile rect, colour) with V / Pm the
+// view / projection matrices (a.viewmatrix / a.projmatrix or copies of them). Writes the whole geom
+// record gd[kGStride], zeros where culled and in the padding, so that the saved state is a
+// function of the inputs (never uninitialised memory). (The CPU kernel runs the same steps on
+// vectors of Gaussians: cpu/preprocess_simd.h.)
+GRP_FORCE_INLINE PreprocessResult preprocess_gaussian(const RasterArgs& a, int64_t g,
+                                                      const float* V, const float* Pm, float* gd) {
+  PreprocessResult res = {0, 0, {0, 0, 0, 0}};
+  const Vec3 m = load3(a.means + 3 * g);
+  const Vec3 t = transform_point_4x3(V, m);
+  if (!(t.z > kNearPlane)) return culled_record(gd);  // also culls NaN
+  const Vec4 ph = transform_point_4x4(Pm, m);
+  const float p_w = 1.0f / (ph.w + kProjEps);
+  const Vec3 ndc = {ph.x * p_w, ph.y * p_w, ph.z * p_w};
+  const Sym3 cov3 = gaussian_cov3d(a, g);
+  Cov2DCtx ctx;
+  const Sym2 cov2 = compute_cov2d(t, a.focal_x, a.focal_y, a.tanfovx, a.tanfovy, cov3, V, ctx);
+  const ConicResult cr = dilate_and_invert(cov2, a.antialiasing);
+  if (cr.det == 0.0f) return culled_record(gd);
+  const float radius = screen_radius(cr.dilated, cr.det);
+  const Vec2 pix = {ndc2pix(ndc.x, a.W), ndc2pix(ndc.y, a.H)};
+  if (!screen_footprint(a, pix, radius, res)) return culled_record(gd);
+  write_geom_record(a, g, pix, cr, gaussian_colour(a, g, m), t.z, gd);
   return res;
 }
 

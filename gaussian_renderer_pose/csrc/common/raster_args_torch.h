@@ -121,21 +121,29 @@ void check_backward_inputs(const Check& check, const CheckState& check_state, co
               "saved forward state does not match the inputs");
 }
 
-// The forward's outputs and saved state (ops.h), allocated uninitialised; binning and tile_ranges
-// are sized by the binning step and filled in by the backend.
-inline ForwardOutputs allocate_forward_outputs(const RasterArgs& a, const at::TensorOptions& fopt) {
+// The forward's outputs and saved state (ops.h), allocated uninitialised by
+// empty(sizes, options); binning and tile_ranges are sized by the binning step and filled in by
+// the backend.
+template <typename Empty>
+ForwardOutputs allocate_forward_outputs(const RasterArgs& a, const at::TensorOptions& fopt,
+                                        const Empty& empty) {
   const auto iopt = fopt.dtype(at::kInt);
   ForwardOutputs f;
-  f.color = at::empty({3, a.H, a.W}, fopt);
-  f.invdepth = at::empty({1, a.H, a.W}, fopt);
-  f.depth_acc = at::empty({1, a.H, a.W}, fopt);
-  f.alpha = at::empty({1, a.H, a.W}, fopt);
-  f.final_T = at::empty({a.H, a.W}, fopt);
-  f.last_contrib = at::empty({a.H, a.W}, iopt);
-  f.radii = at::empty({a.P}, iopt);
-  f.geom = at::empty({a.P, kGStride}, fopt);
-  f.offsets = at::empty({a.P + 1}, fopt.dtype(at::kLong));
+  f.color = empty({3, a.H, a.W}, fopt);
+  f.invdepth = empty({1, a.H, a.W}, fopt);
+  f.depth_acc = empty({1, a.H, a.W}, fopt);
+  f.alpha = empty({1, a.H, a.W}, fopt);
+  f.final_T = empty({a.H, a.W}, fopt);
+  f.last_contrib = empty({a.H, a.W}, iopt);
+  f.radii = empty({a.P}, iopt);
+  f.geom = empty({a.P, kGStride}, fopt);
+  f.offsets = empty({a.P + 1}, fopt.dtype(at::kLong));
   return f;
+}
+
+inline ForwardOutputs allocate_forward_outputs(const RasterArgs& a, const at::TensorOptions& fopt) {
+  return allocate_forward_outputs(
+      a, fopt, [](at::IntArrayRef sizes, const at::TensorOptions& o) { return at::empty(sizes, o); });
 }
 
 inline RenderOutputs render_outputs(ForwardOutputs& f) {

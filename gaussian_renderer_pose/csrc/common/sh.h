@@ -72,16 +72,31 @@ GRP_FORCE_INLINE int sh_basis(int deg, Vec3 d, float* basis, Vec3* grad) {
   return 16;
 }
 
-// Unit view direction of mean m seen from campos; also returns |m - campos|.
+// x unchanged; on the host compiler, opaque to the optimiser, so that a product passed through it
+// is rounded on its own and never fused into an FMA with the sum it feeds (whether GCC fuses a
+// product otherwise depends on how it vectorised the surrounding loop).
+GRP_INLINE float round_here(float x) {
+#if !defined(__CUDACC__) && defined(__GNUC__) && (defined(__x86_64__) || defined(__i386__))
+  __asm__("" : "+x"(x));
+#endif
+  return x;
+}
+
+// Unit view direction of mean m seen from campos; also returns |m - campos|. The squares are
+// rounded before they are summed (round_here): which one GCC fused otherwise depended on the
+// function the code was inlined into.
 GRP_INLINE Vec3 view_dir(Vec3 m, Vec3 campos, float& norm) {
   const Vec3 v = {m.x - campos.x, m.y - campos.y, m.z - campos.z};
-  norm = sqrtf(v.x * v.x + v.y * v.y + v.z * v.z);
+  norm = sqrtf(round_here(v.x * v.x) + round_here(v.y * v.y) + round_here(v.z * v.z));
   const float inv = 1.f / norm;
   return {v.x * inv, v.y * inv, v.z * inv};
 }
 
 // Forward: raw (unclamped) colour + 0.5; the caller clamps at 0 and keeps the masks. Forced inline:
 // GCC's unit-growth heuristic otherwise left it out of line in the CPU preprocess (-8% forward).
+// The products are rounded before they are summed, in order of k, in every context it is inlined
+// into (the CPU preprocess on vectors does the same: cpu/preprocess_simd.h, and the backward
+// recomputes it for the clamp masks).
 GRP_FORCE_INLINE Vec3 eval_sh(int deg, const float* sh, Vec3 m, Vec3 campos) {
   float norm;
   const Vec3 d = view_dir(m, campos, norm);
@@ -89,9 +104,9 @@ GRP_FORCE_INLINE Vec3 eval_sh(int deg, const float* sh, Vec3 m, Vec3 campos) {
   const int n = sh_basis(deg, d, basis, nullptr);
   Vec3 rgb = {0.f, 0.f, 0.f};
   for (int k = 0; k < n; ++k) {
-    rgb.x += basis[k] * sh[3 * k + 0];
-    rgb.y += basis[k] * sh[3 * k + 1];
-    rgb.z += basis[k] * sh[3 * k + 2];
+    rgb.x += round_here(basis[k] * sh[3 * k + 0]);
+    rgb.y += round_here(basis[k] * sh[3 * k + 1]);
+    rgb.z += round_here(basis[k] * sh[3 * k + 2]);
   }
   return {rgb.x + 0.5f, rgb.y + 0.5f, rgb.z + 0.5f};
 }

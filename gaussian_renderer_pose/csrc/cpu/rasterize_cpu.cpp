@@ -1,24 +1,34 @@
 // Tile-based multi-threaded CPU rasterizer: forward and full backward (incl. camera gradient).
-// Loops only: the per-Gaussian maths lives in ../common/{math,sh,raster}.h. See ../ops.h for the API.
+// Loops only: the per-Gaussian maths lives in ../common/{math,sh,raster}.h (and its vector twin in
+// preprocess_simd.h). See ../ops.h for the API; DESIGN.md "CPU kernel" for the layout.
 //
-// Pipeline (forward):
-//   1. preprocess, parallel over Gaussians: cull, project, cov2D/conic, radius, tile rect, colour.
-//   2. binning: visible Gaussians radix-sorted by view depth (stable -> ties by index), then
-//      per-tile lists filled in that order (parallel over tile rows). Entry = (gaussian, slot);
-//      the slot (offsets[g] + position in g's rect) is where the backward of that tile writes g's
-//      partial gradient, so no two threads ever write the same memory.
+// Pipeline (forward; steps 1-2 over fixed contiguous chunks of Gaussians, one per thread):
+//   1. preprocess: cull, project, cov2D/conic, radius, tile rect, colour, on vectors of kLanes
+//      Gaussians (preprocess_simd.h; the same bits as the scalar preprocess_gaussian); writes the
+//      geom record and a 32-byte tile footprint (rect, tile count, depth key) per Gaussian; then
+//      the slot offsets and the visible Gaussians in index order.
+//   2. binning (binning.h): the visible Gaussians radix-sorted by view depth (stable -> ties by
+//      index), then a stable counting sort by tile fills the per-tile lists in that order.
+//      Entry = (gaussian, slot); the slot (offsets[g] + position in g's rect) is where the
+//      backward of that tile writes g's partial gradient, so no two threads ever write the same
+//      memory.
 //   3. render, parallel over tiles (dynamic): each tile walks its list front to back, and for each
-//      Gaussian updates the 16-wide pixel rows that its alpha >= 1/255 ellipse can reach (one
-//      16-lane vector per row, branch-free masked updates; exp by a vectorised polynomial);
-//      stops when every pixel of the tile is done.
+//      Gaussian updates the pixel rows that its alpha >= 1/255 ellipse can reach and that still
+//      have an active pixel (kRowVecs vectors a row, branch-free masked updates; exp by a
+//      vectorised polynomial); stops when every pixel of the tile is done.
 // Backward:
 //   4. per tile, walk the list back to front from the last contributor (upstream renderCUDA bwd,
-//      T recovered by division), reduce each Gaussian's per-pixel terms over the tile in a fixed
-//      order and store them in its slot.
-//   5. per Gaussian (parallel over fixed-size blocks): sum its slots in tile order, chain through
-//      the per-Gaussian VJPs; camera terms summed per block in double, then blocks in order.
-//      Without compute_gaussian_grads only the camera terms are computed (no Gaussian gradient
-//      is allocated, zero-filled or written); with neither flag the step is skipped.
+//      T recovered by division), over the rows that hold a pixel the entry reaches; reduce each
+//      Gaussian's per-pixel terms over the tile in a fixed order, store them in its slot and mark
+//      the slot live.
+//   5. per Gaussian (parallel over fixed-size blocks): sum its live slots in tile order (a
+//      Gaussian with none reaches no pixel and is skipped), chain through the per-Gaussian VJPs;
+//      camera terms summed per block in double, then blocks in order. Without
+//      compute_gaussian_grads only the camera terms are computed (no Gaussian gradient is
+//      allocated, zero-filled or written); with neither flag the step is skipped.
+// Temporaries live in per-thread scratch arrays kept between calls, the large outputs in blocks
+// recycled through a process-wide cache (cpu_support.h): a render of a large model does not fault
+// in and zero fresh pages. GRP_CPU_TIMING=1 prints each call's phase times to stderr.
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
 
@@ -37,6 +47,10 @@
 #include "../common/raster_args_torch.h"
 #include "../common/sh.h"
 #include "../ops.h"
+#include "binning.h"
+#include "cpu_support.h"
+#include "preprocess_simd.h"
+#include "simd.h"
 
 namespace grp {
 namespace {
@@ -77,88 +91,113 @@ void check_int_tensor(const at::Tensor& t, const char* name, at::ScalarType st) 
 }
 
 // ------------------------------------------------------------------------------------------------
-// 1. Preprocess
+// 1. Preprocess, over fixed chunks of Gaussians: the geom record, the radius and the tile
+// footprint (rect, tile count, depth key) of every Gaussian; per chunk, the visible Gaussians and
+// their tiles.
 // ------------------------------------------------------------------------------------------------
-void preprocess(const RasterArgs& in, float* geom, int32_t* radii, int32_t* rects,
-                int64_t* ntiles) {
-  at::parallel_for(0, in.P, 1024, [&](int64_t b, int64_t e) {
-    for (int64_t g = b; g < e; ++g) {
-      const PreprocessResult r =
-          preprocess_gaussian(in, g, in.viewmatrix, in.projmatrix, geom + kGStride * g);
-      radii[g] = r.radius;
-      ntiles[g] = r.area;
-      for (int k = 0; k < 4; ++k) rects[4 * g + k] = r.rect[k];
+struct ChunkCounts {
+  int64_t visible = 0;  // Gaussians with radius > 0
+  int64_t tiles = 0;    // their (tile, Gaussian) pairs
+};
+
+// Stores the preprocess result of Gaussian g (its record is at gd) and counts it.
+inline void store_preprocessed(int64_t g, const PreprocessResult& r, const float* gd,
+                               int32_t* radii, cpu::TileFootprint* footprints, ChunkCounts& n) {
+  radii[g] = r.radius;
+  cpu::TileFootprint& f = footprints[g];
+  for (int k = 0; k < 4; ++k) f.rect[k] = r.rect[k];
+  f.offset = r.area;
+  std::memcpy(&f.depth_key, gd + kGZ, 4);
+  if (r.radius > 0) {
+    ++n.visible;
+    n.tiles += r.area;
+  }
+}
+
+void preprocess(const RasterArgs& in, int nchunks, float* geom, int32_t* radii,
+                cpu::TileFootprint* footprints, ChunkCounts* counts) {
+  cpu::for_each_chunk(nchunks, [&](int c) {
+    ChunkCounts n;
+    const int64_t e = cpu::chunk_begin(in.P, c + 1, nchunks);
+    int64_t g = cpu::chunk_begin(in.P, c, nchunks);
+    if (in.cov3d == nullptr) {  // whole vectors of Gaussians (preprocess_simd.h)
+      PreprocessResult res[cpu::kLanes];
+      for (; g + cpu::kLanes <= e; g += cpu::kLanes) {
+        cpu::preprocess_lanes(in, g, geom, res);
+        for (int i = 0; i < cpu::kLanes; ++i)
+          store_preprocessed(g + i, res[i], geom + kGStride * (g + i), radii, footprints, n);
+      }
     }
+    for (; g < e; ++g) {
+      float* gd = geom + kGStride * g;
+      const PreprocessResult r = preprocess_gaussian(in, g, in.viewmatrix, in.projmatrix, gd);
+      store_preprocessed(g, r, gd, radii, footprints, n);
+    }
+    counts[c] = n;
   });
 }
 
-// Stable LSD radix sort of the visible Gaussians by depth (positive floats: bit order = order).
-std::vector<int32_t> sort_by_depth(const float* geom, const int32_t* radii, int64_t P) {
-  std::vector<int32_t> vals;
-  vals.reserve(P);
-  for (int64_t g = 0; g < P; ++g)
-    if (radii[g] > 0) vals.push_back((int32_t)g);
-  const size_t n = vals.size();
-  std::vector<uint32_t> keys(n), keys2(n);
-  std::vector<int32_t> vals2(n);
-  for (size_t i = 0; i < n; ++i) std::memcpy(&keys[i], geom + kGStride * vals[i] + kGZ, 4);
-  for (int pass = 0; pass < 4; ++pass) {
-    const int shift = 8 * pass;
-    size_t count[257] = {0};
-    for (size_t i = 0; i < n; ++i) ++count[((keys[i] >> shift) & 255u) + 1];
-    bool trivial = false;
-    for (int b = 1; b <= 256; ++b)
-      if (count[b] == n) trivial = true;
-    if (trivial) continue;
-    for (int b = 0; b < 256; ++b) count[b + 1] += count[b];
-    for (size_t i = 0; i < n; ++i) {
-      const size_t dst = count[(keys[i] >> shift) & 255u]++;
-      keys2[dst] = keys[i];
-      vals2[dst] = vals[i];
-    }
-    keys.swap(keys2);
-    vals.swap(vals2);
+// The slot offsets (offsets[g + 1] = offsets[g] + tiles of g; also into each footprint) and the
+// visible Gaussians in index order with their depth keys (keys / vals); returns their number.
+int64_t compact_visible(int64_t P, int nchunks, const ChunkCounts* counts,
+                        cpu::TileFootprint* footprints, int64_t* offsets, uint32_t* keys,
+                        int32_t* vals) {
+  std::vector<ChunkCounts> base(nchunks + 1);
+  for (int c = 0; c < nchunks; ++c) {
+    base[c + 1].visible = base[c].visible + counts[c].visible;
+    base[c + 1].tiles = base[c].tiles + counts[c].tiles;
   }
-  return vals;
+  offsets[0] = 0;
+  cpu::for_each_chunk(nchunks, [&](int c) {
+    int64_t pos = base[c].visible, slot = base[c].tiles;
+    const int64_t e = cpu::chunk_begin(P, c + 1, nchunks);
+    for (int64_t g = cpu::chunk_begin(P, c, nchunks); g < e; ++g) {
+      cpu::TileFootprint& f = footprints[g];
+      const int64_t tiles = f.offset;
+      f.offset = slot;
+      slot += tiles;
+      offsets[g + 1] = slot;
+      if (tiles > 0) {
+        keys[pos] = f.depth_key;
+        vals[pos] = (int32_t)g;
+        ++pos;
+      }
+    }
+  });
+  return base[nchunks].visible;
 }
+
+// Temporaries of the forward, kept by the calling thread between calls (cpu_support.h).
+struct ForwardScratch {
+  cpu::ScratchArray<cpu::TileFootprint> footprints, sorted;
+  cpu::ScratchArray<uint32_t> keys, keys2;
+  cpu::ScratchArray<int32_t> vals, vals2;
+};
 
 // ------------------------------------------------------------------------------------------------
-// 16-lane vectors = one tile row (GCC/Clang vector extensions). The compiler lowers them to
-// AVX-512, AVX2 or SSE depending on the target flags; every lane does the same IEEE maths.
+// A tile row is kRowVecs vectors of the machine's width (simd.h).
 // ------------------------------------------------------------------------------------------------
-typedef float vf __attribute__((vector_size(4 * kBlockX)));
-typedef int32_t vi __attribute__((vector_size(4 * kBlockX)));
-static_assert(sizeof(vf) == sizeof(float) * kBlockX, "one vector per tile row");
+using cpu::kLanes;
+using cpu::splat;
+using cpu::splat_i;
+using cpu::vexp_nonpos;
+using cpu::vf;
+using cpu::vi;
+constexpr int kRowVecs = kBlockX / kLanes;
+static_assert(kRowVecs * kLanes == kBlockX, "a tile row is a whole number of vectors");
 
-inline vf splat(float v) {
-  vf r;
-  for (int i = 0; i < kBlockX; ++i) r[i] = v;
-  return r;
-}
-inline vi splat_i(int32_t v) {
-  vi r;
-  for (int i = 0; i < kBlockX; ++i) r[i] = v;
-  return r;
+// True when some lane of v[0..kRowVecs) is non-zero.
+inline bool any_lane(const vi* v) {
+  vi acc = v[0];
+  for (int h = 1; h < kRowVecs; ++h) acc |= v[h];
+  int32_t any = 0;
+  for (int i = 0; i < kLanes; ++i) any |= acc[i];
+  return any != 0;
 }
 
-// Vector twin of exp_nonpos (common/math.h): same reduction and polynomial, lane-wise.
-inline vf vexp_nonpos(vf x) {
-  x = x < splat(-87.f) ? splat(-87.f) : x;
-  x = x > splat(0.f) ? splat(0.f) : x;
-  const vf v = x * 1.44269504088896341f;
-  const vi n = __builtin_convertvector(v - 0.5f, vi);  // round to nearest for v <= 0
-  const vf fn = __builtin_convertvector(n, vf);
-  vf r = x - fn * 0.693359375f;
-  r = r - fn * -2.12194440e-4f;
-  vf p = splat(1.9875691500e-4f);
-  p = p * r + 1.3981999507e-3f;
-  p = p * r + 8.3334519073e-3f;
-  p = p * r + 4.1665795894e-2f;
-  p = p * r + 1.6666665459e-1f;
-  p = p * r + 5.0000001201e-1f;
-  const vf y = p * r * r + r + 1.0f;
-  const vi bits = (n + 127) << 23;
-  return y * (vf)bits;
+// Bits r0..r1 (0 <= r0 <= r1 < 32) set.
+inline uint32_t row_bits(int r0, int r1) {
+  return (uint32_t)((((uint64_t)1 << (r1 + 1)) - 1) & ~(((uint64_t)1 << r0) - 1));
 }
 
 // Rows [r0, r1] of the tile that Gaussian gd can reach (alpha >= 1/255); false when none.
@@ -175,8 +214,8 @@ inline bool row_range(const float* gd, int y0, int nrows, int& r0, int& r1) {
   return r0 <= r1;
 }
 
-// One tile row of a Gaussian (upstream renderCUDA): power = -d^T conic d / 2 at the 16 pixels
-// (dx = px - x per lane, qx = conic.a dx^2, dy = py - y), G = exp(power), oG = o G and
+// One vector of a tile row of a Gaussian (upstream renderCUDA): power = -d^T conic d / 2 at its
+// pixels (dx = px - x per lane, qx = conic.a dx^2, dy = py - y), G = exp(power), oG = o G and
 // alpha = min(kAlphaMax, oG). Shared by the forward and the backward tile loops.
 inline void row_alpha(const vf& qx, const vf& dx, float dy, float cB, float cC, float o, vf& power,
                       vf& G, vf& oG, vf& alpha) {
@@ -196,230 +235,283 @@ inline void tile_extent(const RasterArgs& in, int64_t tile, int& x0, int& y0, in
   nrows = std::min(kBlockY, in.H - y0);
 }
 
+// The x coordinates of the tile's columns, one vector per piece of a row.
+inline void column_coords(int x0, vf* pixx) {
+  for (int c = 0; c < kBlockX; ++c) pixx[c / kLanes][c % kLanes] = (float)(x0 + c);
+}
+
 // ------------------------------------------------------------------------------------------------
 // 3. Forward render of one tile
 // ------------------------------------------------------------------------------------------------
-void render_tile(const RasterArgs& in, int64_t tile, const float* geom, const int32_t* binning,
-                 const int32_t* tile_ranges, const RenderOutputs& out) {
-  int x0, y0, ncols, nrows;
-  tile_extent(in, tile, x0, y0, ncols, nrows);
-  // Pixel state, one record per tile row (keeps a row's vectors together in L1).
-  struct Row {
-    vf T, C0, C1, C2, ID, DA;
-    vi act, last;
-  };
-  Row rows[kBlockY];
-  vf pixx;
-  vi colmask;
-  for (int i = 0; i < kBlockX; ++i) {
-    pixx[i] = (float)(x0 + i);
-    colmask[i] = i < ncols ? -1 : 0;
-  }
-  for (int r = 0; r < kBlockY; ++r) {
-    Row& R = rows[r];
-    R.act = r < nrows ? colmask : splat_i(0);
-    R.T = splat(1.f);
-    R.C0 = R.C1 = R.C2 = R.ID = R.DA = splat(0.f);
-    R.last = splat_i(-1);
-  }
-  int nact = ncols * nrows;
-  const int32_t start = tile_ranges[tile], end = tile_ranges[tile + 1];
-  for (int32_t j = start; j < end && nact > 0; ++j) {
-    if (j + kPrefetch < end) __builtin_prefetch(geom + kGStride * (int64_t)binning[2 * (j + kPrefetch)]);
-    const float* gd = geom + kGStride * (int64_t)binning[2 * j];
-    int r0, r1;
-    if (!row_range(gd, y0, nrows, r0, r1)) continue;
-    const float px = gd[kGPx], py = gd[kGPy];
-    const float cA = gd[kGConA], cB = gd[kGConB], cC = gd[kGConC], o = gd[kGOpacity];
-    const float f0 = gd[kGR], f1 = gd[kGG], f2 = gd[kGB], fiz = gd[kGInvZ], fz = gd[kGZ];
-    const vi jl = splat_i(j - start);
-    const vf dx = px - pixx;
-    const vf qx = cA * dx * dx;
-    vi nstop = splat_i(0);
-    for (int r = r0; r <= r1; ++r) {
-      Row& R = rows[r];
-      const float dy = py - (float)(y0 + r);
-      vf power, G, oG, alpha;
-      row_alpha(qx, dx, dy, cB, cC, o, power, G, oG, alpha);
-      const vi valid = R.act & ~(power > splat(0.f)) & ~(alpha < splat(kAlphaMin));
-      const vf Tc = R.T;
-      const vf testT = Tc * (1.f - alpha);
-      const vi stop = valid & (testT < splat(kTransmittanceMin));
-      const vi contrib = valid & ~stop;
-      const vf w = contrib ? alpha * Tc : splat(0.f);
-      R.C0 += f0 * w;
-      R.C1 += f1 * w;
-      R.C2 += f2 * w;
-      R.ID += fiz * w;
-      R.DA += fz * w;
-      R.T = contrib ? testT : Tc;
-      R.last = contrib ? jl : R.last;
-      R.act &= ~stop;
-      nstop -= stop;
-    }
-    for (int i = 0; i < kBlockX; ++i) nact -= nstop[i];
-  }
+// Forward pixel state of one vector of a tile row.
+struct FwdPix {
+  vf T, C0, C1, C2, ID, DA;
+  vi act, last;
+};
+
+// Blends Gaussian gd (list position jrel) into one vector of a row; returns the lanes that stop.
+inline vi blend_vec(FwdPix& R, const vf& qx, const vf& dx, float dy, const float* gd, int32_t jrel) {
+  vf power, G, oG, alpha;
+  row_alpha(qx, dx, dy, gd[kGConB], gd[kGConC], gd[kGOpacity], power, G, oG, alpha);
+  const vi valid = R.act & ~(power > splat(0.f)) & ~(alpha < splat(kAlphaMin));
+  const vf Tc = R.T;
+  const vf testT = Tc * (1.f - alpha);
+  const vi stop = valid & (testT < splat(kTransmittanceMin));
+  const vi contrib = valid & ~stop;
+  const vf w = contrib ? alpha * Tc : splat(0.f);
+  R.C0 += gd[kGR] * w;
+  R.C1 += gd[kGG] * w;
+  R.C2 += gd[kGB] * w;
+  R.ID += gd[kGInvZ] * w;
+  R.DA += gd[kGZ] * w;
+  R.T = contrib ? testT : Tc;
+  R.last = contrib ? splat_i(jrel) : R.last;
+  R.act &= ~stop;
+  return stop;
+}
+
+// Writes the tile's pixels (rows[r][h] holds columns h kLanes ..).
+void store_tile(const RasterArgs& in, const FwdPix (*rows)[kRowVecs], int x0, int y0, int ncols,
+                int nrows, const RenderOutputs& out) {
   const int64_t HW = (int64_t)in.H * in.W;
   for (int r = 0; r < nrows; ++r) {
-    const Row& R = rows[r];
     for (int c = 0; c < ncols; ++c) {
+      const FwdPix& R = rows[r][c / kLanes];
+      const int i = c % kLanes;
       const int64_t pix = (int64_t)(y0 + r) * in.W + (x0 + c);
-      const float Tp = R.T[c];
-      out.color[pix] = R.C0[c] + Tp * in.bg[0];
-      out.color[HW + pix] = R.C1[c] + Tp * in.bg[1];
-      out.color[2 * HW + pix] = R.C2[c] + Tp * in.bg[2];
-      out.invdepth[pix] = R.ID[c];
-      out.depth_acc[pix] = R.DA[c];
+      const float Tp = R.T[i];
+      out.color[pix] = R.C0[i] + Tp * in.bg[0];
+      out.color[HW + pix] = R.C1[i] + Tp * in.bg[1];
+      out.color[2 * HW + pix] = R.C2[i] + Tp * in.bg[2];
+      out.invdepth[pix] = R.ID[i];
+      out.depth_acc[pix] = R.DA[i];
       out.alpha[pix] = 1.f - Tp;
       out.final_T[pix] = Tp;
-      out.last[pix] = R.last[c];
+      out.last[pix] = R.last[i];
     }
   }
 }
 
+void render_tile(const RasterArgs& in, int64_t tile, const float* geom, const int32_t* binning,
+                 const int32_t* tile_ranges, const RenderOutputs& out) {
+  int x0, y0, ncols, nrows;
+  tile_extent(in, tile, x0, y0, ncols, nrows);
+  FwdPix rows[kBlockY][kRowVecs];  // one record per vector of a row: a row's state together in L1
+  vf pixx[kRowVecs];
+  column_coords(x0, pixx);
+  for (int r = 0; r < kBlockY; ++r)
+    for (int h = 0; h < kRowVecs; ++h) {
+      FwdPix& R = rows[r][h];
+      for (int i = 0; i < kLanes; ++i) R.act[i] = (r < nrows && h * kLanes + i < ncols) ? -1 : 0;
+      R.T = splat(1.f);
+      R.C0 = R.C1 = R.C2 = R.ID = R.DA = splat(0.f);
+      R.last = splat_i(-1);
+    }
+  // Rows with an active pixel: the tile is done when none is left, and the rows of a Gaussian
+  // without one are skipped (exact: an inactive pixel's state never changes).
+  uint32_t active_rows = ncols > 0 ? row_bits(0, nrows - 1) : 0u;
+  const int32_t start = tile_ranges[tile], end = tile_ranges[tile + 1];
+  for (int32_t j = start; j < end && active_rows != 0; ++j) {
+    if (j + kPrefetch < end) __builtin_prefetch(geom + kGStride * (int64_t)binning[2 * (j + kPrefetch)]);
+    const float* gd = geom + kGStride * (int64_t)binning[2 * j];
+    int r0, r1;
+    if (!row_range(gd, y0, nrows, r0, r1)) continue;
+    const uint32_t todo = active_rows & row_bits(r0, r1);
+    if (todo == 0) continue;
+    const float px = gd[kGPx], py = gd[kGPy], cA = gd[kGConA];
+    vf dx[kRowVecs], qx[kRowVecs];
+    for (int h = 0; h < kRowVecs; ++h) {
+      dx[h] = px - pixx[h];
+      qx[h] = cA * dx[h] * dx[h];
+    }
+    vi stopped[kRowVecs] = {};
+    for (uint32_t m = todo; m != 0; m &= m - 1) {
+      const int r = __builtin_ctz(m);
+      const float dy = py - (float)(y0 + r);
+      for (int h = 0; h < kRowVecs; ++h)
+        stopped[h] |= blend_vec(rows[r][h], qx[h], dx[h], dy, gd, j - start);
+    }
+    if (!any_lane(stopped)) continue;
+    for (uint32_t m = todo; m != 0; m &= m - 1) {
+      const int r = __builtin_ctz(m);
+      vi act[kRowVecs];
+      for (int h = 0; h < kRowVecs; ++h) act[h] = rows[r][h].act;
+      if (!any_lane(act)) active_rows &= ~(1u << r);
+    }
+  }
+  store_tile(in, rows, x0, y0, ncols, nrows, out);
+}
+
 // ------------------------------------------------------------------------------------------------
-// 4. Backward of one tile: writes the slot of every entry of the tile's list, and the tile's
-// background terms dbg_tile[3] (only those when slots == nullptr).
+// 4. Backward of one tile: the tile's background terms dbg_tile[3] and (unless slots == nullptr)
+// the slot of every entry that reaches one of the tile's pixels, marked in live[slot] (the
+// caller zeroes live); entries behind every pixel's last contributor, and those whose ellipse
+// misses the tile, are not written (their slots would be zeros).
 // kOpacitySlot / kColourSlot = false: slot 5 (opacity) / slots 6..8 (colour) are written as 0
 // without being accumulated (for a caller that never reads them). The other slots come from the
 // same statements in the same order in every variant (independent accumulators, explicit vector
 // types: nothing for the vectoriser to regroup); tests/renderer/test_pose_only_backward.py checks
 // that the camera gradient is the same bits in each.
 // ------------------------------------------------------------------------------------------------
-template <bool kOpacitySlot, bool kColourSlot>
-void backward_tile(const RasterArgs& in, int64_t tile, const float* geom, const int32_t* binning,
-                   const int32_t* tile_ranges, const float* final_T, const int32_t* last_contrib,
-                   const GradImages& gin, float* slots, double* dbg_tile) {
-  int x0, y0, ncols, nrows;
-  tile_extent(in, tile, x0, y0, ncols, nrows);
+// Backward pixel state of one vector of a tile row (upstream renderCUDA backward, features = r,
+// g, b, 1/z, z): T: transmittance, recovered back to front; lastA: alpha of the Gaussian behind;
+// accdot = dL/dpixel . (features blended behind, accum_rec upstream); lfdot = dL/dpixel .
+// (features of the Gaussian behind); dp = dL/dpixel per feature; kbg = T_final (dL/dalpha_out -
+// bg . dL/dcolor), enters dL/dalpha_i as kbg / (1 - alpha_i).
+struct BwdPix {
+  vf T, lastA, kbg, accdot, lfdot;
+  vf dp[kNumFeat];
+  vi last;
+};
+
+// The per-lane sums of one entry's terms over the rows it reaches (slot order of kSlot).
+struct SlotAcc {
+  vf v[kSlot];
+};
+
+// Loads one tile's pixel state; returns each row's largest last contributor in row_last and adds
+// the background terms to dbg.
+void load_bwd_tile(const RasterArgs& in, const float* final_T, const int32_t* last_contrib,
+                   const GradImages& gin, int x0, int y0, int ncols, int nrows,
+                   BwdPix (*rows)[kRowVecs], int32_t* row_last, double* dbg) {
   const int64_t HW = (int64_t)in.H * in.W;
-  // Per pixel (upstream renderCUDA backward, features = r, g, b, 1/z, z):
-  //   T: transmittance, recovered back to front; lastA: alpha of the Gaussian behind;
-  //   accdot = dL/dpixel . (features blended behind, accum_rec upstream);
-  //   lfdot = dL/dpixel . (features of the Gaussian behind); dp = dL/dpixel per feature;
-  //   kbg = T_final (dL/dalpha_out - bg . dL/dcolor), enters dL/dalpha_i as kbg / (1 - alpha_i).
-  struct Row {
-    vf T, lastA, kbg, accdot, lfdot;
-    vf dp[kNumFeat];
-    vi last;
-  };
-  Row rows[kBlockY];
-  vf pixx;
-  for (int i = 0; i < kBlockX; ++i) pixx[i] = (float)(x0 + i);
-  int32_t maxlast = -1;
-  double dbg[3] = {0, 0, 0};
   for (int r = 0; r < kBlockY; ++r) {
-    Row& R = rows[r];
-    R.T = R.lastA = R.kbg = R.accdot = R.lfdot = splat(0.f);
-    R.last = splat_i(-1);
-    for (int k = 0; k < kNumFeat; ++k) R.dp[k] = splat(0.f);
+    for (int h = 0; h < kRowVecs; ++h) {
+      BwdPix& R = rows[r][h];
+      R.T = R.lastA = R.kbg = R.accdot = R.lfdot = splat(0.f);
+      R.last = splat_i(-1);
+      for (int k = 0; k < kNumFeat; ++k) R.dp[k] = splat(0.f);
+    }
+    row_last[r] = -1;
     if (r >= nrows) continue;
     for (int c = 0; c < ncols; ++c) {
+      BwdPix& R = rows[r][c / kLanes];
+      const int i = c % kLanes;
       const int64_t pix = (int64_t)(y0 + r) * in.W + (x0 + c);
       const float Tf = final_T[pix];
-      R.T[c] = Tf;
-      R.last[c] = last_contrib[pix];
-      maxlast = std::max(maxlast, last_contrib[pix]);
+      R.T[i] = Tf;
+      R.last[i] = last_contrib[pix];
+      row_last[r] = std::max(row_last[r], last_contrib[pix]);
       const float g0 = gin.color[pix], g1 = gin.color[HW + pix], g2 = gin.color[2 * HW + pix];
-      R.dp[0][c] = g0;
-      R.dp[1][c] = g1;
-      R.dp[2][c] = g2;
-      R.dp[3][c] = gin.invdepth[pix];
-      R.dp[4][c] = gin.depth_acc[pix];
+      R.dp[0][i] = g0;
+      R.dp[1][i] = g1;
+      R.dp[2][i] = g2;
+      R.dp[3][i] = gin.invdepth[pix];
+      R.dp[4][i] = gin.depth_acc[pix];
       const float bgdot = in.bg[0] * g0 + in.bg[1] * g1 + in.bg[2] * g2;
-      R.kbg[c] = Tf * (gin.alpha[pix] - bgdot);
+      R.kbg[i] = Tf * (gin.alpha[pix] - bgdot);
       dbg[0] += (double)Tf * (double)g0;
       dbg[1] += (double)Tf * (double)g1;
       dbg[2] += (double)Tf * (double)g2;
     }
   }
+}
+
+// Backward of Gaussian gd (list position jrel) through one vector of a row: updates the pixel
+// state and adds the entry's terms to acc.
+template <bool kOpacitySlot, bool kColourSlot>
+inline void unblend_vec(BwdPix& R, const vf& qx, const vf& dx, float dy, const float* gd,
+                        int32_t jrel, SlotAcc& acc) {
+  const float cA = gd[kGConA], cB = gd[kGConB], cC = gd[kGConC], o = gd[kGOpacity];
+  const float f[kNumFeat] = {gd[kGR], gd[kGG], gd[kGB], gd[kGInvZ], gd[kGZ]};
+  vf power, G, oG, alpha;
+  row_alpha(qx, dx, dy, cB, cC, o, power, G, oG, alpha);
+  const vi valid = (splat_i(jrel) <= R.last) & ~(power > splat(0.f)) & ~(alpha < splat(kAlphaMin));
+  const vf a = valid ? alpha : splat(0.f);
+  const vf inv_1ma = 1.f / (1.f - a);
+  const vf Tn = R.T * inv_1ma;  // unchanged where invalid (a = 0)
+  const vf w = a * Tn;
+  vf fdot = f[0] * R.dp[0];
+  if (kColourSlot) acc.v[6] += w * R.dp[0];
+  for (int k = 1; k < kNumFeat; ++k) {
+    fdot += f[k] * R.dp[k];
+    if (kColourSlot || k >= 3) acc.v[6 + k] += w * R.dp[k];
+  }
+  const vf la = R.lastA;
+  const vf ndot = la * R.lfdot + (1.f - la) * R.accdot;
+  const vf dLda = (fdot - ndot) * Tn + R.kbg * inv_1ma;
+  R.T = Tn;
+  R.accdot = valid ? ndot : R.accdot;
+  R.lfdot = valid ? fdot : R.lfdot;
+  R.lastA = valid ? alpha : la;
+  // alpha = min(0.99, o G): no gradient to o G where the clamp is active
+  const vi pass = valid & ~(oG > splat(kAlphaMax));
+  const vf dLdG = pass ? o * dLda : splat(0.f);
+  if (kOpacitySlot) acc.v[5] += pass ? G * dLda : splat(0.f);
+  const vf gdx = G * dx, gdy = G * dy;
+  acc.v[0] += dLdG * (-gdx * cA - gdy * cB);
+  acc.v[1] += dLdG * (-gdy * cC - gdx * cB);
+  acc.v[2] += -0.5f * gdx * dx * dLdG;
+  acc.v[3] += -gdx * dy * dLdG;
+  acc.v[4] += -0.5f * gdy * dy * dLdG;
+}
+
+template <bool kOpacitySlot, bool kColourSlot>
+void backward_tile(const RasterArgs& in, int64_t tile, const float* geom, const int32_t* binning,
+                   const int32_t* tile_ranges, const float* final_T, const int32_t* last_contrib,
+                   const GradImages& gin, float* slots, uint8_t* live, double* dbg_tile) {
+  int x0, y0, ncols, nrows;
+  tile_extent(in, tile, x0, y0, ncols, nrows);
+  BwdPix rows[kBlockY][kRowVecs];
+  int32_t row_last[kBlockY];  // per row, the largest last contributor (-1: none)
+  double dbg[3] = {0, 0, 0};
+  load_bwd_tile(in, final_T, last_contrib, gin, x0, y0, ncols, nrows, rows, row_last, dbg);
   for (int k = 0; k < 3; ++k) dbg_tile[k] = dbg[k];
   if (slots == nullptr) return;
-  const int32_t start = tile_ranges[tile], end = tile_ranges[tile + 1];
-  // Entries behind every pixel's last contributor get zero slots.
-  for (int32_t j = start + maxlast + 1; j < end; ++j) {
-    float* s = slots + (int64_t)binning[2 * j + 1] * kSlot;
-    for (int k = 0; k < kSlot; ++k) s[k] = 0.f;
-  }
+  int32_t maxlast = -1;
+  for (int r = 0; r < nrows; ++r) maxlast = std::max(maxlast, row_last[r]);
+  vf pixx[kRowVecs];
+  column_coords(x0, pixx);
+  const int32_t start = tile_ranges[tile];
   for (int32_t j = start + maxlast; j >= start; --j) {
     if (j - kPrefetch >= start) {
       __builtin_prefetch(geom + kGStride * (int64_t)binning[2 * (j - kPrefetch)]);
       __builtin_prefetch(slots + (int64_t)binning[2 * (j - kPrefetch) + 1] * kSlot, 1);
     }
-    float* slot = slots + (int64_t)binning[2 * j + 1] * kSlot;
     const float* gd = geom + kGStride * (int64_t)binning[2 * j];
     int r0, r1;
-    if (!row_range(gd, y0, nrows, r0, r1)) {
-      for (int k = 0; k < kSlot; ++k) slot[k] = 0.f;
-      continue;
+    if (!row_range(gd, y0, nrows, r0, r1)) continue;
+    // Rows with a pixel that entry j reaches (j at or before its last contributor); the others
+    // would add zeros (exact to skip).
+    uint32_t todo = 0;
+    for (int r = r0; r <= r1; ++r)
+      if (row_last[r] >= j - start) todo |= 1u << r;
+    if (todo == 0) continue;
+    const float px = gd[kGPx], py = gd[kGPy], cA = gd[kGConA];
+    vf dx[kRowVecs], qx[kRowVecs];
+    SlotAcc acc[kRowVecs];
+    for (int h = 0; h < kRowVecs; ++h) {
+      dx[h] = px - pixx[h];
+      qx[h] = cA * dx[h] * dx[h];
+      for (int k = 0; k < kSlot; ++k) acc[h].v[k] = splat(0.f);
     }
-    const float px = gd[kGPx], py = gd[kGPy];
-    const float cA = gd[kGConA], cB = gd[kGConB], cC = gd[kGConC], o = gd[kGOpacity];
-    const float f[kNumFeat] = {gd[kGR], gd[kGG], gd[kGB], gd[kGInvZ], gd[kGZ]};
-    const vi jl = splat_i(j - start);
-    const vf dx = px - pixx;
-    const vf qx = cA * dx * dx;
-    vf s_dx = splat(0.f), s_dy = s_dx, s_cA = s_dx, s_cB = s_dx, s_cC = s_dx, s_o = s_dx;
-    vf s_f[kNumFeat];
-    for (int k = 0; k < kNumFeat; ++k) s_f[k] = splat(0.f);
-    for (int r = r0; r <= r1; ++r) {
-      Row& R = rows[r];
+    for (uint32_t m = todo; m != 0; m &= m - 1) {
+      const int r = __builtin_ctz(m);
       const float dy = py - (float)(y0 + r);
-      vf power, G, oG, alpha;
-      row_alpha(qx, dx, dy, cB, cC, o, power, G, oG, alpha);
-      const vi valid = (jl <= R.last) & ~(power > splat(0.f)) & ~(alpha < splat(kAlphaMin));
-      const vf a = valid ? alpha : splat(0.f);
-      const vf inv_1ma = 1.f / (1.f - a);
-      const vf Tn = R.T * inv_1ma;  // unchanged where invalid (a = 0)
-      const vf w = a * Tn;
-      vf fdot = f[0] * R.dp[0];
-      if (kColourSlot) s_f[0] += w * R.dp[0];
-      for (int k = 1; k < kNumFeat; ++k) {
-        fdot += f[k] * R.dp[k];
-        if (kColourSlot || k >= 3) s_f[k] += w * R.dp[k];
-      }
-      const vf la = R.lastA;
-      const vf ndot = la * R.lfdot + (1.f - la) * R.accdot;
-      const vf dLda = (fdot - ndot) * Tn + R.kbg * inv_1ma;
-      R.T = Tn;
-      R.accdot = valid ? ndot : R.accdot;
-      R.lfdot = valid ? fdot : R.lfdot;
-      R.lastA = valid ? alpha : la;
-      // alpha = min(0.99, o G): no gradient to o G where the clamp is active
-      const vi pass = valid & ~(oG > splat(kAlphaMax));
-      const vf dLdG = pass ? o * dLda : splat(0.f);
-      if (kOpacitySlot) s_o += pass ? G * dLda : splat(0.f);
-      const vf gdx = G * dx, gdy = G * dy;
-      s_dx += dLdG * (-gdx * cA - gdy * cB);
-      s_dy += dLdG * (-gdy * cC - gdx * cB);
-      s_cA += -0.5f * gdx * dx * dLdG;
-      s_cB += -gdx * dy * dLdG;
-      s_cC += -0.5f * gdy * dy * dLdG;
+      for (int h = 0; h < kRowVecs; ++h)
+        unblend_vec<kOpacitySlot, kColourSlot>(rows[r][h], qx[h], dx[h], dy, gd, j - start,
+                                                acc[h]);
     }
     float red[kSlot] = {0};
-    for (int i = 0; i < kBlockX; ++i) {
-      red[0] += s_dx[i];
-      red[1] += s_dy[i];
-      red[2] += s_cA[i];
-      red[3] += s_cB[i];
-      red[4] += s_cC[i];
-      if (kOpacitySlot) red[5] += s_o[i];
-      for (int k = 0; k < kNumFeat; ++k)
-        if (kColourSlot || k >= 3) red[6 + k] += s_f[k][i];
-    }
+    for (int c = 0; c < kBlockX; ++c)
+      for (int k = 0; k < kSlot; ++k) red[k] += acc[c / kLanes].v[k][c % kLanes];
+    const int64_t slot_id = binning[2 * j + 1];
+    float* slot = slots + slot_id * kSlot;
     for (int k = 0; k < kSlot; ++k) slot[k] = red[k];
+    live[slot_id] = 1;
   }
 }
 
 // ------------------------------------------------------------------------------------------------
 // 5. Per-Gaussian backward of block `blk` (kGaussBlock Gaussians): sums each visible Gaussian's
-// slots in tile order and chains them through gaussian_backward_one (../common/raster.h), which
-// writes gout (not when gout.means3D == nullptr: camera terms only); the camera terms go to
-// cam[kCamGrad] (double, in Gaussian order) when cam != nullptr.
+// live slots in tile order and chains them through gaussian_backward_one (../common/raster.h),
+// which writes gout (not when gout.means3D == nullptr: camera terms only); the camera terms go to
+// cam[kCamGrad] (double, in Gaussian order) when cam != nullptr. A Gaussian without a live slot
+// reaches no pixel: its gradients are zero (gout is zero-filled) and it is skipped.
 // ------------------------------------------------------------------------------------------------
 void gaussian_backward_block(const RasterArgs& in, int64_t blk, const int32_t* rad,
-                             const int64_t* off, const float* slots, const GaussianGrads& gout,
-                             double* cam) {
+                             const int64_t* off, const float* slots, const uint8_t* live,
+                             const GaussianGrads& gout, double* cam) {
   double* dV = cam;
   double* dP = cam ? cam + 16 : nullptr;
   double* dC = cam ? cam + 32 : nullptr;
@@ -428,10 +520,14 @@ void gaussian_backward_block(const RasterArgs& in, int64_t blk, const int32_t* r
   for (int64_t g = blk * kGaussBlock; g < g1; ++g) {
     if (rad[g] <= 0) continue;
     float s[kSlot] = {0};
+    bool reached = false;
     for (int64_t e = off[g]; e < off[g + 1]; ++e) {
+      if (!live[e]) continue;
+      reached = true;
       const float* sl = slots + e * kSlot;
       for (int k = 0; k < kSlot; ++k) s[k] += sl[k];
     }
+    if (!reached) continue;
     gaussian_backward_one(in, g, s, in.viewmatrix, in.projmatrix, cpos, gout, dV, dP, dC);
   }
 }
@@ -443,94 +539,73 @@ void gaussian_backward_block(const RasterArgs& in, int64_t blk, const int32_t* r
 // ------------------------------------------------------------------------------------------------
 ForwardOutputs rasterize_forward_cpu(const RasterInputs& args) {
   const RasterArgs in = fill_raster_args(check_tensor, args);
+  cpu::PhaseTimer timer("forward", in.P, in.W, in.H);
   const int64_t P = in.P;
   const auto fopt = args.means3D.options();
   const auto iopt = fopt.dtype(at::kInt);
   const int64_t num_tiles = (int64_t)in.grid_x * in.grid_y;
+  cpu::BlockCache& cache = cpu::BlockCache::instance();
+  const auto cached_empty = [&cache](at::IntArrayRef sizes, const at::TensorOptions& o) {
+    return cache.empty(sizes, o);
+  };
+  ForwardOutputs fw = allocate_forward_outputs(in, fopt, cached_empty);
+  thread_local ForwardScratch scratch;
+  cpu::TileFootprint* footprints = scratch.footprints.get(P);
 
-  ForwardOutputs fw = allocate_forward_outputs(in, fopt);
-  std::vector<int32_t> rects(4 * P);
-
+  // 1. Preprocess, then the slot offsets and the visible Gaussians.
+  const int nchunks = cpu::num_chunks(P, 4096);
+  std::vector<ChunkCounts> counts(nchunks);
+  preprocess(in, nchunks, fw.geom.data_ptr<float>(), fw.radii.data_ptr<int32_t>(), footprints,
+             counts.data());
+  timer.mark("preprocess");
   int64_t* off = fw.offsets.data_ptr<int64_t>();
-  preprocess(in, fw.geom.data_ptr<float>(), fw.radii.data_ptr<int32_t>(), rects.data(), off + 1);
-  off[0] = 0;
-  for (int64_t g = 0; g < P; ++g) off[g + 1] += off[g];
+  uint32_t* keys = scratch.keys.get(P);
+  int32_t* vals = scratch.vals.get(P);
+  const int64_t nvis = compact_visible(P, nchunks, counts.data(), footprints, off, keys, vals);
   const int64_t num_rendered = off[P];
   TORCH_CHECK(num_rendered < (int64_t)std::numeric_limits<int32_t>::max(),
               "too many (tile, Gaussian) pairs: ", num_rendered);
+  timer.mark("compact");
 
-  // 2. Binning.
-  const float* gm = fw.geom.data_ptr<float>();
-  const std::vector<int32_t> order = sort_by_depth(gm, fw.radii.data_ptr<int32_t>(), P);
-  fw.tile_ranges = at::zeros({num_tiles + 1}, iopt);
-  fw.binning = at::empty({num_rendered, 2}, iopt);
-  {
-    int32_t* tr = fw.tile_ranges.data_ptr<int32_t>();
-    int32_t* bin = fw.binning.data_ptr<int32_t>();
-    const int gx = in.grid_x;
-    std::vector<int32_t> counts(num_tiles, 0);
-    at::parallel_for(0, in.grid_y, 1, [&](int64_t ty0, int64_t ty1) {
-      for (int32_t g : order) {
-        const int32_t* rc = rects.data() + 4 * g;
-        const int lo = std::max<int>(rc[1], (int)ty0), hi = std::min<int>(rc[3], (int)ty1);
-        for (int ty = lo; ty < hi; ++ty)
-          for (int tx = rc[0]; tx < rc[2]; ++tx) ++counts[(int64_t)ty * gx + tx];
-      }
-    });
-    tr[0] = 0;
-    for (int64_t t = 0; t < num_tiles; ++t) tr[t + 1] = tr[t] + counts[t];
-    std::vector<int32_t> cursor(tr, tr + num_tiles);
-    at::parallel_for(0, in.grid_y, 1, [&](int64_t ty0, int64_t ty1) {
-      for (int32_t g : order) {
-        const int32_t* rc = rects.data() + 4 * g;
-        const int lo = std::max<int>(rc[1], (int)ty0), hi = std::min<int>(rc[3], (int)ty1);
-        const int w = rc[2] - rc[0];
-        for (int ty = lo; ty < hi; ++ty)
-          for (int tx = rc[0]; tx < rc[2]; ++tx) {
-            const int32_t pos = cursor[(int64_t)ty * gx + tx]++;
-            bin[2 * pos] = g;
-            bin[2 * pos + 1] = (int32_t)(off[g] + (int64_t)(ty - rc[1]) * w + (tx - rc[0]));
-          }
-      }
-    });
-  }
+  // 2. Binning: depth sort, then the per-tile lists (binning.h).
+  const int32_t* order =
+      cpu::radix_sort_by_key(keys, vals, scratch.keys2.get(nvis), scratch.vals2.get(nvis), nvis);
+  timer.mark("sort");
+  fw.tile_ranges = at::empty({num_tiles + 1}, iopt);
+  fw.binning = cached_empty({num_rendered, 2}, iopt);
+  const int32_t* bin = fw.binning.data_ptr<int32_t>();
+  const int32_t* tr = fw.tile_ranges.data_ptr<int32_t>();
+  cpu::fill_tile_lists(in.grid_x, num_tiles, order, nvis, footprints, scratch.sorted.get(nvis),
+                       fw.tile_ranges.data_ptr<int32_t>(), fw.binning.data_ptr<int32_t>());
+  timer.mark("tile_lists");
 
   // 3. Render.
   const RenderOutputs out = render_outputs(fw);
-  const int32_t* bin = fw.binning.data_ptr<int32_t>();
-  const int32_t* tr = fw.tile_ranges.data_ptr<int32_t>();
+  const float* gm = fw.geom.data_ptr<float>();
   parallel_dynamic(num_tiles, [&](int64_t t) { render_tile(in, t, gm, bin, tr, out); });
-
+  timer.mark("render");
   return fw;
 }
 
-// ------------------------------------------------------------------------------------------------
-// Backward
-// ------------------------------------------------------------------------------------------------
-BackwardOutputs rasterize_backward_cpu(const BackwardInputs& b) {
-  const RasterArgs in = fill_raster_args(check_tensor, b);
-  const int64_t P = in.P;
-  const int64_t num_tiles = (int64_t)in.grid_x * in.grid_y;
-  check_backward_inputs(check_tensor, check_int_tensor, in, b);
-  const int64_t num_rendered = b.offsets.data_ptr<int64_t>()[P];
-  TORCH_CHECK(b.binning.dim() == 2 && b.binning.size(0) == num_rendered &&
-                  b.binning.size(1) == 2 &&
-                  b.tile_ranges.data_ptr<int32_t>()[num_tiles] == num_rendered,
-              "saved binning state does not match the inputs");
+namespace {
 
-  const auto fopt = b.means3D.options();
-  const bool compute_camera_grad = b.compute_camera_grad;
-  const bool compute_gaussian_grads = b.compute_gaussian_grads;
-  BackwardOutputs grads = zero_gaussian_grads(in, compute_gaussian_grads, fopt);
-  // 4. Per-tile backward into per-entry slots.
-  // Every slot is written by exactly one tile (no zero-fill needed). Without the Gaussians'
-  // gradients, the slots that cannot reach the camera are not accumulated: the opacity (it reaches
-  // it only through the antialiasing factor) and the colour (only through SH of degree > 0); with
-  // neither the camera nor the Gaussians, only the background terms are computed.
-  const bool want_slots = compute_camera_grad || compute_gaussian_grads;
-  const bool opacity_slot = compute_gaussian_grads || in.antialiasing;
-  const bool colour_slot = compute_gaussian_grads || (in.colors == nullptr && in.sh_degree > 0);
-  std::unique_ptr<float[]> slots(new float[(size_t)std::max<int64_t>(num_rendered, 1) * kSlot]);
+// Temporaries of the backward, kept by the calling thread between calls (cpu_support.h).
+struct BackwardScratch {
+  cpu::ScratchArray<float> slots;
+  cpu::ScratchArray<uint8_t> live;
+};
+
+// 4. Per-tile backward into per-entry slots (every live slot is written by exactly one tile) and
+// the background gradient. Without the Gaussians' gradients, the slots that cannot reach the
+// camera are not accumulated: the opacity (it reaches it only through the antialiasing factor)
+// and the colour (only through SH of degree > 0); with neither the camera nor the Gaussians
+// (slots == nullptr), only the background terms are computed.
+void backward_tiles(const RasterArgs& in, const BackwardInputs& b, float* slots, uint8_t* live,
+                    float* grad_bg) {
+  const int64_t num_tiles = (int64_t)in.grid_x * in.grid_y;
+  const bool opacity_slot = b.compute_gaussian_grads || in.antialiasing;
+  const bool colour_slot =
+      b.compute_gaussian_grads || (in.colors == nullptr && in.sh_degree > 0);
   std::vector<double> dbg_tiles((size_t)num_tiles * 3);
   const float* gm = b.geom.data_ptr<float>();
   const int32_t* bin = b.binning.data_ptr<int32_t>();
@@ -539,49 +614,79 @@ BackwardOutputs rasterize_backward_cpu(const BackwardInputs& b) {
                        b.grad_depth_acc.data_ptr<float>(), b.grad_alpha.data_ptr<float>()};
   const float* fT = b.final_T.data_ptr<float>();
   const int32_t* lc = b.last_contrib.data_ptr<int32_t>();
-  float* sl = want_slots ? slots.get() : nullptr;
   auto* tile_fn = opacity_slot
                       ? (colour_slot ? &backward_tile<true, true> : &backward_tile<true, false>)
                       : (colour_slot ? &backward_tile<false, true> : &backward_tile<false, false>);
   parallel_dynamic(num_tiles, [&](int64_t t) {
-    tile_fn(in, t, gm, bin, tr, fT, lc, gin, sl, dbg_tiles.data() + 3 * t);
+    tile_fn(in, t, gm, bin, tr, fT, lc, gin, slots, live, dbg_tiles.data() + 3 * t);
   });
-  grads.grad_bg = at::empty({3}, fopt);
-  {
-    double s[3] = {0, 0, 0};
-    for (int64_t t = 0; t < num_tiles; ++t)
-      for (int k = 0; k < 3; ++k) s[k] += dbg_tiles[3 * t + k];
-    for (int k = 0; k < 3; ++k) grads.grad_bg.data_ptr<float>()[k] = (float)s[k];
-  }
+  double sum[3] = {0, 0, 0};
+  for (int64_t t = 0; t < num_tiles; ++t)
+    for (int k = 0; k < 3; ++k) sum[k] += dbg_tiles[3 * t + k];
+  for (int k = 0; k < 3; ++k) grad_bg[k] = (float)sum[k];
+}
 
-  // 5. Per-Gaussian backward (nothing to do when neither the camera nor the Gaussians need it).
-  const int64_t nblocks = (P + kGaussBlock - 1) / kGaussBlock;
-  std::vector<double> cam_blocks(compute_camera_grad ? (size_t)nblocks * kCamGrad : 0, 0.0);
+// 5. Per-Gaussian backward over fixed blocks; the camera gradient (when asked for) is summed per
+// block in double, then over the blocks in order, into grads.
+void backward_gaussians(const RasterArgs& in, const BackwardInputs& b, const float* slots,
+                        const uint8_t* live, BackwardOutputs& grads) {
+  const int64_t nblocks = (in.P + kGaussBlock - 1) / kGaussBlock;
+  const bool camera = b.compute_camera_grad;
+  std::vector<double> cam_blocks(camera ? (size_t)nblocks * kCamGrad : 0, 0.0);
   const int32_t* rad = b.radii.data_ptr<int32_t>();
   const int64_t* off = b.offsets.data_ptr<int64_t>();
   const GaussianGrads gout = gaussian_grad_ptrs(grads);
-  if (compute_camera_grad || compute_gaussian_grads) {
-    at::parallel_for(0, nblocks, 1, [&](int64_t b0, int64_t b1) {
-      for (int64_t blk = b0; blk < b1; ++blk) {
-        double* cam = compute_camera_grad ? cam_blocks.data() + blk * kCamGrad : nullptr;
-        gaussian_backward_block(in, blk, rad, off, slots.get(), gout, cam);
-      }
-    });
-  }
-  if (compute_camera_grad) {
-    double sum[kCamGrad] = {0};
-    for (int64_t blk = 0; blk < nblocks; ++blk)
-      for (int k = 0; k < kCamGrad; ++k) sum[k] += cam_blocks[blk * kCamGrad + k];
-    grads.grad_viewmatrix = at::empty({4, 4}, fopt);
-    grads.grad_projmatrix = at::empty({4, 4}, fopt);
-    grads.grad_campos = at::empty({3}, fopt);
-    float* dV = grads.grad_viewmatrix.data_ptr<float>();
-    float* dP = grads.grad_projmatrix.data_ptr<float>();
-    float* dC = grads.grad_campos.data_ptr<float>();
-    for (int k = 0; k < 16; ++k) dV[k] = (float)sum[k];
-    for (int k = 0; k < 16; ++k) dP[k] = (float)sum[16 + k];
-    for (int k = 0; k < 3; ++k) dC[k] = (float)sum[32 + k];
-  }
+  at::parallel_for(0, nblocks, 1, [&](int64_t b0, int64_t b1) {
+    for (int64_t blk = b0; blk < b1; ++blk) {
+      double* cam = camera ? cam_blocks.data() + blk * kCamGrad : nullptr;
+      gaussian_backward_block(in, blk, rad, off, slots, live, gout, cam);
+    }
+  });
+  if (!camera) return;
+  double sum[kCamGrad] = {0};
+  for (int64_t blk = 0; blk < nblocks; ++blk)
+    for (int k = 0; k < kCamGrad; ++k) sum[k] += cam_blocks[blk * kCamGrad + k];
+  const auto fopt = b.means3D.options();
+  grads.grad_viewmatrix = at::empty({4, 4}, fopt);
+  grads.grad_projmatrix = at::empty({4, 4}, fopt);
+  grads.grad_campos = at::empty({3}, fopt);
+  float* dV = grads.grad_viewmatrix.data_ptr<float>();
+  float* dP = grads.grad_projmatrix.data_ptr<float>();
+  float* dC = grads.grad_campos.data_ptr<float>();
+  for (int k = 0; k < 16; ++k) dV[k] = (float)sum[k];
+  for (int k = 0; k < 16; ++k) dP[k] = (float)sum[16 + k];
+  for (int k = 0; k < 3; ++k) dC[k] = (float)sum[32 + k];
+}
+
+}  // namespace
+
+// ------------------------------------------------------------------------------------------------
+// Backward
+// ------------------------------------------------------------------------------------------------
+BackwardOutputs rasterize_backward_cpu(const BackwardInputs& b) {
+  const RasterArgs in = fill_raster_args(check_tensor, b);
+  cpu::PhaseTimer timer("backward", in.P, in.W, in.H);
+  const int64_t P = in.P;
+  const int64_t num_tiles = (int64_t)in.grid_x * in.grid_y;
+  check_backward_inputs(check_tensor, check_int_tensor, in, b);
+  const int64_t num_rendered = b.offsets.data_ptr<int64_t>()[P];
+  TORCH_CHECK(b.binning.dim() == 2 && b.binning.size(0) == num_rendered &&
+                  b.binning.size(1) == 2 &&
+                  b.tile_ranges.data_ptr<int32_t>()[num_tiles] == num_rendered,
+              "saved binning state does not match the inputs");
+  const auto fopt = b.means3D.options();
+  BackwardOutputs grads = zero_gaussian_grads(in, b.compute_gaussian_grads, fopt);
+  grads.grad_bg = at::empty({3}, fopt);
+  const bool want_slots = b.compute_camera_grad || b.compute_gaussian_grads;
+  thread_local BackwardScratch scratch;
+  float* slots = want_slots ? scratch.slots.get((size_t)num_rendered * kSlot) : nullptr;
+  uint8_t* live = want_slots ? scratch.live.get((size_t)num_rendered) : nullptr;
+  if (live != nullptr) std::memset(live, 0, (size_t)num_rendered);
+  timer.mark("alloc");
+  backward_tiles(in, b, slots, live, grads.grad_bg.data_ptr<float>());
+  timer.mark("tiles");
+  if (want_slots) backward_gaussians(in, b, slots, live, grads);
+  timer.mark("gaussians");
   return grads;
 }
 

@@ -1,0 +1,44 @@
+"""tools/make_large_model.py on a small demo model: split, check, write (or refuse)."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from icomma_plugin.io.model_folder import load_model_folder
+from tests.helpers.demo import demo_model
+
+
+@pytest.fixture(scope="module")
+def demo_folder(tmp_path_factory):
+    scene, model = demo_model(tmp_path_factory.mktemp("demo48"), 48)
+    return scene.path, model.num_gaussians
+
+
+def test_split_checked_and_written(demo_folder, tmp_path, capsys):
+    from tools.make_large_model import main
+
+    src, P = demo_folder
+    out = tmp_path / "big"
+    rc = main(["-m", str(src), "-o", str(out), "--target", str(2 * P + 3), "--check-sides", "48",
+               "--check-cameras", "2"])
+    assert rc == 0
+    folder = load_model_folder(out)
+    assert folder.model.num_gaussians == 2 * P + 3
+    assert len(folder.cameras) == len(load_model_folder(src).cameras)
+    info = json.loads((out / "split.json").read_text())
+    assert info["gaussians"] == 2 * P + 3 and info["mode"] == "preserve"
+    assert len(info["checks"]) == 2 and info["min_psnr_db"] >= 35.0
+    assert "PSNR of split vs original" in capsys.readouterr().out
+
+
+def test_refuses_below_min_psnr_and_bad_target(demo_folder, tmp_path, capsys):
+    from tools.make_large_model import main
+
+    src, P = demo_folder
+    out = tmp_path / "upstream"
+    rc = main(["-m", str(src), "-o", str(out), "--target", str(3 * P), "--mode", "upstream",
+               "--check-sides", "48", "--check-cameras", "1"])
+    assert rc == 1 and not out.exists()
+    assert "nothing written" in capsys.readouterr().err
+    assert main(["-m", str(src), "-o", str(out), "--target", str(P - 1)]) == 2
