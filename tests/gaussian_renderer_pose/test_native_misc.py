@@ -52,20 +52,6 @@ def test_backward_is_bitwise_deterministic():
         assert torch.equal(g1[name], g2[name]), f"{name} differs between runs"
 
 
-def test_backward_independent_of_thread_count():
-    scene = make_scene(2000, height=64, width=80, sh_degree=2, seed=32)
-    old = torch.get_num_threads()
-    try:
-        torch.set_num_threads(1)
-        _, g1 = run_backend(_native(), scene, pose=True)
-        torch.set_num_threads(max(2, old))
-        _, g2 = run_backend(_native(), scene, pose=True)
-    finally:
-        torch.set_num_threads(old)
-    for name in g1:
-        assert torch.equal(g1[name], g2[name]), f"{name} depends on the thread count"
-
-
 # ------------------------------------------------------------------------------------------------
 def _pose_loss(scene, xi, cots):
     """sum(out * cot) of the native render at w2c = exp(xi) w2c0 (accumulated in float64)."""
