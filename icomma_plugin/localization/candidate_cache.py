@@ -14,6 +14,11 @@ the file format. When any of them changes, the key changes and the index
 is built again. Files are written atomically, and a lock file per key makes a second process that
 asks for the same index at the same time wait for the first and load its result instead of
 building it again.
+
+The reduced models of the level of detail (``lod.reduce_model``, built by the Localizer for its
+geometric stage and candidate renders) are stored beside the indices, as ``lod-<key>.pt``, keyed by
+the model's fingerprint, the ``LodConfig``, the working camera and the poses they were built from
+(:func:`lod_fields`), with the same atomic writes and locks.
 """
 from __future__ import annotations
 
@@ -22,7 +27,7 @@ import json
 import logging
 import os
 from pathlib import Path
-from typing import Any, Callable, Dict, Mapping, Optional, Tuple, Union
+from typing import Any, Callable, Dict, Mapping, Optional, Tuple, TypeVar, Union
 
 import numpy as np
 import torch
@@ -37,6 +42,7 @@ __all__ = [
     "CACHE_FORMAT",
     "CandidateCache",
     "default_cache_dir",
+    "lod_fields",
     "matcher_identity",
     "model_fingerprint",
 ]
@@ -45,6 +51,9 @@ __all__ = [
 CACHE_FORMAT = 1
 
 PathLike = Union[str, os.PathLike]
+T = TypeVar("T")
+
+_MODEL_TENSORS = ("means", "sh_dc", "sh_rest", "opacity_logit", "scale_log", "quat")
 
 
 def default_cache_dir() -> Path:
@@ -60,7 +69,7 @@ def model_fingerprint(model: GaussianModel) -> str:
     """A hash of the model's content (its Gaussians, bit for bit, and its SH degree)."""
     h = hashlib.blake2b(digest_size=16)
     h.update(str(model.sh_degree).encode())
-    for name in ("means", "sh_dc", "sh_rest", "opacity_logit", "scale_log", "quat"):
+    for name in _MODEL_TENSORS:
         t = getattr(model, name).detach().cpu().contiguous()
         h.update(name.encode() + str(tuple(t.shape)).encode() + str(t.dtype).encode())
         h.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
@@ -97,6 +106,18 @@ def index_fields(model_id: str, cameras_c2w, names, intrinsics, cfg, matcher,
         "matcher": matcher_identity(matcher),
         "render": dict(render),
     }
+
+
+def lod_fields(model_id: str, lod: Mapping[str, Any], intrinsics, cameras_c2w,
+               dtype: str) -> Dict[str, Any]:
+    """The key's fields of a reduced model (JSON).
+
+    The model, its ``LodConfig`` (as a dict), the working camera, the poses it was built from
+    and the dtype.
+    """
+    return {"format": CACHE_FORMAT, "kind": "lod", "model": model_id, "lod": dict(lod),
+            "intrinsics": intrinsics.to_json(), "cameras": _hash_poses(cameras_c2w),
+            "dtype": dtype}
 
 
 class CandidateCache:
@@ -146,23 +167,71 @@ class CandidateCache:
         Under a lock per key: a second process asking at the same time waits and loads.
         """
         key = self.key(fields)
-        index = self.load(key)
-        if index is not None:
-            return index, False
+        return self._get_or_build(key, lambda: self.load(key),
+                                  lambda index: self.save(key, fields, index), build)
+
+    # ------------------------------------------------------------------ reduced models
+    def reduced_path(self, key: str) -> Path:
+        """Where the reduced model of ``key`` is stored."""
+        return self.directory / f"lod-{key}.pt"
+
+    def load_reduced(self, key: str) -> Optional[Tuple[GaussianModel, Dict[str, Any]]]:
+        """(reduced model, its ``LodInfo`` as a dict) stored under ``key``, or None."""
+        p = self.reduced_path(key)
+        if not p.is_file():
+            return None
+        try:
+            d = torch.load(p, map_location="cpu", weights_only=True)
+            if d.get("format") != CACHE_FORMAT:
+                return None
+            model = GaussianModel(*(d["model"][n] for n in _MODEL_TENSORS),
+                                  int(d["sh_degree"]))
+            return model, dict(d["info"])
+        except Exception as e:  # noqa: BLE001 - a damaged cache file is rebuilt, never fatal
+            logger.warning("reduced model %s unreadable (%s: %s): building it again", p,
+                           type(e).__name__, e)
+            return None
+
+    def save_reduced(self, key: str, fields: Mapping[str, Any],
+                     reduced: Tuple[GaussianModel, Dict[str, Any]]) -> Path:
+        """Store ``(model, info dict)`` atomically."""
+        model, info = reduced
+        p = self.reduced_path(key)
+        with atomic_path(p) as tmp:
+            torch.save({"format": CACHE_FORMAT,
+                        "fields": json.loads(json.dumps(fields, default=str)),
+                        "model": {n: getattr(model, n).detach().cpu().contiguous()
+                                  for n in _MODEL_TENSORS},
+                        "sh_degree": int(model.sh_degree), "info": dict(info)}, tmp)
+        return p
+
+    def get_or_build_reduced(
+        self, fields: Mapping[str, Any],
+        build: Callable[[], Tuple[GaussianModel, Dict[str, Any]]],
+    ) -> Tuple[Tuple[GaussianModel, Dict[str, Any]], bool]:
+        """((reduced model, info), built now): stored under ``fields``, else ``build()`` stored."""
+        key = self.key(fields)
+        return self._get_or_build(key, lambda: self.load_reduced(key),
+                                  lambda r: self.save_reduced(key, fields, r), build)
+
+    def _get_or_build(self, key: str, load: Callable[[], Optional[T]],
+                      save: Callable[[T], Any], build: Callable[[], T]) -> Tuple[T, bool]:
+        """(value, built now): ``load()``, else ``build()`` then ``save`` it, under a lock."""
+        value = load()
+        if value is not None:
+            return value, False
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
         except OSError as e:
-            logger.warning("candidate cache folder %s not writable (%s): not cached",
-                           self.directory, e)
+            logger.warning("cache folder %s not writable (%s): not cached", self.directory, e)
             return build(), True
         with file_lock(self.directory / f"{key}.lock"):
-            index = self.load(key)
-            if index is not None:
-                return index, False
-            index = build()
+            value = load()
+            if value is not None:
+                return value, False
+            value = build()
             try:
-                self.save(key, fields, index)
+                save(value)
             except OSError as e:
-                logger.warning("could not store the candidate index in %s (%s)",
-                               self.directory, e)
-            return index, True
+                logger.warning("could not store %s in %s (%s)", key, self.directory, e)
+            return value, True

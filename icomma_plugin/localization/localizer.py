@@ -9,7 +9,9 @@ Like pixloc's ``Localizer`` and hloc's ``QueryLocalizer``, it is built once from
 matcher, the method's config and the options (the model's cameras, its training side, backend,
 background, cache folder), checks what does not change from query to query once, and owns what
 every query reuses: the model's rasterizer inputs, the candidate index (built at the first query
-that needs it, per camera, and kept on disk: ``candidate_cache.py``) and the rule that leaves a
+that needs it, per camera, and kept on disk: ``candidate_cache.py``), the reduced models of the
+level of detail for large models (``level_of_detail.py``: the geometric stage and the candidate
+renders use them, the refinement and the verdict the full model) and the rule that leaves a
 query's own camera out of its candidates. The tool, batches, tracking, the benchmark and the speed
 benchmark all localize through it. Poses are camera-to-world (OpenCV axes) at this API.
 """
@@ -32,6 +34,7 @@ from .candidate_cache import CandidateCache, index_fields, model_fingerprint
 from ..pose.convert import same_pose
 from .anchors import PhotoAnchors, SourcePhoto, name_stem
 from .candidates import CandidateConfig, CandidateIndex, candidate_intrinsics, usable
+from .level_of_detail import ReducedModels, lod_config
 from .icomma import LocalizerConfig
 from .robust import RobustConfig
 from .state import LocalizationState
@@ -129,10 +132,15 @@ class Localizer:
             ``VerdictConfig``, the path of a calibration file (``localization/calibration.py``,
             written by ``icomma-audit``), ``"auto"`` (the model's calibration in the cache folder
             when there is one) or None (the method's thresholds).
+        lod: level of detail for the geometric stage and the candidate renders
+            (``level_of_detail.py``): ``"auto"`` (a reduced model only for models of more than
+            ``LOD_AUTO_GAUSSIANS`` Gaussians), ``"off"`` / None (the full model always), or a
+            ``lod.LodConfig`` (or a mapping of its fields): always, with that config. Each
+            result's ``details["lod"]`` says which model served which stage.
 
     Raises:
         ValueError: naming the argument: not a model, an unknown backend, a method that cannot
-            run with this matcher, a bad background or camera pose.
+            run with this matcher, a bad background or camera pose, a bad ``lod``.
     """
 
     def __init__(
@@ -148,6 +156,7 @@ class Localizer:
         cache_dir: Union[str, Path, None, bool] = None,
         photos: Optional[Sequence[Any]] = None,
         verdict="auto",
+        lod="auto",
     ):
         from ..checks import check_choice, check_int
 
@@ -185,6 +194,33 @@ class Localizer:
         self._indices: Dict[Any, CandidateIndex] = {}
         self._model_id: Optional[str] = None
         self.candidate_builds = 0  # candidate indices rendered by this localizer (not loaded)
+        self.lod_mode, lod_cfg = lod_config(lod, self.model.num_gaussians)
+        self.reduced = None if lod_cfg is None else ReducedModels(
+            self.model, lod_cfg, self._lod_cameras(), self.cache, self._fingerprint)
+
+    def _fingerprint(self) -> str:
+        """The model's content hash (computed once)."""
+        if self._model_id is None:
+            self._model_id = model_fingerprint(self.model)
+        return self._model_id
+
+    def _lod_cameras(self) -> List[np.ndarray]:
+        """Where the reduced models' footprints are taken from.
+
+        The model's cameras, or views sampled around the scene when it has none.
+        """
+        if self.cameras_c2w:
+            return list(self.cameras_c2w)
+        from ..pose.views import sample_views, scene_frame
+
+        centre, radius, up = scene_frame(self.model.means.detach().cpu().numpy(), [])
+        return sample_views(centre, radius, up, CandidateConfig().num_sampled)
+
+    def _reduced_scene(self, sh_degree: Optional[int]):
+        """``state.reduced`` of a query: the reduced model's scene at a render's intrinsics."""
+        if self.reduced is None:
+            return None
+        return functools.partial(self.reduced.scene_at, sh_degree=sh_degree)
 
     @classmethod
     def from_model_folder(cls, folder, matcher=None, method: Optional[Method] = None, *,
@@ -192,7 +228,7 @@ class Localizer:
                           white_background: Optional[bool] = None, backend: str = "auto",
                           cache_dir: Union[str, Path, None, bool] = None,
                           photos: Union[str, Sequence[Any], None] = "auto",
-                          verdict="auto") -> "Localizer":
+                          verdict="auto", lod="auto") -> "Localizer":
         """A localizer for a 3DGS model folder (a ``ModelFolder`` or its path).
 
         Its cameras, training side and background (``cfg_args``, unless ``white_background`` is
@@ -213,7 +249,7 @@ class Localizer:
         return cls(model, matcher, method, cameras=mf.cameras, backend=backend,
                    background=torch.ones(3) if white else torch.zeros(3),
                    model_side=mf.training_side(), cache_dir=cache_dir, photos=photos,
-                   verdict=verdict)
+                   verdict=verdict, lod=lod)
 
     # ------------------------------------------------------------------ localize
     def localize(self, query: Query, init_c2w=None, gt_c2w=None,
@@ -245,7 +281,9 @@ class Localizer:
         state = LocalizationState(
             self.model, query, self.background, backend=self.backend, matcher=self.matcher,
             sh_degree=cfg.sh_degree, antialiasing=cfg.antialiasing, gt_c2w=gt,
-            progress=progress, record_trace=cfg.record_trace, scene=self._scene(cfg.sh_degree))
+            progress=progress, record_trace=cfg.record_trace, scene=self._scene(cfg.sh_degree),
+            reduced=self._reduced_scene(cfg.sh_degree))
+        lod_events = 0 if self.reduced is None else len(self.reduced.events)
         state.candidates = functools.partial(self._candidates_for, state, gt, cfg)
         if self.photos is not None:
             own = self.photos.own(query.name, gt)
@@ -264,9 +302,26 @@ class Localizer:
             init_trans_err=init_trans, inliers=None if score is None else score.inliers,
             matches=None if score is None else score.matches,
             stage_seconds=state.stage_seconds(), stage_cpu_seconds=state.stage_seconds(cpu=True),
-            details=out.details, trace=state.trace,
+            details={**out.details, "lod": self._lod_details(state, lod_events)},
+            trace=state.trace,
             config=cfg.to_dict(),
         )
+
+    def _lod_details(self, state: LocalizationState, events_before: int) -> Dict[str, Any]:
+        """``details["lod"]`` of a query (docs/LOCALIZATION.md, level of detail).
+
+        The mode and config, the full model's size, per stage the Gaussian counts rendered
+        (``state.rendered``), the reduced models made or loaded for this query and the seconds
+        spent on them.
+        """
+        events = [] if self.reduced is None else self.reduced.events[events_before:]
+        return {"mode": self.lod_mode,
+                "config": None if self.reduced is None else self.reduced.identity(),
+                "full_gaussians": self.model.num_gaussians,
+                "stages": {k: {"gaussians": list(v["gaussians"]), "renders": v["renders"],
+                               "reduced": v["reduced"]} for k, v in state.rendered.items()},
+                "reduced_models": [dict(e) for e in events],
+                "build_seconds": float(sum(e["seconds"] for e in events))}
 
     def _method(self, method: Optional[Method]) -> Method:
         """``method`` (checked, with this localizer's verdict), or the localizer's own."""
@@ -341,12 +396,14 @@ class Localizer:
                 state = LocalizationState(self.model, Query(blank, intrinsics), self.background,
                                           backend=self.backend, matcher=self.matcher,
                                           sh_degree=sh_degree, antialiasing=antialiasing,
-                                          scene=self._scene(sh_degree))
+                                          scene=self._scene(sh_degree),
+                                          reduced=self._reduced_scene(sh_degree))
 
             def build() -> CandidateIndex:
                 self.candidate_builds += 1
-                return CandidateIndex.build(state, self.cameras_c2w, cfg, self.camera_names, intr,
-                                            self.photos)
+                with state.serving("candidates", reduced=True):
+                    return CandidateIndex.build(state, self.cameras_c2w, cfg, self.camera_names,
+                                                intr, self.photos)
 
             with state.timed("candidates"):
                 if self.cache is None:
@@ -359,11 +416,11 @@ class Localizer:
 
     def _index_fields(self, intr: Intrinsics, cfg: CandidateConfig, sh_degree, antialiasing
                       ) -> Dict[str, Any]:
-        if self._model_id is None:
-            self._model_id = model_fingerprint(self.model)
         render = {"background": [float(v) for v in self.background.cpu()],
                   "backend": f"{self.backend}:{self.model.device.type}", "sh_degree": sh_degree,
                   "antialiasing": antialiasing, "dtype": str(self.model.dtype)}
+        if self.reduced is not None:  # rendered from a reduced model (absent: keys unchanged)
+            render["lod"] = self.reduced.identity()
         photos = None if self.photos is None or not cfg.photos else self.photos.fingerprint()
-        return index_fields(self._model_id, self.cameras_c2w, self.camera_names, intr, cfg,
+        return index_fields(self._fingerprint(), self.cameras_c2w, self.camera_names, intr, cfg,
                             self.matcher, render, photos)

@@ -11,6 +11,11 @@ verdict.
 3. Photometric refinement of that pose (``refine.py``), checked by a render-and-match at the
    result: a refinement that loses agreeing matches is rolled back.
 4. The verdict (``verify.py``) from the measured signals.
+
+With a level of detail (``level_of_detail.py``) the geometric stage and the candidate renders use
+the Localizer's reduced model; the refinement, its check and the verdict the full model (a score
+the verdict reads is always of a full-model render: a geometric score is measured again on the
+full model when it is the final one).
 """
 from __future__ import annotations
 
@@ -121,9 +126,10 @@ class RobustConfig:
         scale = 1.0 if self.work_side is None else \
             state.query.intrinsics.scale_to_side(self.work_side)
         search = _Search(state, self, scale)
-        search.from_start(init_w2c)
-        if search.needs_candidates():
-            search.from_candidates()
+        with state.serving("geometric", reduced=True):
+            search.from_start(init_w2c)
+            if search.needs_candidates():
+                search.from_candidates()
         if search.best is None or search.best.score is None \
                 or search.best.score.inliers < self.verdict.fail_inliers:
             return search.unrefined()
@@ -279,7 +285,8 @@ class _Search:
         w2c = best.w2c if best is not None else self.fallback_w2c
         if w2c is None:  # no start and no candidate view: nothing to report but the identity
             w2c = np.eye(4)
-        score = None if best is None else best.score
+        score = None if best is None else _full_model_score(self.state, best, self.scale,
+                                                             self.cfg.verdict.inlier_px)
         verdict = decide(score, self.cfg.verdict, converged=None,
                          extra={"start_render_empty": self.empty_start,
                                 "hypotheses": len(self.hyps)})
@@ -291,13 +298,25 @@ class _Search:
                                                 "rolled_back": False, "refine_iterations": 0})
 
 
+def _full_model_score(state: LocalizationState, g: GeometricOutcome, scale: float,
+                      inlier_px: float) -> Optional[PoseScore]:
+    """``g``'s score, measured again on the full model when a reduced one rendered it."""
+    if g.score is None or not state.rendered.get("geometric", {}).get("reduced", False):
+        return g.score
+    with state.serving("verify"):
+        return score_pose(state, g.w2c, scale, inlier_px)
+
+
 def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float,
                        search: _Search) -> MethodOutcome:
     """Photometric refinement of the best hypothesis, checked by a render-and-match."""
     best = search.best
     depth = median_depth(best.observation.depth, best.observation.alpha)
-    ref = refine_photometric(state, best.w2c, cfg.refine, base_scale=scale, scene_depth=depth)
-    sc = score_pose(state, ref.w2c, scale, cfg.verdict.inlier_px, ref.observation)
+    with state.serving("refine"):
+        ref = refine_photometric(state, best.w2c, cfg.refine, base_scale=scale,
+                                 scene_depth=depth)
+    with state.serving("verify"):
+        sc = score_pose(state, ref.w2c, scale, cfg.verdict.inlier_px, ref.observation)
     geo = best.score
     keep = (sc.inliers >= cfg.rollback_inliers * geo.inliers
             and sc.median_px <= geo.median_px + cfg.rollback_median_px)
@@ -309,7 +328,7 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
         logger.info(
             "photometric refinement rolled back: %d -> %d agreeing matches", geo.inliers, sc.inliers
         )
-        w2c, score = best.w2c, geo
+        w2c, score = best.w2c, _full_model_score(state, best, scale, cfg.verdict.inlier_px)
     extra = {
         "start_render_empty": search.empty_start,
         "hypotheses": len(search.hyps),

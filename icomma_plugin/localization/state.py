@@ -59,6 +59,13 @@ class LocalizationState:
         finds candidate views (the Localizer's index, built or loaded when first asked for).
     anchors: ``(state, scale, c2w, geometric config) -> (points [N, 3], pixels [N, 2], names)``
         or None: the model's source photos' correspondences near a pose (``anchors.py``).
+    reduced: ``(intrinsics) -> prepared scene or None``: the reduced model (level of detail,
+        ``lod.reduce_model``) for renders at ``intrinsics``, used inside :meth:`serving` blocks
+        that ask for it (the geometric stage, the candidate renders); None: the full model
+        always.
+    rendered: per stage (the label of the enclosing :meth:`serving` block, ``other`` outside
+        one): ``{"gaussians": [counts rendered], "renders": n, "reduced": any by the reduced
+        model}`` (which model served which stage).
     """
 
     model: GaussianModel
@@ -74,6 +81,8 @@ class LocalizationState:
     scene: Any = None
     candidates: Optional[Callable[[], Any]] = None
     anchors: Optional[Callable[..., Any]] = None
+    reduced: Optional[Callable[[Intrinsics], Any]] = None
+    rendered: Dict[str, Dict[str, Any]] = field(default_factory=dict)
     trace: List[TraceRecord] = field(default_factory=list)
     seconds: Dict[str, float] = field(default_factory=lambda: defaultdict(float))
     cpu_seconds: Dict[str, float] = field(default_factory=lambda: defaultdict(float))
@@ -95,6 +104,41 @@ class LocalizationState:
         self._t0, self._c0 = time.perf_counter(), time.process_time()
         self._last_record = self._t0
         self._nested: List[Tuple[float, float]] = []
+        self._serving: Tuple[str, bool] = ("other", False)
+
+    # ------------------------------------------------------------------ which model renders
+    @contextlib.contextmanager
+    def serving(self, stage: str, reduced: bool = False):
+        """Renders in the block are counted as ``stage``'s; with ``reduced``, of the reduced model.
+
+        The reduced model (``reduced``, when the state has one for the render's intrinsics)
+        serves the geometric stage and the candidate renders; the full model the photometric
+        refinement and the verdict (docs/LOCALIZATION.md, level of detail).
+        """
+        previous = self._serving
+        self._serving = (stage, bool(reduced))
+        try:
+            yield
+        finally:
+            self._serving = previous
+
+    def _scene_for(self, intrinsics: Intrinsics):
+        """The prepared scene a render at ``intrinsics`` uses now (counted in ``rendered``)."""
+        from ..render import prepare_scene
+
+        stage, want_reduced = self._serving
+        scene = self.reduced(intrinsics) if want_reduced and self.reduced is not None else None
+        if scene is None:
+            if self.scene is None:  # prepared (and checked) once: docs/SPEED.md
+                self.scene = prepare_scene(self.model, self.sh_degree)
+            scene = self.scene
+        seen = self.rendered.setdefault(stage, {"gaussians": [], "renders": 0, "reduced": False})
+        seen["reduced"] = seen["reduced"] or scene is not self.scene
+        count = int(scene.means.shape[0])
+        if count not in seen["gaussians"]:
+            seen["gaussians"].append(count)
+        seen["renders"] += 1
+        return scene
 
     # ------------------------------------------------------------------ time
     @contextlib.contextmanager
@@ -179,17 +223,17 @@ class LocalizationState:
         Returns:
             The rasterizer's ``RasterOutput``.
         """
-        from ..render import prepare_scene, render
+        from ..render import render
 
         if isinstance(w2c, np.ndarray):
             w2c = torch.as_tensor(w2c, dtype=torch.float64)
         dev, dt = self.model.device, self.model.dtype
+        intrinsics = intrinsics or self.intrinsics_at(scale)
+        scene = self._scene_for(intrinsics)  # outside the timer: a first reduced model builds
         with self.timed("render"):
-            if self.scene is None:  # prepared (and checked) once: docs/SPEED.md
-                self.scene = prepare_scene(self.model, self.sh_degree)
             return render(
-                self.scene,
-                intrinsics or self.intrinsics_at(scale),
+                scene,
+                intrinsics,
                 w2c.to(device=dev, dtype=dt),
                 self.bg,
                 backend=self.backend,

@@ -1,0 +1,141 @@
+"""The Localizer's level of detail: a reduced model for the geometric stage and the candidates."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from icomma_plugin.camera import Intrinsics
+from icomma_plugin.localization.candidates import CandidateConfig
+from icomma_plugin.localization.level_of_detail import (
+    LOD_AUTO_GAUSSIANS,
+    lod_config,
+    lod_intrinsics,
+)
+from icomma_plugin.localization.localizer import Localizer
+from icomma_plugin.localization.robust import RobustConfig
+from icomma_plugin.localization.types import Query
+from icomma_plugin.lod import LodConfig
+from icomma_plugin.matchers import make_matcher
+
+#: A small candidate search: the demo's ring cameras and 4 sampled views.
+SMALL = RobustConfig(candidates=CandidateConfig(num_sampled=4))
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    from icomma_plugin.app.demo_scene import build_demo_scene
+    from icomma_plugin.io.cameras_json import read_cameras_json
+
+    scene = build_demo_scene(tmp_path_factory.mktemp("demo") / "scene", seed=0, width=96,
+                             height=96)
+    return scene, scene.load_model(), read_cameras_json(scene.path / "cameras.json")
+
+
+@pytest.fixture(scope="module")
+def xfeat():
+    return make_matcher("xfeat")
+
+
+@pytest.fixture(scope="module")
+def capped(demo):
+    """A cap at 60 % of the demo model's Gaussians (the merge threshold must grow to meet it)."""
+    return LodConfig(max_gaussians=int(0.6 * demo[1].num_gaussians))
+
+
+def _query(scene):
+    return Query(scene.load_query(), scene.intrinsics, name="query")
+
+
+def _start(scene):
+    from icomma_plugin.pose.convert import perturb_pose
+
+    return perturb_pose(scene.gt_c2w, 10.0, 0.05, np.random.default_rng(3))
+
+
+def test_auto_leaves_a_small_model_bit_identical(demo, xfeat):
+    scene, model, cams = demo
+    assert model.num_gaussians <= LOD_AUTO_GAUSSIANS
+    init = _start(scene)
+    auto = Localizer(model, xfeat, SMALL, cameras=cams, cache_dir=False)
+    off = Localizer(model, xfeat, SMALL, cameras=cams, cache_dir=False, lod=None)
+    assert auto.reduced is None and auto.lod_mode == "auto" and off.lod_mode == "off"
+    for init_c2w in (init, None):
+        torch.manual_seed(0)
+        a = auto.localize(_query(scene), init_c2w=init_c2w, gt_c2w=scene.gt_c2w)
+        torch.manual_seed(0)
+        b = off.localize(_query(scene), init_c2w=init_c2w, gt_c2w=scene.gt_c2w)
+        assert np.array_equal(a.c2w, b.c2w)
+        assert a.verdict.status == b.verdict.status and a.iterations == b.iterations
+        stages = a.details["lod"]["stages"]
+        assert all(not s["reduced"] and s["gaussians"] == [model.num_gaussians]
+                   for s in stages.values()), stages
+        assert a.details["lod"]["reduced_models"] == []
+
+
+def test_a_capped_config_serves_the_geometric_stage_and_candidates(demo, xfeat, capped):
+    scene, model, cams = demo
+    loc = Localizer(model, xfeat, SMALL, cameras=cams, cache_dir=False, lod=capped)
+    res = loc.localize(_query(scene), gt_c2w=scene.gt_c2w)  # no start: candidates first
+    lod = res.details["lod"]
+    stages, full = lod["stages"], model.num_gaussians
+    assert lod["mode"] == "config" and lod["full_gaussians"] == full
+    for name in ("candidates", "geometric"):
+        assert stages[name]["reduced"], name
+        assert max(stages[name]["gaussians"]) <= capped.max_gaussians < full, stages
+    # the full model for the refinement and the verdict (its check reuses the refinement's last
+    # render, unless it renders again)
+    assert "refine" in stages and set(stages) <= {"candidates", "geometric", "refine", "verify"}
+    for name in set(stages) & {"refine", "verify"}:
+        assert not stages[name]["reduced"] and stages[name]["gaussians"] == [full], stages
+    # one per working resolution (the demo's 96 px photo is below the candidates' 128 px: one)
+    assert lod["build_seconds"] > 0 and len(lod["reduced_models"]) == loc.reduced.builds == 1
+    assert res.verdict.status == "ok" and res.rot_err_deg < 0.5, res.verdict.reason
+    again = loc.localize(_query(scene), init_c2w=_start(scene), gt_c2w=scene.gt_c2w)
+    assert again.details["lod"]["reduced_models"] == [] and loc.reduced.builds == 1
+    assert again.details["lod"]["build_seconds"] == 0.0
+
+
+@pytest.mark.parametrize("bad", ["fast", 3, True, 0.5, {"max_gaussians": 0}, {"nope": 1}])
+def test_bad_lod_values_raise_naming_lod(demo, xfeat, bad):
+    scene, model, cams = demo
+    with pytest.raises(ValueError, match="lod"):
+        Localizer(model, xfeat, SMALL, cameras=cams, cache_dir=False, lod=bad)
+
+
+def test_lod_accepts_its_spellings():
+    assert lod_config("off", 10**7) == ("off", None)
+    assert lod_config("auto", LOD_AUTO_GAUSSIANS) == ("auto", None)
+    mode, cfg = lod_config("auto", LOD_AUTO_GAUSSIANS + 1)
+    assert mode == "auto" and cfg is not None and cfg.max_gaussians is not None
+    assert lod_config({"max_gaussians": 5}, 10) == ("config", LodConfig(max_gaussians=5))
+
+
+def test_working_resolutions_share_rungs():
+    a = Intrinsics(200, 200, 300.0, 300.0)
+    b = Intrinsics(200, 200, 302.0, 302.0)  # a per-image camera 0.7 % off
+    ra, rb = lod_intrinsics(a), lod_intrinsics(b)
+    assert ra == rb and 302.0 <= ra.fx < 302.0 * 2 ** 0.25
+    assert ra.width % 16 == 0 and ra.width >= 200 * ra.fx / 300.0
+    assert lod_intrinsics(ra) == ra
+    assert lod_intrinsics(Intrinsics(100, 100, 150.0, 150.0)).fx < ra.fx
+
+
+def test_a_second_localizer_loads_the_reduced_models_from_disk(demo, xfeat, capped, tmp_path):
+    scene, model, cams = demo
+    first = Localizer(model, xfeat, SMALL, cameras=cams, cache_dir=tmp_path, lod=capped)
+    a = first.localize(_query(scene), gt_c2w=scene.gt_c2w)
+    stored = sorted((tmp_path / "candidates").glob("lod-*.pt"))
+    assert first.reduced.builds == len(stored) == 1
+    second = Localizer(model, xfeat, SMALL, cameras=cams, cache_dir=tmp_path, lod=capped)
+    intr = first.reduced.events[0]["intrinsics"]
+    m1, m2 = (loc.reduced.model_at(Intrinsics.from_json(intr))[0] for loc in (first, second))
+    assert second.reduced.builds == 0 and second.reduced.events[0]["source"] == "disk"
+    assert torch.equal(m1.means, m2.means) and torch.equal(m1.opacity_logit, m2.opacity_logit)
+    b = second.localize(_query(scene), gt_c2w=scene.gt_c2w)
+    assert second.reduced.builds == 0 and second.candidate_builds == 0
+    assert np.array_equal(a.c2w, b.c2w)
+    other = Localizer(model, xfeat, SMALL, cameras=cams, cache_dir=tmp_path,
+                      lod=LodConfig(max_gaussians=capped.max_gaussians - 1))
+    other.reduced.model_at(Intrinsics.from_json(intr))
+    assert other.reduced.builds == 1  # another config: another key
