@@ -31,6 +31,12 @@ candidate index built before the timings). ``--render-repeats`` adds a per-rende
 forward + pose backward) of a render as the localizer makes it and of the backend function alone
 at a test pose (CPU ms).
 
+Large models (issue 19): ``--model ~/.cache/icomma/large/lego_300k --scenes lego400
+--query-scale 2 --work-side 800`` localizes 800 px queries at 800 px; ``--lod off|auto|N`` sets the
+Localizer's level of detail (``N``: a ``LodConfig`` capped at N Gaussians); its reduced models are
+built before the timings (``blocks/<scene>/lod_build_s``) and each record says which model served
+which stage (``lod_stages``).
+
 Examples:
     python tools/bench_localize.py --threads 1                              # everything
     python tools/bench_localize.py --quick --scenes demo --threads 1        # a quick look
@@ -157,10 +163,13 @@ def load_scene(name: str, args) -> "Any":
                 f"--model: model folder not found: {model} (fit one with tools/fit_scene.py)"
             )
         scale = None if name == "lego200" else 1.0  # None: the model's training scale (200 px)
+        if args.query_scale is not None:
+            scale = args.query_scale
         sc = load_model_folder_scene(
             model, dataset=args.dataset, num_queries=args.queries, image_scale=scale
         )
         want = 200 if name == "lego200" else 400
+        want = want if args.query_scale is None else round(400 * args.query_scale)
         got = sc.queries[0].query.intrinsics.width
         if got != want:
             log(f"note: {name}: the queries are {got} px wide (dataset {sc.info['dataset']})")
@@ -238,7 +247,7 @@ def method_config(method: str, args):
     from icomma_plugin.localize import LocalizerConfig, RobustConfig
 
     if method == "robust":
-        return RobustConfig()
+        return RobustConfig(work_side=args.work_side)
     return LocalizerConfig(max_iterations=args.paper_max_iterations)
 
 
@@ -250,7 +259,7 @@ def run_start(scene, st: Start, method: str, cfg, matcher, args) -> Dict[str, An
         verdict (or the error it raised).
     """
     q = st.query
-    localizer = scene.localizer(matcher, cfg, args.backend, cache_dir=False)
+    localizer = scene.localizer(matcher, cfg, args.backend, cache_dir=False, lod=lod_arg(args))
     torch.manual_seed(int(np.random.SeedSequence(list(st.seed)).generate_state(1)[0]))
     rec: Dict[str, Any] = {
         "start": st.index,
@@ -289,7 +298,22 @@ def run_start(scene, st: Start, method: str, cfg, matcher, args) -> Dict[str, An
             rot is not None and trans is not None and rot < SUCCESS[0] and trans < SUCCESS[1]
         ),
         "c2w": res.c2w.tolist(),
+        "lod_stages": (res.details.get("lod") or {}).get("stages"),
     }
+
+
+def lod_arg(args):
+    """The Localizer's ``lod`` of ``--lod``: "off", "auto" or a LodConfig capped at N."""
+    from icomma_plugin.lod import LodConfig
+
+    text = str(args.lod).lower()
+    return text if text in ("off", "auto") else LodConfig(max_gaussians=int(text))
+
+
+def _lod_choice(text: str) -> str:
+    if text.lower() in ("off", "auto") or (text.isdigit() and int(text) > 0):
+        return text.lower()
+    raise argparse.ArgumentTypeError(f"--lod must be off, auto or a positive int, got {text!r}")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -757,6 +781,25 @@ def build_parser() -> argparse.ArgumentParser:
         help="torch threads (default: automatic, the cores the load leaves free)",
     )
     ap.add_argument(
+        "--lod",
+        type=_lod_choice,
+        default="auto",
+        help="the Localizer's level of detail: off, auto (default) or N (a LodConfig capped at N "
+        "Gaussians)",
+    )
+    ap.add_argument(
+        "--work-side",
+        type=int,
+        default=None,
+        help="the default method's working side [px] (default: the model's training side)",
+    )
+    ap.add_argument(
+        "--query-scale",
+        type=float,
+        default=None,
+        help="scale of the lego queries (default: lego200 the model's training scale, lego400 1)",
+    )
+    ap.add_argument(
         "--compare-with",
         type=Path,
         default=None,
@@ -854,9 +897,19 @@ def _run(args, result: Dict[str, Any], matcher, save) -> None:
         q0 = scene.queries[0].query
         if "robust" in args.methods:  # the candidate views: built once per scene, not timed
             tc = time.perf_counter()
-            scene.localizer(matcher, configs["robust"], args.backend, cache_dir=False
-                            ).candidate_index(q0.intrinsics, configs["robust"].candidates)
+            loc = scene.localizer(matcher, configs["robust"], args.backend, cache_dir=False,
+                                  lod=lod_arg(args))
+            loc.candidate_index(q0.intrinsics, configs["robust"].candidates)
             result["blocks"][f"{scene_name}/candidate_index_s"] = time.perf_counter() - tc
+            if loc.reduced is not None:  # the working resolution's reduced model, not timed
+                tc = time.perf_counter()
+                side = configs["robust"].work_side or loc.model_side
+                work = q0.intrinsics if side is None else q0.intrinsics.scaled(
+                    q0.intrinsics.scale_to_side(side))
+                loc.reduced.model_at(work)
+                result["blocks"][f"{scene_name}/lod_build_s"] = time.perf_counter() - tc
+                result["blocks"][f"{scene_name}/lod_models"] = [dict(e) for e in
+                                                                loc.reduced.events]
         log(f"[{scene_name}] {scene.model.num_gaussians} Gaussians, {len(scene.queries)} queries "
             f"at {q0.intrinsics.width}x{q0.intrinsics.height} ({time.perf_counter() - t:.1f} s)")
         if args.render_repeats:

@@ -98,6 +98,12 @@ def _verdict(cfg: DictConfig):
     return "auto" if str(v).lower() == "auto" else str(v)
 
 
+def _lod(cfg: DictConfig):
+    """The Localizer's ``lod`` argument from the ``lod`` key (auto | off | LodConfig fields)."""
+    v = common.container(cfg.get("lod", "auto"))
+    return "off" if v is None or v is False else v  # YAML reads a bare off as false
+
+
 def _step_bar(enabled: bool, total: Optional[int]):
     """(tqdm bar or None, trace-record hook updating it)."""
     if not enabled:
@@ -132,7 +138,8 @@ def _run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
     problem = load_problem(common.container(cfg.data), backend)
     if backend == "cuda":  # the CUDA kernel renders CUDA tensors; library code never moves data
         problem.model = problem.model.to("cuda")
-    localizer = problem.localizer(matcher, method, backend, _cache_dir(cfg), _verdict(cfg))
+    localizer = problem.localizer(matcher, method, backend, _cache_dir(cfg), _verdict(cfg),
+                                  lod=_lod(cfg))
     opts = OutputOptions.from_dict(common.container(cfg.output))
     bar, hook = _step_bar(bool(cfg.output.progress),
                           getattr(method, "max_iterations", None) if method.needs_start else None)
@@ -202,7 +209,7 @@ def _worker_setup(cfg: DictConfig, data: Dict[str, Any], out: Path, sequence: bo
         thumbs=bool(oc.get("contact_sheet")) and not sequence,  # the sheet is a batch's
         thumb_side=int(oc.get("thumb_side") or 192), config=common.container(cfg),
         seed=int(cfg.seed), cache_dir=_cache_dir(cfg),
-        photos=str(data.get("photos") or "auto").lower(), verdict=_verdict(cfg),
+        photos=str(data.get("photos") or "auto").lower(), verdict=_verdict(cfg), lod=_lod(cfg),
     )
     return setup, mf, matcher
 

@@ -69,11 +69,11 @@ class Problem:
         return self.query.name
 
     def localizer(self, matcher, method, backend: str = "auto", cache_dir=None,
-                  verdict="auto") -> Localizer:
+                  verdict="auto", lod="auto") -> Localizer:
         """The Localizer of this problem's model, cameras, background, training side, photos."""
         return Localizer(self.model, matcher, method, cameras=self.cameras, backend=backend,
                          background=self.bg, model_side=self.model_side, cache_dir=cache_dir,
-                         photos=self.photos, verdict=verdict)
+                         photos=self.photos, verdict=verdict, lod=lod)
 
 
 def _bg(white: bool) -> torch.Tensor:

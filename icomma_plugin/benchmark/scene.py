@@ -82,18 +82,20 @@ class BenchScene:
     photos: Optional[List[Any]] = None  # the photos the model was fitted from (anchors)
     _localizers: Dict[Any, Any] = field(default_factory=dict)
 
-    def localizer(self, matcher, method, backend: str = "auto", cache_dir=False) -> Localizer:
+    def localizer(self, matcher, method, backend: str = "auto", cache_dir=False,
+                  lod="auto") -> Localizer:
         """The Localizer of ``method`` on this scene (made once per method and matcher).
 
         Its candidate views are the scene's cameras (never a camera of the queries' split). The
-        candidate index is kept in memory only unless ``cache_dir`` says otherwise.
+        candidate index is kept in memory only unless ``cache_dir`` says otherwise; ``lod``: the
+        Localizer's level of detail.
         """
-        key = (method.name, id(method), id(matcher), backend)
+        key = (method.name, id(method), id(matcher), backend, repr(lod))
         if key not in self._localizers:
             self._localizers[key] = Localizer(
                 self.model, matcher, method, cameras=self.cameras_c2w, backend=backend,
                 background=self.bg, model_side=self.model_side, cache_dir=cache_dir,
-                photos=self.photos)
+                photos=self.photos, lod=lod)
         return self._localizers[key]
 
     def describe(self) -> Dict[str, Any]:

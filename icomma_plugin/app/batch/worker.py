@@ -51,6 +51,7 @@ class WorkerSetup:
     cache_dir: the Localizer's candidate cache (None: the default folder; False: none).
     photos: ``auto`` (the model's source photos as anchors, when found) or ``none``.
     verdict: the Localizer's verdict thresholds (``auto``: the model's calibration, when any).
+    lod: the Localizer's level of detail (``auto``, ``off`` or ``LodConfig`` fields).
     """
 
     model_path: str
@@ -70,6 +71,7 @@ class WorkerSetup:
     cache_dir: Any = None
     photos: str = "auto"
     verdict: Any = "auto"
+    lod: Any = "auto"
 
 
 @contextlib.contextmanager
@@ -101,7 +103,8 @@ class BatchWorker:
         self.localizer = Localizer.from_model_folder(
             self.mf, matcher, setup.method, white_background=setup.white_background,
             backend=setup.backend, cache_dir=setup.cache_dir,
-            photos="auto" if setup.photos == "auto" else None, verdict=setup.verdict)
+            photos="auto" if setup.photos == "auto" else None, verdict=setup.verdict,
+            lod=setup.lod)
         self.model, self.bg = self.localizer.model, self.localizer.background
         self.cameras = list(self.mf.cameras or [])
         self.scene_scale = cameras_extent([e.c2w for e in self.cameras]) if self.cameras else None
