@@ -60,7 +60,9 @@ class GeometricConfig:
     anchors: which 2D-3D correspondences the PnP takes: ``renders`` (the render at the current
         pose matched to the query), ``photos`` (the model's source photos nearest the current pose
         matched to the query, lifted with the model's depth at their cameras: ``anchors.py``) or
-        ``both`` (pooled). Without source photos, ``renders``.
+        ``both`` (pooled). Without source photos, ``renders``. Default ``renders``: on held-out
+        photos of three captures the photos' correspondences did not help and on bird they hurt
+        (their recorded poses disagree with the model by 0.1-2 deg: docs/LOCALIZATION.md).
     anchor_photos: source photos matched per round; anchor_max_angle_deg: only photos whose
         optical axis is within this angle of the current pose's.
     anchor_until_inliers: with ``both``, the photos' correspondences join only while the render
@@ -85,7 +87,7 @@ class GeometricConfig:
     inlier_px: float = 2.0
     stop_rot_deg: float = 0.25
     stop_trans_rel: float = 5e-3
-    anchors: str = "both"
+    anchors: str = "renders"
     anchor_photos: int = 2
     anchor_max_angle_deg: float = 60.0
     anchor_until_inliers: Optional[int] = 80

@@ -86,8 +86,9 @@ def test_photos_alone_carry_the_geometric_stage(demo, xfeat):
 def test_a_query_never_anchors_on_its_own_photo(demo, xfeat):
     scene, model, cams, photos = demo
     own = cams[2]
-    loc = Localizer(model, xfeat, RobustConfig(candidates=CandidateConfig(num_sampled=4)),
-                    cameras=cams, photos=photos, cache_dir=False)
+    cfg = RobustConfig(geometric=GeometricConfig(anchors="both", anchor_until_inliers=None),
+                       candidates=CandidateConfig(num_sampled=4))
+    loc = Localizer(model, xfeat, cfg, cameras=cams, photos=photos, cache_dir=False)
     used = _counting(loc)
     q = Query(photos[2].view.rgb, scene.intrinsics, name=own.img_name + ".png")
     init = perturb_pose(own.c2w, 10.0, 0.05, 4, pivot="camera")
