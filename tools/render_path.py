@@ -5,7 +5,7 @@ The video is test input for tracking (``tools/localize.py data.sequence=...``):
 
     python tools/render_path.py -m ~/.cache/icomma/scenes/lego_200 -o /tmp/lego_path --frames 100
     python tools/localize.py data=model_folder data.model_path=~/.cache/icomma/scenes/lego_200 \
-        data.sequence=/tmp/lego_path/path.mp4 data.intrinsics.camera=r_0 data.init=none \
+        data.sequence=/tmp/lego_path/path.mp4 data.intrinsics.camera=0 data.init=none \
         data.gt.poses_file=/tmp/lego_path/poses.json output.dir=/tmp/lego_path/track
 
 The path orbits the scene centre (the point the model's cameras look at, ``scene_frame``) at the
@@ -175,6 +175,7 @@ def main(argv=None) -> int:
                     "fy": intr.fy,
                 },
                 "camera": entry.img_name,
+                "camera_id": entry.id,  # names may repeat (lego's train and test r_0): the id won't
                 "centre": centre.tolist(),
                 "radius": radius,
                 "up": up.tolist(),

@@ -214,7 +214,8 @@ def find_entry(entries: Sequence[CameraEntry], name_or_index: Union[int, str]) -
     names = [e.img_name for e in entries]
     if not hits:
         raise ValueError(f"no camera named {name_or_index!r} (names: {_preview(names)})")
-    raise ValueError(f"camera name {name_or_index!r} is ambiguous: {[e.img_name for e in hits]}")
+    raise ValueError(f"camera name {name_or_index!r} is ambiguous: the entries with ids "
+                     f"{[e.id for e in hits]} are all named so; give one of these ids instead")
 
 
 def _preview(items, n: int = 8) -> str:

@@ -174,6 +174,11 @@ def test_find_entry():
         find_entry(cams, "nope")
     with pytest.raises(ValueError, match="id 9"):
         find_entry(cams, 9)
+    # lego's train and test splits both have an r_0: the error gives the ids to use instead
+    twin = CameraEntry(7, "r_0", 800, 800, cams[0].c2w, 1000.0, 1000.0)
+    with pytest.raises(ValueError, match=r"ids \[0, 7\]"):
+        find_entry(cams + [twin], "r_0")
+    assert find_entry(cams + [twin], 7) is twin
 
 
 # ----------------------------------------------------------------------------- model folder
