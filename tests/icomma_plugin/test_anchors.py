@@ -15,7 +15,6 @@ from icomma_plugin.localization.localizer import Localizer
 from icomma_plugin.localization.robust import RobustConfig, _rival
 from icomma_plugin.localization.types import Query
 from icomma_plugin.localization.verify import PoseScore, VerdictConfig, decide
-from icomma_plugin.matchers import make_matcher
 from icomma_plugin.pose.convert import invert_rigid, perturb_pose
 from icomma_plugin.render import render
 
@@ -50,11 +49,6 @@ def demo(tmp_path_factory):
                           RenderedPhoto(model, scene.intrinsics, c.c2w, c.img_name))
               for c in cams]
     return scene, model, cams, photos
-
-
-@pytest.fixture(scope="module")
-def xfeat():
-    return make_matcher("xfeat")
 
 
 def _counting(loc):

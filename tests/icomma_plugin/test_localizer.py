@@ -14,26 +14,10 @@ from icomma_plugin.localization.candidates import CandidateConfig, CandidateInde
 from icomma_plugin.localization.localizer import Localizer
 from icomma_plugin.localization.robust import RobustConfig
 from icomma_plugin.localization.types import Query
-from icomma_plugin.matchers import make_matcher
 from icomma_plugin.pose.convert import perturb_pose
 
 #: A small candidate search: the demo's ring cameras and 4 sampled views.
 SMALL = RobustConfig(candidates=CandidateConfig(num_sampled=4))
-
-
-@pytest.fixture(scope="module")
-def demo(tmp_path_factory):
-    from icomma_plugin.app.demo_scene import build_demo_scene
-    from icomma_plugin.io.cameras_json import read_cameras_json
-
-    scene = build_demo_scene(tmp_path_factory.mktemp("demo") / "scene", seed=0, width=96,
-                             height=96)
-    return scene, scene.load_model(), read_cameras_json(scene.path / "cameras.json")
-
-
-@pytest.fixture(scope="module")
-def xfeat():
-    return make_matcher("xfeat")
 
 
 def _query(scene):

@@ -14,7 +14,6 @@ from icomma_plugin.localization.geometry import lift_keypoints, project, solve_p
 from icomma_plugin.localization.state import LocalizationState
 from icomma_plugin.localization.types import Query, Stage
 from icomma_plugin.localization.verify import VerdictConfig, decide, score_observation
-from icomma_plugin.matchers import make_matcher
 from icomma_plugin.pose.convert import look_at_c2w, perturb_pose, rotation_error_deg
 
 
@@ -30,11 +29,6 @@ def demo(tmp_path_factory):
     )
     cams = [e.c2w for e in read_cameras_json(scene.path / "cameras.json")]
     return scene, scene.load_model(), scene.load_query(), cams
-
-
-@pytest.fixture(scope="module")
-def xfeat():
-    return make_matcher("xfeat")
 
 
 def _state(demo, matcher=None, query=None):
