@@ -139,26 +139,35 @@ class CandidateCache:
 
     def load(self, key: str) -> Optional[CandidateIndex]:
         """The stored index of ``key``, or None (absent, or unreadable: it is then rebuilt)."""
-        p = self.path(key)
+        return self._load(self.path(key), "candidate cache",
+                          lambda d: CandidateIndex.from_state(d["index"]))
+
+    @staticmethod
+    def _load(p: Path, what: str, decode: Callable[[Dict[str, Any]], Any]):
+        """``decode`` of the stored file ``p``, or None (absent, another format, damaged)."""
         if not p.is_file():
             return None
         try:
             d = torch.load(p, map_location="cpu", weights_only=True)
             if d.get("format") != CACHE_FORMAT:
                 return None
-            return CandidateIndex.from_state(d["index"])
+            return decode(d)
         except Exception as e:  # noqa: BLE001 - a damaged cache file is rebuilt, never fatal
-            logger.warning("candidate cache %s unreadable (%s: %s): building it again", p,
+            logger.warning("%s %s unreadable (%s: %s): building it again", what, p,
                            type(e).__name__, e)
             return None
 
+    @staticmethod
+    def _save(p: Path, fields: Mapping[str, Any], payload: Dict[str, Any]) -> Path:
+        """Store ``payload`` with the format and the key's fields, atomically."""
+        with atomic_path(p) as tmp:
+            torch.save({"format": CACHE_FORMAT,
+                        "fields": json.loads(json.dumps(fields, default=str)), **payload}, tmp)
+        return p
+
     def save(self, key: str, fields: Mapping[str, Any], index: CandidateIndex) -> Path:
         """Store ``index`` atomically (a reader never sees half a file)."""
-        p = self.path(key)
-        with atomic_path(p) as tmp:
-            torch.save({"format": CACHE_FORMAT, "fields": json.loads(json.dumps(fields,
-                        default=str)), "index": index.to_state()}, tmp)
-        return p
+        return self._save(self.path(key), fields, {"index": index.to_state()})
 
     def get_or_build(self, fields: Mapping[str, Any], build: Callable[[], CandidateIndex]
                      ) -> Tuple[CandidateIndex, bool]:
@@ -177,33 +186,17 @@ class CandidateCache:
 
     def load_reduced(self, key: str) -> Optional[Tuple[GaussianModel, Dict[str, Any]]]:
         """(reduced model, its ``LodInfo`` as a dict) stored under ``key``, or None."""
-        p = self.reduced_path(key)
-        if not p.is_file():
-            return None
-        try:
-            d = torch.load(p, map_location="cpu", weights_only=True)
-            if d.get("format") != CACHE_FORMAT:
-                return None
-            model = GaussianModel(*(d["model"][n] for n in _MODEL_TENSORS),
-                                  int(d["sh_degree"]))
-            return model, dict(d["info"])
-        except Exception as e:  # noqa: BLE001 - a damaged cache file is rebuilt, never fatal
-            logger.warning("reduced model %s unreadable (%s: %s): building it again", p,
-                           type(e).__name__, e)
-            return None
+        return self._load(self.reduced_path(key), "reduced model", lambda d: (
+            GaussianModel(*(d["model"][n] for n in _MODEL_TENSORS), int(d["sh_degree"])),
+            dict(d["info"])))
 
     def save_reduced(self, key: str, fields: Mapping[str, Any],
                      reduced: Tuple[GaussianModel, Dict[str, Any]]) -> Path:
         """Store ``(model, info dict)`` atomically."""
         model, info = reduced
-        p = self.reduced_path(key)
-        with atomic_path(p) as tmp:
-            torch.save({"format": CACHE_FORMAT,
-                        "fields": json.loads(json.dumps(fields, default=str)),
-                        "model": {n: getattr(model, n).detach().cpu().contiguous()
-                                  for n in _MODEL_TENSORS},
-                        "sh_degree": int(model.sh_degree), "info": dict(info)}, tmp)
-        return p
+        return self._save(self.reduced_path(key), fields, {
+            "model": {n: getattr(model, n).detach().cpu().contiguous() for n in _MODEL_TENSORS},
+            "sh_degree": int(model.sh_degree), "info": dict(info)})
 
     def get_or_build_reduced(
         self, fields: Mapping[str, Any],
