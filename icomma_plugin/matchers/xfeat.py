@@ -34,7 +34,8 @@ class XFeatMatcher(Matcher):
         glue: True: LighterGlue (`xfeat-lighterglue.pt`), error if it cannot load; False: mutual
             nearest neighbours of the descriptors; None (default): LighterGlue if it loads, else
             MNN.
-        max_keypoints: XFeat `top_k`.
+        max_keypoints: XFeat `top_k` (1024, as the tools: 4096 cost LighterGlue 7-8 CPU s a
+            pair at 800 px; docs/MATCHERS.md, docs/SPEED.md).
         detection_threshold: XFeat heatmap threshold.
         min_cossim: MNN only, the smallest accepted cosine similarity (the confidence is the
             cosine).
@@ -52,7 +53,7 @@ class XFeatMatcher(Matcher):
     def __init__(
         self,
         glue: Optional[bool] = None,
-        max_keypoints: int = 4096,
+        max_keypoints: int = 1024,
         detection_threshold: float = 0.05,
         min_cossim: float = 0.82,
         filter_threshold: float = 0.1,
