@@ -302,19 +302,6 @@ def run_start(scene, st: Start, method: str, cfg, matcher, args) -> Dict[str, An
     }
 
 
-def tool_matcher(name: str):
-    """The matcher the tools build for ``name``: its conf/matcher yaml, else the class defaults."""
-    import yaml
-
-    from icomma_plugin.matchers import make_matcher
-    from icomma_plugin.matchers.registry import matcher_from_config
-
-    path = REPO / "conf" / "matcher" / f"{name}.yaml"
-    if not path.is_file():
-        return make_matcher(name)
-    return matcher_from_config(yaml.safe_load(path.read_text()), "--matcher")
-
-
 def lod_arg(args):
     """The Localizer's ``lod`` of ``--lod``: "off", "auto" or a LodConfig capped at N."""
     from icomma_plugin.lod import LodConfig
@@ -779,8 +766,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--demo-size", type=int, default=200, help="demo image side [px] (built if absent)"
     )
     ap.add_argument("--matcher", default="xfeat",
-                    help="a conf/matcher/<name>.yaml (the tools' settings, e.g. xfeat's 1024 "
-                         "keypoints), else a built-in name with its class defaults")
+                    help="a built-in matcher name, with its class defaults (the tools' yamls)")
     ap.add_argument("--backend", default="auto")
     ap.add_argument("--paper-max-iterations", type=int, default=500)
     ap.add_argument(
@@ -855,11 +841,12 @@ def main(argv: Optional[List[str]] = None) -> int:
 
 def _main(args) -> int:
     from icomma_plugin.io.atomic import write_json_atomic, write_text_atomic
+    from icomma_plugin.matchers import make_matcher
 
     out_dir = args.out or Path("outputs") / "bench_localize" / datetime.datetime.now().strftime(
         "%Y-%m-%d_%H-%M-%S"
     )
-    matcher = tool_matcher(args.matcher)
+    matcher = make_matcher(args.matcher)
     result: Dict[str, Any] = {
         "machine": machine_info(),
         "load_before": load_average(),
