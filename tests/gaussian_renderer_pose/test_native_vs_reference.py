@@ -151,6 +151,10 @@ CASES = [
     ("scale_mod_1.5", dict(num_gaussians=100, scale_modifier=1.5, sh_degree=3, seed=13)),
     ("single", dict(num_gaussians=1, frac_behind=0.0, frac_offscreen=0.0, seed=2)),
     ("off_centre_pp", dict(num_gaussians=80, cx=30.0, cy=20.0, antialiasing=True, seed=17)),
+    # footprints of a few pixels in a size that leaves partial tiles: the CPU kernel skips the
+    # rows and the 8- or 16-lane pieces of a tile row that a Gaussian cannot reach
+    ("tiny_partial_tiles", dict(num_gaussians=400, height=45, width=53,
+                                scale_range=(0.005, 0.03), frac_cluster=0.0, seed=19)),
 ]
 
 

@@ -214,6 +214,22 @@ inline bool row_range(const float* gd, int y0, int nrows, int& r0, int& r1) {
   return r0 <= r1;
 }
 
+// Vectors [h0, h1] of a tile row holding the columns that Gaussian gd can reach (alpha >= 1/255,
+// the kGBoxX half extent); false when none. The other vectors' lanes all fail the alpha test, so
+// skipping them is exact, as row_range's rows are.
+inline bool vec_range(const float* gd, int x0, int ncols, int& h0, int& h1) {
+  const float bx = gd[kGBoxX];
+  if (!(bx >= 0.f)) return false;
+  const float px = gd[kGPx];
+  float flo = px - bx, fhi = px + bx;
+  if (flo < (float)x0) flo = (float)x0;
+  if (fhi > (float)(x0 + ncols - 1)) fhi = (float)(x0 + ncols - 1);
+  if (!(flo <= fhi)) return false;
+  h0 = ((int)std::ceil(flo) - x0) / kLanes;
+  h1 = ((int)std::floor(fhi) - x0) / kLanes;
+  return h0 <= h1;
+}
+
 // One vector of a tile row of a Gaussian (upstream renderCUDA): power = -d^T conic d / 2 at its
 // pixels (dx = px - x per lane, qx = conic.a dx^2, dy = py - y), G = exp(power), oG = o G and
 // alpha = min(kAlphaMax, oG). Shared by the forward and the backward tile loops.
@@ -314,13 +330,13 @@ void render_tile(const RasterArgs& in, int64_t tile, const float* geom, const in
   for (int32_t j = start; j < end && active_rows != 0; ++j) {
     if (j + kPrefetch < end) __builtin_prefetch(geom + kGStride * (int64_t)binning[2 * (j + kPrefetch)]);
     const float* gd = geom + kGStride * (int64_t)binning[2 * j];
-    int r0, r1;
-    if (!row_range(gd, y0, nrows, r0, r1)) continue;
+    int r0, r1, h0, h1;
+    if (!row_range(gd, y0, nrows, r0, r1) || !vec_range(gd, x0, ncols, h0, h1)) continue;
     const uint32_t todo = active_rows & row_bits(r0, r1);
     if (todo == 0) continue;
     const float px = gd[kGPx], py = gd[kGPy], cA = gd[kGConA];
     vf dx[kRowVecs], qx[kRowVecs];
-    for (int h = 0; h < kRowVecs; ++h) {
+    for (int h = h0; h <= h1; ++h) {
       dx[h] = px - pixx[h];
       qx[h] = cA * dx[h] * dx[h];
     }
@@ -328,7 +344,7 @@ void render_tile(const RasterArgs& in, int64_t tile, const float* geom, const in
     for (uint32_t m = todo; m != 0; m &= m - 1) {
       const int r = __builtin_ctz(m);
       const float dy = py - (float)(y0 + r);
-      for (int h = 0; h < kRowVecs; ++h)
+      for (int h = h0; h <= h1; ++h)
         stopped[h] |= blend_vec(rows[r][h], qx[h], dx[h], dy, gd, j - start);
     }
     if (!any_lane(stopped)) continue;
@@ -469,8 +485,8 @@ void backward_tile(const RasterArgs& in, int64_t tile, const float* geom, const 
       __builtin_prefetch(slots + (int64_t)binning[2 * (j - kPrefetch) + 1] * kSlot, 1);
     }
     const float* gd = geom + kGStride * (int64_t)binning[2 * j];
-    int r0, r1;
-    if (!row_range(gd, y0, nrows, r0, r1)) continue;
+    int r0, r1, h0, h1;
+    if (!row_range(gd, y0, nrows, r0, r1) || !vec_range(gd, x0, ncols, h0, h1)) continue;
     // Rows with a pixel that entry j reaches (j at or before its last contributor); the others
     // would add zeros (exact to skip).
     uint32_t todo = 0;
@@ -480,7 +496,7 @@ void backward_tile(const RasterArgs& in, int64_t tile, const float* geom, const 
     const float px = gd[kGPx], py = gd[kGPy], cA = gd[kGConA];
     vf dx[kRowVecs], qx[kRowVecs];
     SlotAcc acc[kRowVecs];
-    for (int h = 0; h < kRowVecs; ++h) {
+    for (int h = h0; h <= h1; ++h) {
       dx[h] = px - pixx[h];
       qx[h] = cA * dx[h] * dx[h];
       for (int k = 0; k < kSlot; ++k) acc[h].v[k] = splat(0.f);
@@ -488,12 +504,13 @@ void backward_tile(const RasterArgs& in, int64_t tile, const float* geom, const 
     for (uint32_t m = todo; m != 0; m &= m - 1) {
       const int r = __builtin_ctz(m);
       const float dy = py - (float)(y0 + r);
-      for (int h = 0; h < kRowVecs; ++h)
+      for (int h = h0; h <= h1; ++h)
         unblend_vec<kOpacitySlot, kColourSlot>(rows[r][h], qx[h], dx[h], dy, gd, j - start,
                                                 acc[h]);
     }
+    // the skipped vectors' lanes would add zeros: the same sums
     float red[kSlot] = {0};
-    for (int c = 0; c < kBlockX; ++c)
+    for (int c = h0 * kLanes; c < (h1 + 1) * kLanes; ++c)
       for (int k = 0; k < kSlot; ++k) red[k] += acc[c / kLanes].v[k][c % kLanes];
     const int64_t slot_id = binning[2 * j + 1];
     float* slot = slots + slot_id * kSlot;
