@@ -62,7 +62,11 @@ class TrackingConfig:
         fast: tracking mode: from the prediction, first a cheap localization (``fast_rounds``
             geometric rounds that stop at a step below ``fast_stop_deg``, ``fast_refine``
             refinement steps, matching at ``fast_scale`` of the working resolution, no candidate
-            search); the full method only when its verdict is not ``ok``.
+            search, renders matched by mutual nearest neighbours of the matcher's descriptors
+            above ``fast_mutual_nn`` (None: by the matcher), and with no refinement step the
+            verdict decided on the geometric stage's last render-and-match:
+            ``RobustConfig.verify_geometric``); the full method only when its verdict is not
+            ``ok``.
         prefetch: frames decoded ahead in a second thread (0: none).
     """
 
@@ -73,6 +77,7 @@ class TrackingConfig:
     fast_stop_deg: float = 0.25
     fast_refine: int = 0
     fast_scale: float = 1.0
+    fast_mutual_nn: Optional[float] = 0.82
     prefetch: int = 4
 
     def __post_init__(self):
@@ -84,12 +89,15 @@ class TrackingConfig:
         check_real(self.fast_stop_deg, "tracking.fast_stop_deg", 0.0, lo_open=True)
         check_int(self.fast_refine, "tracking.fast_refine", 0)
         check_real(self.fast_scale, "tracking.fast_scale", 0.0, 1.0, lo_open=True)
+        check_real(self.fast_mutual_nn, "tracking.fast_mutual_nn", 0.0, 1.0, lo_open=True,
+                   hi_open=True, optional=True)
         check_int(self.prefetch, "tracking.prefetch", 0)
 
-    def fast_method(self, method, side: int):
+    def fast_method(self, method, side: int, matcher=None):
         """The cheap config of the default ``method`` for the tracking mode (None: not used).
 
-        ``side``: the longer side of the full method's working resolution [px].
+        ``side``: the longer side of the full method's working resolution [px]; ``matcher``: the
+        localizer's (mutual nearest neighbours only for one with descriptors).
         """
         from ..localization.robust import RobustConfig
 
@@ -99,6 +107,9 @@ class TrackingConfig:
             method,
             work_side=max(16, int(round(side * self.fast_scale))),
             use_candidates=False,
+            verify_geometric=True,
+            mutual_nn=(self.fast_mutual_nn if getattr(matcher, "supports_features", False)
+                       else None),
             geometric=dataclasses.replace(method.geometric, max_rounds=self.fast_rounds,
                                           stop_rot_deg=self.fast_stop_deg,
                                           stop_trans_rel=self.fast_stop_deg * 0.02),
@@ -303,7 +314,7 @@ class _Tracker:
         result = None
         loc = worker.localizer
         side = loc.method.work_side or loc.model_side or max(problem.query.size)
-        fast = self.cfg.fast_method(loc.method, min(side, max(problem.query.size)))
+        fast = self.cfg.fast_method(loc.method, min(side, max(problem.query.size)), loc.matcher)
         if fast is not None and start is not None:
             result = loc.localize(problem.query, start, problem.gt_c2w, method=fast)
             self.fast_ok += result.verdict.status == "ok"

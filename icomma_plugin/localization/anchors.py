@@ -184,7 +184,8 @@ class PhotoAnchors:
                 with state.timed("pnp"):
                     photo = self.image(i, side).rgb.to(q.rgb)
                     kpts0 = refine_render_keypoints(photo, q.rgb, m.kpts0.to(photo.dtype),
-                                                    m.kpts1.to(photo.dtype), window=1).detach()
+                                                    m.kpts1.to(photo.dtype), window=1,
+                                                    iterations=cfg.subpixel_iterations).detach()
             with state.timed("pnp"):
                 X, keep = lift_keypoints(kpts0.double(), depth, alpha, intr,
                                          torch.as_tensor(self.photos[i].c2w), cfg.min_alpha,

@@ -280,7 +280,8 @@ class Localizer:
                              "(init_c2w); without one use the default method (optimizer=robust)")
         state = LocalizationState(
             self.model, query, self.background, backend=self.backend, matcher=self.matcher,
-            sh_degree=cfg.sh_degree, antialiasing=cfg.antialiasing, gt_c2w=gt,
+            mutual_nn=getattr(cfg, "mutual_nn", None), sh_degree=cfg.sh_degree,
+            antialiasing=cfg.antialiasing, gt_c2w=gt,
             progress=progress, record_trace=cfg.record_trace, scene=self._scene(cfg.sh_degree),
             reduced=self._reduced_scene(cfg.sh_degree))
         lod_events = 0 if self.reduced is None else len(self.reduced.events)

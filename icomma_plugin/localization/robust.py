@@ -57,6 +57,17 @@ class RobustConfig:
     rollback_inliers: the refined pose is kept only if it keeps this share of the agreeing
         matches of the geometric pose (and its median displacement grows by less than
         ``rollback_median_px``).
+    verify_geometric: when the refinement takes no step (``refine.iterations`` 0) and the geometric
+        stage converged, the verdict is decided on the geometric stage's last render-and-match
+        (at most ``geometric.stop_rot_deg`` from the returned pose, the PnP step that ended the
+        stage) instead of a new render-and-match at the returned pose. Tracking's fast mode sets
+        it (one matcher call a frame instead of two; docs/SPEED.md); the result's
+        ``details["verified_on"]`` says which render decided.
+    mutual_nn: None: renders are matched to the query by the matcher (LightGlue, ...); a cosine
+        in (0, 1): by mutual nearest neighbours of the matcher's descriptors above it
+        (``matchers.mutual_nn``), for a matcher with features (``supports_features``). Several
+        times cheaper, and enough between a render and a photo from nearly the same pose:
+        tracking's fast mode (``tracking.fast_mutual_nn``).
 
     Its results' ``details``: ``hypotheses`` (one summary per start tried), ``rolled_back``,
     ``refine_iterations``, ``refine_loss`` ([before, after]) and ``start_render_empty``.
@@ -68,6 +79,8 @@ class RobustConfig:
     good_inliers: int = 80
     rollback_inliers: float = 0.9
     rollback_median_px: float = 0.5
+    verify_geometric: bool = False
+    mutual_nn: Optional[float] = None
     sh_degree: Optional[int] = None
     antialiasing: bool = False
     record_trace: bool = True
@@ -94,9 +107,11 @@ class RobustConfig:
             check_int(getattr(self, name), n + name, 0)
         check_real(self.rollback_inliers, n + "rollback_inliers", 0.0, 1.0)
         check_real(self.rollback_median_px, n + "rollback_median_px", 0.0)
+        check_real(self.mutual_nn, n + "mutual_nn", 0.0, 1.0, lo_open=True, hi_open=True,
+                   optional=True)
         if self.sh_degree is not None:
             check_choice(self.sh_degree, n + "sh_degree", (0, 1, 2, 3))
-        for name in ("use_candidates", "antialiasing", "record_trace"):
+        for name in ("use_candidates", "antialiasing", "record_trace", "verify_geometric"):
             check_bool(getattr(self, name), n + name)
 
     @classmethod
@@ -119,6 +134,10 @@ class RobustConfig:
         if matcher is None or getattr(matcher, "name", None) == "none":
             return ("the default localizer needs a matcher (matcher=none only works with the "
                     "paper's optimizer=icomma or compare_only)")
+        if self.mutual_nn is not None and not getattr(matcher, "supports_features", False):
+            return (f"RobustConfig.mutual_nn matches the matcher's descriptors, but the "
+                    f"{getattr(matcher, 'name', type(matcher).__name__)!r} matcher has none "
+                    "(supports_features is False): set mutual_nn to null")
         return None
 
     def run(self, state: LocalizationState, init_w2c: Optional[np.ndarray]) -> MethodOutcome:
@@ -315,9 +334,14 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
     with state.serving("refine"):
         ref = refine_photometric(state, best.w2c, cfg.refine, base_scale=scale,
                                  scene_depth=depth)
-    with state.serving("verify"):
-        sc = score_pose(state, ref.w2c, scale, cfg.verdict.inlier_px, ref.observation)
     geo = best.score
+    reuse = (cfg.verify_geometric and ref.iterations == 0 and best.converged
+             and not state.rendered.get("geometric", {}).get("reduced", False))
+    if reuse:  # the PnP step that ended the geometric stage was below its stop: judged there
+        sc = geo
+    else:
+        with state.serving("verify"):
+            sc = score_pose(state, ref.w2c, scale, cfg.verdict.inlier_px, ref.observation)
     keep = (sc.inliers >= cfg.rollback_inliers * geo.inliers
             and sc.median_px <= geo.median_px + cfg.rollback_median_px)
     state.record(state.new_record(Stage.VERIFY, ref.w2c, matches=sc.matches, inliers=sc.inliers,
@@ -349,5 +373,6 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
     stop = "rolled_back" if not keep else ("converged" if converged else "max_iterations")
     details = {"hypotheses": search.summaries(), "rival": search.rival, "rolled_back": not keep,
                "refine_iterations": ref.iterations, "refine_loss": [ref.loss_start, ref.loss_end],
-               "start_render_empty": search.empty_start}
+               "start_render_empty": search.empty_start,
+               "verified_on": "geometric" if reuse else "final"}
     return MethodOutcome(np.asarray(w2c, np.float64), verdict, score, state.steps, stop, details)

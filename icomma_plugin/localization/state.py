@@ -51,6 +51,9 @@ class LocalizationState:
 
     model: Gaussians (detached); bg: background ``[3]``; backend: rasterizer backend.
     query: the photo at full resolution. matcher: the keypoint matcher (or None).
+    mutual_nn: None: the matcher matches; a cosine: renders are matched to the query by mutual
+        nearest neighbours of the matcher's descriptors above it (``matchers.mutual_nn``; no
+        LightGlue pass), for a method's cheap mode (``RobustConfig.mutual_nn``).
     gt_c2w: ground truth, used ONLY to fill the errors of trace records.
     progress: called with every trace record as it is added.
     scene: the model's rasterizer inputs (``render.prepare_scene`` at ``sh_degree``), prepared
@@ -73,6 +76,7 @@ class LocalizationState:
     bg: torch.Tensor
     backend: str = "auto"
     matcher: Any = None
+    mutual_nn: Optional[float] = None
     sh_degree: Optional[int] = None
     antialiasing: bool = False
     gt_c2w: Optional[np.ndarray] = None
@@ -255,6 +259,8 @@ class LocalizationState:
         q = self.query_at(scale)
         feats = None if differentiable else self.query_features(scale)
         with self.timed("matcher"):
+            if self.mutual_nn is not None and feats is not None:
+                return self.matcher.match_mutual_nn(render_rgb, feats, self.mutual_nn)
             return self.matcher.match(
                 render_rgb, q.rgb, differentiable=differentiable, features1=feats
             )

@@ -114,21 +114,33 @@ class Features:
         return int(self.kpts.shape[0])
 
 
-def mutual_nn_count(f0: Features, f1: Features, min_cosine: float = 0.8) -> int:
-    """Number of mutual nearest neighbours between two descriptor sets, cosine above `min_cosine`.
+def mutual_nn(f0: Features, f1: Features, min_cosine: float = 0.8,
+              normalize: bool = True) -> Matches:
+    """Mutual nearest neighbours of two descriptor sets whose cosine exceeds `min_cosine`.
 
-    A cheap similarity of two images, used to rank candidate views.
+    The confidence is the cosine (clamped to [0, 1]). `normalize=False` takes descriptors that are
+    unit vectors already (XFeat's).
     """
+    dev = f0.kpts.device
     if len(f0) == 0 or len(f1) == 0:
-        return 0
-    d0 = torch.nn.functional.normalize(f0.desc.float(), dim=-1)
-    d1 = torch.nn.functional.normalize(f1.desc.float(), dim=-1)
+        return Matches.empty(dev)
+    d0, d1 = f0.desc.float(), f1.desc.float()
+    if normalize:
+        d0 = torch.nn.functional.normalize(d0, dim=-1)
+        d1 = torch.nn.functional.normalize(d1, dim=-1)
     sim = d0 @ d1.T
     best1 = sim.argmax(1)
     best0 = sim.argmax(0)
-    idx0 = torch.arange(len(f0), device=sim.device)
-    ok = (best0[best1] == idx0) & (sim[idx0, best1] > min_cosine)
-    return int(ok.sum())
+    idx0 = torch.arange(len(f0), device=dev)
+    cos = sim[idx0, best1]
+    ok = (best0[best1] == idx0) & (cos > min_cosine)
+    return Matches(f0.kpts[ok].float(), f1.kpts[best1[ok]].float(),
+                   cos[ok].float().clamp(0.0, 1.0))
+
+
+def mutual_nn_count(f0: Features, f1: Features, min_cosine: float = 0.8) -> int:
+    """Number of `mutual_nn` matches: a cheap similarity of two images (ranks candidate views)."""
+    return len(mutual_nn(f0, f1, min_cosine))
 
 
 def on_device(module: torch.nn.Module, device: torch.device) -> torch.nn.Module:
@@ -317,6 +329,17 @@ class Matcher:
         with torch.no_grad():
             m = self._match_features(features0, features1)
             return self._finish(m, features0.kpts.device, torch.float32)
+
+    def match_mutual_nn(self, image0: torch.Tensor, features1: Features,
+                        min_cosine: float) -> Matches:
+        """Match `image0` with the image of `features1`: `mutual_nn` of this matcher's descriptors.
+
+        The matcher's own matching step (LightGlue, ...) is skipped: much cheaper, for images
+        taken from nearly the same pose. Only where `supports_features`.
+        """
+        f0 = self.extract(image0)
+        with torch.no_grad():
+            return self._finish(mutual_nn(f0, features1, min_cosine), image0.device, image0.dtype)
 
     def match(self, image0: torch.Tensor, image1: torch.Tensor, differentiable: bool = False,
               features1: Optional[Features] = None) -> Matches:

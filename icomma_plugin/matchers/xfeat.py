@@ -13,7 +13,7 @@ from typing import Optional
 
 import torch
 
-from .base import Features, Matcher, Matches, on_device
+from .base import Features, Matcher, Matches, mutual_nn, on_device
 from .lightglue import (
     _check_missing,
     build_lightglue,
@@ -109,14 +109,7 @@ class XFeatMatcher(Matcher):
             on_device(self.glue, dev)
             i0, i1, sc = run_lightglue(self.glue, k0, d0, f0.size, k1, d1, f1.size)
             return Matches(k0[i0].float(), k1[i1].float(), sc.float())
-        sim = d0 @ d1.t()
-        best1 = sim.argmax(dim=1)
-        best0 = sim.argmax(dim=0)
-        idx0 = torch.arange(len(k0), device=dev)
-        ok = best0[best1] == idx0
-        cos = sim[idx0, best1]
-        ok &= cos > self.min_cossim
-        return Matches(k0[ok].float(), k1[best1[ok]].float(), cos[ok].float().clamp(0.0, 1.0))
+        return mutual_nn(f0, f1, self.min_cossim, normalize=False)
 
 
 class XFeatMnnMatcher(XFeatMatcher):

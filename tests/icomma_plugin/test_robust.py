@@ -369,3 +369,74 @@ def test_the_paper_method_too_works_at_the_model_resolution(demo, xfeat):
     res = localize(model, Query(big, intr), matcher=xfeat, init_c2w=init, model_side=100,
                    config=LocalizerConfig(max_iterations=2, image_scale=0.25))
     assert res.config["image_scale"] == 0.25
+
+
+# ------------------------------------------------------------------------------ the cheap mode
+def test_mutual_nn_matches_an_image_to_itself_keypoint_for_keypoint(demo, xfeat):
+    from icomma_plugin.matchers import mutual_nn, mutual_nn_count
+
+    _, _, q, _ = demo
+    f = xfeat.extract(q)
+    m = mutual_nn(f, f, 0.82)
+    assert len(m) == len(f) > 50 and mutual_nn_count(f, f, 0.82) == len(m)
+    assert torch.equal(m.kpts0, m.kpts1) and float(m.confidence.min()) > 0.99
+    shifted = xfeat.extract(torch.roll(q, 3, dims=2))
+    assert len(mutual_nn(f, shifted, 0.999)) < len(mutual_nn(f, shifted, 0.82))
+
+
+def test_the_cheap_mode_matches_by_mutual_nn_and_judges_on_the_geometric_render(
+        demo, xfeat, monkeypatch):
+    """Tracking's fast config: no LightGlue pass, and one render-and-match fewer a pose."""
+    import dataclasses
+
+    from icomma_plugin.localization.refine import RefineConfig
+    from icomma_plugin.localization.robust import RobustConfig
+    from icomma_plugin.localize import localize
+
+    scene, model, q, _ = demo
+    init = perturb_pose(scene.gt_c2w, 0.5, 0.002, 3, pivot=scene.scene_centre)
+    calls = {"glue": 0, "mnn": 0}
+    glue, mnn = xfeat._match_features, xfeat.match_mutual_nn
+
+    def count(name, fn):
+        def wrapped(*a, **k):
+            calls[name] += 1
+            return fn(*a, **k)
+        return wrapped
+
+    monkeypatch.setattr(xfeat, "_match_features", count("glue", glue))
+    monkeypatch.setattr(xfeat, "match_mutual_nn", count("mnn", mnn))
+    cheap = RobustConfig(use_candidates=False, mutual_nn=0.82, verify_geometric=True,
+                         refine=RefineConfig(iterations=(0,)))
+    runs = {}
+    for verify_geometric in (True, False):
+        calls.update(glue=0, mnn=0)
+        cfg = dataclasses.replace(cheap, verify_geometric=verify_geometric)
+        res = localize(model, Query(q, scene.intrinsics), matcher=xfeat, init_c2w=init,
+                       gt_c2w=scene.gt_c2w, config=cfg, cache_dir=False)
+        assert calls["glue"] == 0, "the cheap mode ran LightGlue"
+        assert res.verdict.status == "ok" and res.rot_err_deg < 0.2, res.verdict.reason
+        rounds = res.details["hypotheses"][0]["rounds"]
+        runs[verify_geometric] = (res, calls["mnn"], rounds)
+    (res_g, n_g, rounds_g), (res_f, n_f, rounds_f) = runs[True], runs[False]
+    assert res_g.details["verified_on"] == "geometric" and res_f.details["verified_on"] == "final"
+    assert rounds_g == rounds_f and n_g == rounds_g and n_f == rounds_f + 1
+    np.testing.assert_allclose(res_g.c2w, res_f.c2w)  # the verdict's render moves no pose
+
+
+def test_mutual_nn_is_checked_and_needs_a_matcher_with_descriptors(demo):
+    from icomma_plugin.app.tracking import TrackingConfig
+    from icomma_plugin.localization.robust import RobustConfig
+    from icomma_plugin.matchers import make_matcher
+
+    for bad in (0.0, 1.0, 2, "high"):
+        with pytest.raises(ValueError, match="mutual_nn"):
+            RobustConfig(mutual_nn=bad)
+    loftr_like = type("Dense", (), {"name": "dense", "supports_features": False})()
+    assert "mutual_nn" in RobustConfig(mutual_nn=0.8).needs(loftr_like)
+    assert RobustConfig().needs(loftr_like) is None
+    fast = TrackingConfig().fast_method(RobustConfig(), 200, make_matcher("xfeat"))
+    assert fast.mutual_nn == 0.82 and fast.verify_geometric and not fast.use_candidates
+    assert TrackingConfig().fast_method(RobustConfig(), 200, loftr_like).mutual_nn is None
+    assert TrackingConfig(fast_mutual_nn=None).fast_method(
+        RobustConfig(), 200, make_matcher("xfeat")).mutual_nn is None

@@ -104,6 +104,7 @@ class _FakeLocalizer:
         from icomma_plugin.localize import RobustConfig
 
         self.worker, self.method, self.model_side = worker, RobustConfig(), None
+        self.matcher = None
 
     def localize(self, query, init_c2w=None, gt_c2w=None, progress=None, method=None):
         assert method is not None  # the tracking mode's own config; the full one is the worker's
