@@ -200,34 +200,32 @@ inline uint32_t row_bits(int r0, int r1) {
   return (uint32_t)((((uint64_t)1 << (r1 + 1)) - 1) & ~(((uint64_t)1 << r0) - 1));
 }
 
-// Rows [r0, r1] of the tile that Gaussian gd can reach (alpha >= 1/255); false when none.
-inline bool row_range(const float* gd, int y0, int nrows, int& r0, int& r1) {
-  const float by = gd[kGBoxY];
-  if (!(by >= 0.f)) return false;
-  const float py = gd[kGPy];
-  float flo = py - by, fhi = py + by;
-  if (flo < (float)y0) flo = (float)y0;
-  if (fhi > (float)(y0 + nrows - 1)) fhi = (float)(y0 + nrows - 1);
+// Integer offsets [i0, i1] within [0, n) of origin + i that lie within `half` of `centre` (an
+// alpha box's half extent, negative or NaN: nowhere); false when none.
+inline bool box_range(float centre, float half, int origin, int n, int& i0, int& i1) {
+  if (!(half >= 0.f)) return false;
+  float flo = centre - half, fhi = centre + half;
+  if (flo < (float)origin) flo = (float)origin;
+  if (fhi > (float)(origin + n - 1)) fhi = (float)(origin + n - 1);
   if (!(flo <= fhi)) return false;
-  r0 = (int)std::ceil(flo) - y0;
-  r1 = (int)std::floor(fhi) - y0;
-  return r0 <= r1;
+  i0 = (int)std::ceil(flo) - origin;
+  i1 = (int)std::floor(fhi) - origin;
+  return i0 <= i1;
 }
 
-// Vectors [h0, h1] of a tile row holding the columns that Gaussian gd can reach (alpha >= 1/255,
-// the kGBoxX half extent); false when none. The other vectors' lanes all fail the alpha test, so
-// skipping them is exact, as row_range's rows are.
+// Rows [r0, r1] of the tile that Gaussian gd can reach (alpha >= 1/255); false when none.
+inline bool row_range(const float* gd, int y0, int nrows, int& r0, int& r1) {
+  return box_range(gd[kGPy], gd[kGBoxY], y0, nrows, r0, r1);
+}
+
+// Vectors [h0, h1] of a tile row holding the columns that Gaussian gd can reach; false when
+// none. The other vectors' lanes all fail the alpha test, so skipping them is exact, as
+// row_range's rows are.
 inline bool vec_range(const float* gd, int x0, int ncols, int& h0, int& h1) {
-  const float bx = gd[kGBoxX];
-  if (!(bx >= 0.f)) return false;
-  const float px = gd[kGPx];
-  float flo = px - bx, fhi = px + bx;
-  if (flo < (float)x0) flo = (float)x0;
-  if (fhi > (float)(x0 + ncols - 1)) fhi = (float)(x0 + ncols - 1);
-  if (!(flo <= fhi)) return false;
-  h0 = ((int)std::ceil(flo) - x0) / kLanes;
-  h1 = ((int)std::floor(fhi) - x0) / kLanes;
-  return h0 <= h1;
+  if (!box_range(gd[kGPx], gd[kGBoxX], x0, ncols, h0, h1)) return false;
+  h0 /= kLanes;
+  h1 /= kLanes;
+  return true;
 }
 
 // One vector of a tile row of a Gaussian (upstream renderCUDA): power = -d^T conic d / 2 at its
