@@ -63,7 +63,8 @@ class TrackingConfig:
             geometric rounds that stop at a step below ``fast_stop_deg``, ``fast_refine``
             refinement steps, matching at ``fast_scale`` of the working resolution, no candidate
             search, renders matched by mutual nearest neighbours of the matcher's descriptors
-            above ``fast_mutual_nn`` (None: by the matcher), and with no refinement step the
+            above ``fast_mutual_nn`` (None: by the matcher), ``fast_subpixel_iterations`` Newton
+            iterations of the PnP's sub-pixel step, and with no refinement step the
             verdict decided on the geometric stage's last render-and-match:
             ``RobustConfig.verify_geometric``); the full method only when its verdict is not
             ``ok``.
@@ -78,6 +79,7 @@ class TrackingConfig:
     fast_refine: int = 0
     fast_scale: float = 1.0
     fast_mutual_nn: Optional[float] = 0.82
+    fast_subpixel_iterations: int = 0
     prefetch: int = 4
 
     def __post_init__(self):
@@ -91,6 +93,7 @@ class TrackingConfig:
         check_real(self.fast_scale, "tracking.fast_scale", 0.0, 1.0, lo_open=True)
         check_real(self.fast_mutual_nn, "tracking.fast_mutual_nn", 0.0, 1.0, lo_open=True,
                    hi_open=True, optional=True)
+        check_int(self.fast_subpixel_iterations, "tracking.fast_subpixel_iterations", 0)
         check_int(self.prefetch, "tracking.prefetch", 0)
 
     def fast_method(self, method, side: int, matcher=None):
@@ -111,6 +114,7 @@ class TrackingConfig:
             mutual_nn=(self.fast_mutual_nn if getattr(matcher, "supports_features", False)
                        else None),
             geometric=dataclasses.replace(method.geometric, max_rounds=self.fast_rounds,
+                                          subpixel_iterations=self.fast_subpixel_iterations,
                                           stop_rot_deg=self.fast_stop_deg,
                                           stop_trans_rel=self.fast_stop_deg * 0.02),
             refine=dataclasses.replace(method.refine, scales=(1.0,), blur=(0.0,),

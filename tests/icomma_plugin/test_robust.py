@@ -437,6 +437,9 @@ def test_mutual_nn_is_checked_and_needs_a_matcher_with_descriptors(demo):
     assert RobustConfig().needs(loftr_like) is None
     fast = TrackingConfig().fast_method(RobustConfig(), 200, make_matcher("xfeat"))
     assert fast.mutual_nn == 0.82 and fast.verify_geometric and not fast.use_candidates
+    assert fast.geometric.subpixel_iterations == 0 and RobustConfig().geometric.subpixel_iterations
+    with pytest.raises(ValueError, match="fast_subpixel_iterations"):
+        TrackingConfig(fast_subpixel_iterations=-1)
     assert TrackingConfig().fast_method(RobustConfig(), 200, loftr_like).mutual_nn is None
     assert TrackingConfig(fast_mutual_nn=None).fast_method(
         RobustConfig(), 200, make_matcher("xfeat")).mutual_nn is None
