@@ -114,16 +114,8 @@ class Features:
         return int(self.kpts.shape[0])
 
 
-def mutual_nn(f0: Features, f1: Features, min_cosine: float = 0.8,
-              normalize: bool = True) -> Matches:
-    """Mutual nearest neighbours of two descriptor sets whose cosine exceeds `min_cosine`.
-
-    The confidence is the cosine (clamped to [0, 1]). `normalize=False` takes descriptors that are
-    unit vectors already (XFeat's).
-    """
-    dev = f0.kpts.device
-    if len(f0) == 0 or len(f1) == 0:
-        return Matches.empty(dev)
+def _mutual_nn_pairs(f0: Features, f1: Features, min_cosine: float, normalize: bool):
+    """(mask over f0 [K0], index into f1 [K0], cosine [K0]) of the mutual nearest neighbours."""
     d0, d1 = f0.desc.float(), f1.desc.float()
     if normalize:
         d0 = torch.nn.functional.normalize(d0, dim=-1)
@@ -131,16 +123,33 @@ def mutual_nn(f0: Features, f1: Features, min_cosine: float = 0.8,
     sim = d0 @ d1.T
     best1 = sim.argmax(1)
     best0 = sim.argmax(0)
-    idx0 = torch.arange(len(f0), device=dev)
+    idx0 = torch.arange(len(f0), device=sim.device)
     cos = sim[idx0, best1]
-    ok = (best0[best1] == idx0) & (cos > min_cosine)
+    return (best0[best1] == idx0) & (cos > min_cosine), best1, cos
+
+
+def mutual_nn(f0: Features, f1: Features, min_cosine: float = 0.8,
+              normalize: bool = True) -> Matches:
+    """Mutual nearest neighbours of two descriptor sets whose cosine exceeds `min_cosine`.
+
+    The confidence is the cosine (clamped to [0, 1]). `normalize=False` takes descriptors that are
+    unit vectors already (XFeat's).
+    """
+    if len(f0) == 0 or len(f1) == 0:
+        return Matches.empty(f0.kpts.device)
+    ok, best1, cos = _mutual_nn_pairs(f0, f1, min_cosine, normalize)
     return Matches(f0.kpts[ok].float(), f1.kpts[best1[ok]].float(),
                    cos[ok].float().clamp(0.0, 1.0))
 
 
 def mutual_nn_count(f0: Features, f1: Features, min_cosine: float = 0.8) -> int:
-    """Number of `mutual_nn` matches: a cheap similarity of two images (ranks candidate views)."""
-    return len(mutual_nn(f0, f1, min_cosine))
+    """Number of `mutual_nn` matches: a cheap similarity of two images (ranks candidate views).
+
+    Only counted: no `Matches` is built (it runs for every candidate view and turn).
+    """
+    if len(f0) == 0 or len(f1) == 0:
+        return 0
+    return int(_mutual_nn_pairs(f0, f1, min_cosine, True)[0].sum())
 
 
 def on_device(module: torch.nn.Module, device: torch.device) -> torch.nn.Module:
