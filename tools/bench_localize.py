@@ -273,7 +273,7 @@ def run_start(scene, st: Start, method: str, cfg, matcher, args) -> Dict[str, An
     }
     c0, t0 = time.process_time(), time.perf_counter()
     try:
-        res = localizer.localize(q.query, st.init_c2w, q.gt_c2w)
+        res = localizer.localize(q.query.fresh(), st.init_c2w, q.gt_c2w)  # timed as a first
     except Exception as e:  # a run that raises is a failed run (recorded), not the end of all
         log(f"start {st.index} ({method}) raised {type(e).__name__}: {e}")
         rec.update(error=f"{type(e).__name__}: {e}", success=False, status=None,

@@ -4,14 +4,17 @@ A run killed at any moment loses no photo that it finished, and restarted on the
 skips them.
 
 Every row is first appended to the journal ``poses.jsonl`` (one JSON line per photo, flushed to
-disk); then poses.json and poses.csv are rewritten atomically: after every photo while the run
-holds at most ``rewrite_rows`` photos, and at most every ``rewrite_seconds`` beyond (rewriting a
-big file after every photo would cost more than the photos), and always at the end. Resuming
-reads both; a line cut short by a kill is ignored.
+disk); then poses.json and poses.csv are rewritten atomically, at most every
+``min_rewrite_seconds`` (1 s: after every photo of a batch of 1-second photos, every ~10 frames
+of a video tracked at 10 frames/s), and always at the end. A rewrite costs in proportion to the
+rows already held (a 60-frame video's poses.json is ~350 kB, ~20 ms to write), so it also
+waits until the time since the last one is ``1 / max_rewrite_share`` times what that one took
+(rewriting takes at most ~10 % of a long run), and beyond ``rewrite_rows`` photos at least
+``rewrite_seconds``. Resuming reads both; a line cut short by a kill is ignored.
 
     ledger = PosesLedger(out_dir, run={"model_path": ..., "queries": ...}, total=50)
     done = ledger.finished()                    # names recorded by any earlier run (or shard)
-    ledger.record(row)                          # after each photo: atomic rewrite
+    ledger.record(row)                          # after each photo: journal, then a due rewrite
     ledger.close()                              # status "complete" once every photo has a row
 
 A row is a JSON mapping with at least ``index`` (the photo's place in the input order), ``name``
@@ -105,8 +108,12 @@ class PosesLedger:
             is refused (LedgerError).
         total: number of photos of the whole run (every shard), for the ``complete`` status.
         shard, num_shards: this process's share of the run.
-        rewrite_rows, rewrite_seconds: poses.json is rewritten after every photo up to this many
-            rows, then at most every ``rewrite_seconds`` (the journal has every row at once).
+        rewrite_rows, rewrite_seconds: beyond this many rows, poses.json is rewritten at most
+            every ``rewrite_seconds`` (the journal has every row at once).
+        min_rewrite_seconds: the least time between two rewrites of poses.json / poses.csv
+            (0: after every photo, as long as ``max_rewrite_share`` allows).
+        max_rewrite_share: the share of the run's time that rewriting may take (the module
+            docstring).
     """
 
     def __init__(
@@ -118,6 +125,8 @@ class PosesLedger:
         num_shards: int = 1,
         rewrite_rows: int = 1000,
         rewrite_seconds: float = 10.0,
+        min_rewrite_seconds: float = 1.0,
+        max_rewrite_share: float = 0.1,
     ):
         if not (isinstance(num_shards, int) and num_shards >= 1):
             raise ValueError(f"num_shards must be a positive int, got {num_shards!r}")
@@ -129,8 +138,19 @@ class PosesLedger:
         self.shard, self.num_shards = shard, num_shards
         self.rows: Dict[str, Dict[str, Any]] = {}  # this process's rows (this shard's)
         self._seen: Dict[str, Dict[str, Any]] = {}  # rows of earlier runs and other shards
+        if not (isinstance(max_rewrite_share, (int, float)) and 0 < max_rewrite_share <= 1):
+            raise ValueError(
+                f"max_rewrite_share must be a number in (0, 1], got {max_rewrite_share!r}"
+            )
         self.rewrite_rows, self.rewrite_seconds = int(rewrite_rows), float(rewrite_seconds)
+        if not (isinstance(min_rewrite_seconds, (int, float)) and min_rewrite_seconds >= 0):
+            raise ValueError(
+                f"min_rewrite_seconds must be a number >= 0, got {min_rewrite_seconds!r}"
+            )
+        self.max_rewrite_share = float(max_rewrite_share)
+        self.min_rewrite_seconds = float(min_rewrite_seconds)
         self._last_write = float("-inf")
+        self._write_cost = 0.0  # seconds the last rewrite took
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self._load()
 
@@ -278,9 +298,14 @@ class PosesLedger:
 
     def flush(self) -> None:
         """Write poses.json / poses.csv (and this shard's part) now."""
+        t = time.monotonic()
+        self._flush()
+        self._last_write = time.monotonic()
+        self._write_cost = self._last_write - t
+
+    def _flush(self) -> None:
         if self.num_shards == 1:
             self._write_merged()
-            self._last_write = time.monotonic()
             return
         mine = sorted(self.rows.values(), key=lambda r: (r.get("index", 0), r["name"]))
         part = self._document(mine, status="running")
@@ -306,7 +331,13 @@ class PosesLedger:
                         if r["name"] not in self.rows:
                             self._seen[r["name"]] = r
             self._write_merged()
-        self._last_write = time.monotonic()
+
+    def _rewrite_due(self) -> bool:
+        n = len(self.rows) + len(self._seen)
+        wait = max(self.min_rewrite_seconds, self._write_cost / self.max_rewrite_share)
+        if n > self.rewrite_rows:
+            wait = max(wait, self.rewrite_seconds)
+        return time.monotonic() - self._last_write >= wait
 
     def record(self, row: Dict[str, Any]) -> None:
         """Add one photo's row.
@@ -323,8 +354,7 @@ class PosesLedger:
         self._append_journal(row)
         self.rows[row["name"]] = row
         self._seen.pop(row["name"], None)
-        n = len(self.rows) + len(self._seen)
-        if n <= self.rewrite_rows or time.monotonic() - self._last_write >= self.rewrite_seconds:
+        if self._rewrite_due():
             self.flush()
 
     def close(self) -> Dict[str, Any]:

@@ -69,6 +69,8 @@ class TrackingConfig:
             ``RobustConfig.verify_geometric``); the full method only when its verdict is not
             ``ok``.
         prefetch: frames decoded ahead in a second thread (0: none).
+        look_ahead: that thread also makes each frame's query and the matcher's features of it
+            (``Localizer.prepare``) while the frame before is localized (needs ``prefetch``).
     """
 
     velocity: bool = True
@@ -81,11 +83,12 @@ class TrackingConfig:
     fast_mutual_nn: Optional[float] = 0.82
     fast_subpixel_iterations: int = 0
     prefetch: int = 4
+    look_ahead: bool = True
 
     def __post_init__(self):
         from ..checks import check_bool, check_int, check_real
 
-        for name in ("velocity", "relocalize", "fast"):
+        for name in ("velocity", "relocalize", "fast", "look_ahead"):
             check_bool(getattr(self, name), f"tracking.{name}")
         check_int(self.fast_rounds, "tracking.fast_rounds", 1)
         check_real(self.fast_stop_deg, "tracking.fast_stop_deg", 0.0, lo_open=True)
@@ -245,14 +248,16 @@ class TrackingSummary:
         return None if self.done_now == 0 or self.seconds <= 0 else self.done_now / self.seconds
 
 
-def prefetched(frames: Iterable, ahead: int) -> Iterator:
+def prefetched(frames: Iterable, ahead: int, prepare: Optional[Callable[[Any], Any]] = None
+               ) -> Iterator:
     """``frames``, decoded up to ``ahead`` items in advance in a second thread (0: as they are).
 
-    Decoding (OpenCV, PIL) runs outside the GIL, beside the localization of the previous frame.
-    An error of the reader is raised where the frame would have been.
+    Decoding (OpenCV, PIL) runs outside the GIL, beside the localization of the previous frame;
+    so does ``prepare`` (item -> item) when given. An error of the reader is raised where the
+    frame would have been.
     """
     if ahead <= 0:
-        yield from frames
+        yield from frames if prepare is None else map(prepare, frames)
         return
     q: "queue.Queue" = queue.Queue(maxsize=ahead)
     done = object()
@@ -261,6 +266,8 @@ def prefetched(frames: Iterable, ahead: int) -> Iterator:
     def read():
         try:
             for item in frames:
+                if prepare is not None and not stop.is_set():
+                    item = prepare(item)
                 while not stop.is_set():
                     try:
                         q.put(("item", item), timeout=0.1)
@@ -309,6 +316,33 @@ class _Tracker:
         self.relocalized = 0
         self.fast_ok = 0
 
+    def _fast_method(self, query: Query):
+        """The tracking mode's cheap config for ``query`` (None: not used)."""
+        loc = self.worker.localizer
+        side = loc.method.work_side or loc.model_side or max(query.size)
+        return self.cfg.fast_method(loc.method, min(side, max(query.size)), loc.matcher)
+
+    def _query(self, name: str, rgb: np.ndarray) -> Tuple[Intrinsics, Query]:
+        intr = self.intrinsics_of((int(rgb.shape[1]), int(rgb.shape[0])))
+        return intr, _query(rgb, intr, name, self.worker.setup.resize)
+
+    def ahead(self, item: Tuple[int, str, np.ndarray]) -> Tuple[int, str, np.ndarray, Any]:
+        """``(index, name, rgb)`` -> ``(index, name, rgb, (intrinsics, query) or None)``.
+
+        In the prefetch thread: the frame's query with the matcher's features of it made ahead
+        (``Localizer.prepare``). None for a frame already done, or a bad one (``frame`` reports it).
+        """
+        index, name, rgb = item
+        if name in self.done:
+            return index, name, rgb, None
+        try:
+            intr, query = self._query(name, rgb)
+            fast = self._fast_method(query)
+            self.worker.localizer.prepare(query, fast)
+            return index, name, rgb, (intr, query)
+        except Exception:  # noqa: BLE001 - the frame itself meets the error again and reports it
+            return index, name, rgb, None
+
     def _localize(self, problem, start: Optional[np.ndarray]):
         """The frame's result from ``start``; a failed one relocalized from the candidates.
 
@@ -317,8 +351,7 @@ class _Tracker:
         worker = self.worker
         result = None
         loc = worker.localizer
-        side = loc.method.work_side or loc.model_side or max(problem.query.size)
-        fast = self.cfg.fast_method(loc.method, min(side, max(problem.query.size)), loc.matcher)
+        fast = self._fast_method(problem.query)
         if fast is not None and start is not None:
             result = loc.localize(problem.query, start, problem.gt_c2w, method=fast)
             self.fast_ok += result.verdict.status == "ok"
@@ -332,8 +365,11 @@ class _Tracker:
                 return again, True
         return result, False
 
-    def frame(self, index: int, name: str, rgb: np.ndarray) -> Dict[str, Any]:
-        """Localize one frame and return its row (a failed row for bad input)."""
+    def frame(self, index: int, name: str, rgb: np.ndarray, prepared=None) -> Dict[str, Any]:
+        """Localize one frame and return its row (a failed row for bad input).
+
+        ``prepared``: ``(intrinsics, query)`` of the frame made ahead (``ahead``), or None.
+        """
         worker = self.worker
         t_frame = time.perf_counter()
         start = predict_c2w(self.history, index, self.cfg.velocity)
@@ -342,8 +378,8 @@ class _Tracker:
         path = self.source.spec if self.source.is_video else str(self.source.paths[index])
         task = PhotoTask(index, name, path, None, None, start, gt)
         try:
-            task.intrinsics = self.intrinsics_of((int(rgb.shape[1]), int(rgb.shape[0])))
-            problem = worker.problem(task, _query(rgb, task.intrinsics, name, worker.setup.resize))
+            task.intrinsics, query = prepared or self._query(name, rgb)
+            problem = worker.problem(task, query)
             result, again = self._localize(problem, start)
             folder, thumb = worker.write_pictures(problem, result, time.perf_counter() - t_frame)
             row = result_row(task, result, worker.scene_scale, time.perf_counter() - t_frame,
@@ -390,11 +426,12 @@ def track(
     if progress is not None:
         progress({"row": None, "counts": ledger.counts(), "done": 0, "skipped": len(tracker.done),
                   "todo": None if total is None else max(0, total - len(tracker.done))})
-    for index, name, rgb in prefetched(source, tracker.cfg.prefetch):
+    ahead = tracker.ahead if tracker.cfg.look_ahead and tracker.cfg.prefetch > 0 else None
+    for index, name, rgb, *prepared in prefetched(source, tracker.cfg.prefetch, ahead):
         if name in tracker.done:
             skipped += 1
             continue
-        row = tracker.frame(index, name, rgb)
+        row = tracker.frame(index, name, rgb, prepared[0] if prepared else None)
         ledger.record(row)
         rows.append(row)
         if progress is not None:

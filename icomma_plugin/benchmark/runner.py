@@ -281,5 +281,5 @@ def _run_one(
     torch.manual_seed(int(np.random.SeedSequence(list(seed)).generate_state(1)[0]))
     localizer = scene.localizer(matcher if method != "compare_only" else None, configs[method],
                                 backend)
-    res = localizer.localize(q.query, None if init is None else init.c2w, q.gt_c2w, hook)
+    res = localizer.localize(q.query.fresh(), None if init is None else init.c2w, q.gt_c2w, hook)
     return _localizer_record(res, scale, spec)

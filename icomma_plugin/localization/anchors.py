@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from ..camera import Intrinsics
-from ..pose.convert import invert_rigid, same_pose
+from ..pose.convert import invert_rigid, same_pose_mask
 from .geometry import lift_keypoints
 
 logger = logging.getLogger(__name__)
@@ -72,6 +72,7 @@ class PhotoAnchors:
         self.photos = list(photos)
         self.background = background.detach().float().cpu()
         self._by_stem = {name_stem(p.name): i for i, p in enumerate(self.photos)}
+        self._c2ws = np.stack([p.c2w for p in self.photos]) if self.photos else np.zeros((0, 4, 4))
         self._images: Dict[Tuple[int, int], Any] = {}
         self._features: Dict[Tuple[int, int], Any] = {}
         self._depth: Dict[Tuple[int, int], Tuple[torch.Tensor, torch.Tensor, Intrinsics]] = {}
@@ -99,7 +100,7 @@ class PhotoAnchors:
         if name is not None and self.index_of(name) is not None:
             out.add(self.index_of(name))
         if gt_c2w is not None:
-            out |= {i for i, p in enumerate(self.photos) if same_pose(p.c2w, gt_c2w)}
+            out |= {int(i) for i in np.flatnonzero(same_pose_mask(self._c2ws, gt_c2w))}
         return frozenset(out)
 
     # ------------------------------------------------------------------ lazily made

@@ -37,7 +37,7 @@ from .candidates import CandidateConfig, CandidateIndex, candidate_intrinsics, u
 from .level_of_detail import ReducedModels, lod_config
 from .icomma import LocalizerConfig
 from .robust import RobustConfig
-from .state import LocalizationState
+from .state import LocalizationState, query_features, scaled_query
 from .types import LocalizationResult, Query, TraceRecord
 from .verify import can_match
 
@@ -252,6 +252,28 @@ class Localizer:
                    verdict=verdict, lod=lod)
 
     # ------------------------------------------------------------------ localize
+    def prepare(self, query: Query, method: Optional[Method] = None) -> Query:
+        """Compute ahead what localizing ``query`` with ``method`` first matches against.
+
+        The matcher's features of the query at the default method's working scale (and the
+        geometric stage's coarse one), kept on the query (``Query.memo``): a localization of it
+        then skips that extraction. Meant for a second thread while the previous photo is being
+        localized (tracking's look-ahead, ``app.tracking``); it renders nothing. Returns ``query``.
+        """
+        if not isinstance(query, Query):
+            raise ValueError(f"query must be a Query, got {type(query).__name__}")
+        cfg = self._method(method).at_model_side(query.intrinsics, self.model_side)
+        if not isinstance(cfg, RobustConfig) or not getattr(self.matcher, "supports_features",
+                                                            False):
+            return query
+        scale = cfg.work_scale(query.intrinsics)
+        coarse = cfg.geometric.coarse_scale
+        with torch.no_grad():
+            for s in {scale, scale * coarse} if coarse < 1.0 else {scale}:
+                query_features(query, scaled_query(query, s, self.model.device, self.model.dtype),
+                               self.matcher)
+        return query
+
     def localize(self, query: Query, init_c2w=None, gt_c2w=None,
                  progress: Optional[Callable[[TraceRecord], Any]] = None,
                  method: Optional[Method] = None) -> LocalizationResult:

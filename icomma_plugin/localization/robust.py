@@ -129,6 +129,10 @@ class RobustConfig:
             return self
         return dataclasses.replace(self, work_side=model_side)
 
+    def work_scale(self, intrinsics: Intrinsics) -> float:
+        """The working scale of a query with ``intrinsics``: its longer side at ``work_side``."""
+        return 1.0 if self.work_side is None else intrinsics.scale_to_side(self.work_side)
+
     def needs(self, matcher) -> Optional[str]:
         """Why this method cannot run with ``matcher`` (None when it can)."""
         if matcher is None or getattr(matcher, "name", None) == "none":
@@ -142,8 +146,7 @@ class RobustConfig:
 
     def run(self, state: LocalizationState, init_w2c: Optional[np.ndarray]) -> MethodOutcome:
         """The default localizer on ``state`` from ``init_w2c`` (None: candidate views alone)."""
-        scale = 1.0 if self.work_side is None else \
-            state.query.intrinsics.scale_to_side(self.work_side)
+        scale = self.work_scale(state.query.intrinsics)
         search = _Search(state, self, scale)
         with state.serving("geometric", reduced=True):
             search.from_start(init_w2c)

@@ -22,10 +22,29 @@ from ..gaussians import GaussianModel
 from ..pose.convert import invert_rigid, rotation_error_deg, translation_error
 from .types import Query, Stage, TraceRecord
 
-__all__ = ["LocalizationState", "Observation"]
+__all__ = ["LocalizationState", "Observation", "query_features", "scaled_query"]
 
 #: Kinds of work timed separately (issue: where does a pose's time go).
 TIMED = ("render", "backward", "matcher", "pnp", "verify", "candidates")
+
+
+def scaled_query(query: Query, scale: float, device=None, dtype=None) -> Query:
+    """``query`` at working ``scale`` (on ``device`` / ``dtype``): what a state matches against."""
+    intr = query.intrinsics if scale == 1.0 else query.intrinsics.scaled(scale)
+    return query.at(intr, device, dtype)
+
+
+def query_features(query: Query, scaled: Query, matcher, quarter_turns: int = 0):
+    """The matcher's features of ``scaled`` (``query`` at a working scale) turned ``quarter_turns``
+    times 90 degrees; kept in ``query.memo``, so computed once per query, size and matcher.
+    """
+    key = ("features", scaled.size, quarter_turns % 4, str(scaled.rgb.device), scaled.rgb.dtype)
+    hit = query.memo.get(key)
+    if hit is not None and hit[0] is matcher:
+        return hit[1]
+    f = matcher.extract(torch.rot90(scaled.rgb, quarter_turns % 4, dims=(1, 2)))
+    query.memo[key] = (matcher, f)  # a dict item: safe to set from a look-ahead thread
+    return f
 
 
 @dataclass
@@ -196,12 +215,12 @@ class LocalizationState:
         """
         q = self._queries.get(scale)
         if q is None:
-            q = self.query.at(self.intrinsics_at(scale), self.model.device, self.model.dtype)
+            q = scaled_query(self.query, scale, self.model.device, self.model.dtype)
             self._queries[scale] = q
         return q
 
     def query_features(self, scale: float, quarter_turns: int = 0):
-        """The matcher's features of the query at ``scale`` (computed once).
+        """The matcher's features of the query at ``scale`` (computed once per query: `query_features`).
 
         ``quarter_turns``: of the query turned by that many times 90 degrees
         (``torch.rot90``, counter-clockwise on screen), for the candidate ranking.
@@ -212,9 +231,8 @@ class LocalizationState:
         key = (scale, quarter_turns % 4)
         f = self._features.get(key)
         if f is None:
-            rgb = torch.rot90(self.query_at(scale).rgb, key[1], dims=(1, 2))
             with self.timed("matcher"):
-                f = self.matcher.extract(rgb)
+                f = query_features(self.query, self.query_at(scale), self.matcher, key[1])
             self._features[key] = f
         return f
 

@@ -60,6 +60,10 @@ class Query:
     valid: ``[1, H, W]`` pixels that are real image content (0 where undistortion filled the
         image from outside the source), or None when every pixel is.
     name: a name for reports.
+
+    A query also keeps the matcher's features of itself once computed (``state.query_features``),
+    so that localizing it again (another start, tracking's fallback) or having them computed
+    ahead in another thread (``Localizer.prepare``) saves the extraction.
     """
 
     rgb: torch.Tensor
@@ -67,6 +71,7 @@ class Query:
     alpha: Optional[torch.Tensor] = None
     valid: Optional[torch.Tensor] = None
     name: str = "query"
+    memo: Dict[Any, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self):
         if not isinstance(self.intrinsics, Intrinsics):
@@ -89,6 +94,11 @@ class Query:
         im = view.load_image(scale=scale, background=bg)
         intr = view.intrinsics if scale == 1.0 else view.intrinsics.scaled(scale)
         return cls(im.rgb, intr, im.alpha, im.valid, str(view.name))
+
+    def fresh(self) -> "Query":
+        """The same photo without what earlier localizations kept (``memo``): a benchmark times
+        each run as if it were the photo's first."""
+        return dataclasses.replace(self)
 
     def resized(self, side: Optional[int]) -> "Query":
         """This query with its longer side at ``side`` px (intrinsics follow); as is for None."""

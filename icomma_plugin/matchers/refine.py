@@ -10,7 +10,7 @@ that property with a fine step of our own:
    bilinear `grid_sample`, integer pixel centres).
 2. An integer search over `(2 window + 1)^2` candidates recentres the keypoint (no gradient).
 3. A soft-argmax step (softmax of NCC / temperature over a `(2 radius + 1)^2` window, LoFTR-fine
-   style) gives a sub-pixel displacement `F(c)`. Newton iterations (J = dF/dc by autograd) find
+   style) gives a sub-pixel displacement `F(c)`. Newton iterations (J = dF/dc in closed form) find
    its fixed point `F(c*) = 0` (no gradient).
 4. The returned position `c* - J^-1 F(c*, render)`, with `J = dF/dc` detached, has the value `c*`
    (plus a last Newton step) and the gradient of the implicit function theorem:
@@ -74,16 +74,29 @@ def _sample(gray: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
     return out[0, 0]
 
 
-def _ncc_scores(render_g, query_g, centre, kpts_query, disp, offs, weights, eps):
+def _ncc_scores(render_g, query_g, centre, kpts_query, disp, offs, weights, eps,
+                grad_centre: bool = False):
     """NCC of render at centre + d/2 + o against query at p - d/2 + o.
 
-    centre, kpts_query: [N, 2]; disp: [D, 2]; offs: [O, 2]; weights: [O] (sum 1) -> [N, D].
+    centre, kpts_query: [N, 2]; disp: [D, 2]; offs: [O, 2]; weights: [O] (sum 1) -> [N, D];
+    with ``grad_centre`` also dNCC/dcentre [N, D, 2] (detached): the NCC's derivative by its
+    samples (closed form) times the samples' by their positions (one backward pass of the
+    bilinear sampling alone, instead of two through the whole step).
     """
     n, d, o = centre.shape[0], disp.shape[0], offs.shape[0]
     half = 0.5 * disp.view(1, d, 1, 2)
-    pos_r = centre.view(n, 1, 1, 2) + half + offs.view(1, 1, o, 2)
+    pos_r = (centre.view(n, 1, 1, 2) + half + offs.view(1, 1, o, 2)).reshape(n, d * o, 2)
     pos_q = kpts_query.view(n, 1, 1, 2) - half + offs.view(1, 1, o, 2)
-    a = _sample(render_g, pos_r.reshape(n, d * o, 2)).view(n, d, o)
+    if grad_centre:  # the samples' derivative by their positions, from the render as a constant
+        pos_leaf = pos_r.detach().requires_grad_(True)
+        with torch.enable_grad():
+            a = _sample(render_g.detach(), pos_leaf)
+            da_dpos = torch.autograd.grad(a.sum(), pos_leaf)[0]
+        # the step's own gradient reaches the render through samples at fixed positions
+        a = _sample(render_g, pos_r.detach()) if render_g.requires_grad else a.detach()
+    else:
+        a = _sample(render_g, pos_r)
+    a = a.view(n, d, o)
     b = _sample(query_g, pos_q.reshape(n, d * o, 2)).view(n, d, o)
     wts = weights.view(1, 1, o)
     a = a - (a * wts).sum(-1, keepdim=True)
@@ -91,7 +104,15 @@ def _ncc_scores(render_g, query_g, centre, kpts_query, disp, offs, weights, eps)
     cov = (a * b * wts).sum(-1)
     var_a = (a * a * wts).sum(-1)
     var_b = (b * b * wts).sum(-1)
-    return cov / torch.sqrt(var_a * var_b + eps)
+    den = torch.sqrt(var_a * var_b + eps)
+    s = cov / den
+    if not grad_centre:
+        return s
+    with torch.no_grad():  # d s / d a_o = w_o (b_o - cov var_b a_o / den^2) / den (centred a, b)
+        a, cov, den = a.detach(), cov.detach(), den.detach()
+        ds_da = wts * (b - (cov * var_b / (den * den)).unsqueeze(-1) * a) / den.unsqueeze(-1)
+        ds_dc = (ds_da.unsqueeze(-1) * da_dpos.view(n, d, o, 2)).sum(2)
+    return s, ds_dc
 
 
 def _integer_search(render_g, query_g, centre, kpts_query, window, patch, offs, weights, eps):
@@ -128,11 +149,24 @@ def _integer_search(render_g, query_g, centre, kpts_query, window, patch, offs, 
     return centre + d
 
 
-def _soft_step(render_g, query_g, centre, kpts_query, disp, offs, weights, eps, temperature):
-    """Soft-argmax displacement F(centre) [N, 2] and the NCC at d = 0 [N]."""
-    s = _ncc_scores(render_g, query_g, centre, kpts_query, disp, offs, weights, eps)
+def _soft_step(render_g, query_g, centre, kpts_query, disp, offs, weights, eps, temperature,
+               jacobian: bool = False):
+    """Soft-argmax displacement F(centre) [N, 2] and the NCC at d = 0 [N].
+
+    With ``jacobian`` also J = dF/dcentre [N, 2, 2] (``J[n, i, j] = dF_i / dc_j``, detached):
+    with p = softmax(s / T), dF/dc = sum_d p_d (d - F) (ds_d/dc)^T / T.
+    """
+    out = _ncc_scores(render_g, query_g, centre, kpts_query, disp, offs, weights, eps, jacobian)
+    s, ds_dc = out if jacobian else (out, None)
     prob = torch.softmax(s / temperature, dim=-1)
-    return prob @ disp, s[:, disp.shape[0] // 2]
+    step = prob @ disp
+    centre_score = s[:, disp.shape[0] // 2]
+    if not jacobian:
+        return step, centre_score
+    with torch.no_grad():
+        spread = disp.unsqueeze(0) - step.detach().unsqueeze(1)  # [N, D, 2]
+        jac = torch.einsum("nd,ndi,ndj->nij", prob.detach(), spread, ds_dc) / temperature
+    return step, centre_score, jac
 
 
 def _step(render_g, query_g, centre, kpts_query, disp, offs, weights, eps, temperature, implicit,
@@ -146,27 +180,24 @@ def _step(render_g, query_g, centre, kpts_query, disp, offs, weights, eps, tempe
     The value of delta is clamped to the soft window; its gradient w.r.t. the render is kept.
     """
     n = centre.shape[0]
-    c = centre.detach().clone().requires_grad_(implicit)
-    with torch.enable_grad():
-        step, score = _soft_step(render_g, query_g, c, kpts_query, disp, offs, weights, eps,
-                                 temperature)
-        if not implicit:
-            delta = step
-        else:
-            rows = [
-                torch.autograd.grad(step[:, i].sum(), c, retain_graph=True)[0] for i in range(2)
-            ]
-            m = -torch.stack(rows, dim=1).detach()  # [N, 2, 2] = -dF/dc
-            sv_min = torch.linalg.svdvals(m)[:, -1]
-            good = sv_min > 0.05
-            eye = torch.eye(2, device=c.device, dtype=c.dtype).expand(n, 2, 2)
-            inv = torch.linalg.inv(torch.where(good.view(n, 1, 1), m, eye))
-            a_mat = torch.where(good.view(n, 1, 1), inv, eye)
-            newton = (a_mat @ step.detach().unsqueeze(-1)).squeeze(-1)
-            # a Newton step against the soft-argmax step would leave the basin: plain step there
-            good = good & ((newton * step.detach()).sum(-1) > 0)
-            a_mat = torch.where(good.view(n, 1, 1), a_mat, eye)
-            delta = (a_mat @ step.unsqueeze(-1)).squeeze(-1)
+    c = centre.detach()
+    if not implicit:
+        delta, score = _soft_step(render_g, query_g, c, kpts_query, disp, offs, weights, eps,
+                                  temperature)
+    else:
+        step, score, jac = _soft_step(render_g, query_g, c, kpts_query, disp, offs, weights, eps,
+                                      temperature, jacobian=True)
+        m = -jac  # [N, 2, 2] = -dF/dc
+        sv_min = torch.linalg.svdvals(m)[:, -1]
+        good = sv_min > 0.05
+        eye = torch.eye(2, device=c.device, dtype=c.dtype).expand(n, 2, 2)
+        inv = torch.linalg.inv(torch.where(good.view(n, 1, 1), m, eye))
+        a_mat = torch.where(good.view(n, 1, 1), inv, eye)
+        newton = (a_mat @ step.detach().unsqueeze(-1)).squeeze(-1)
+        # a Newton step against the soft-argmax step would leave the basin: plain step there
+        good = good & ((newton * step.detach()).sum(-1) > 0)
+        a_mat = torch.where(good.view(n, 1, 1), a_mat, eye)
+        delta = (a_mat @ step.unsqueeze(-1)).squeeze(-1)
     limit = float(radius)
     delta = delta + (delta.detach().clamp(-limit, limit) - delta.detach())
     return delta, score.detach()

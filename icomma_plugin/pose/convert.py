@@ -34,6 +34,7 @@ __all__ = [
     "cameras_extent",
     "rigid_problem",
     "same_pose",
+    "same_pose_mask",
 ]
 
 
@@ -407,3 +408,8 @@ SAME_POSE_ATOL = 1e-5
 def same_pose(c2w_a: np.ndarray, c2w_b: np.ndarray) -> bool:
     """Whether two camera-to-world poses are the same camera (`SAME_POSE_ATOL`)."""
     return bool(np.allclose(c2w_a, c2w_b, atol=SAME_POSE_ATOL))
+
+
+def same_pose_mask(c2ws: np.ndarray, c2w: np.ndarray) -> np.ndarray:
+    """`same_pose` of each of the [N, 4, 4] ``c2ws`` with ``c2w``, in one pass: a bool [N]."""
+    return np.isclose(c2ws, c2w, atol=SAME_POSE_ATOL).all(axis=(-2, -1))

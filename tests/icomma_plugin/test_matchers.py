@@ -295,6 +295,38 @@ def test_refine_is_exact_on_a_shifted_copy(shift):
     assert float(err.median()) < 0.03
 
 
+def test_refine_jacobian_in_closed_form_matches_finite_differences():
+    """dF/dc of the soft-argmax step (closed form, the Newton steps' J) against central
+    differences of F in float64, and against autograd through the whole step."""
+    from icomma_plugin.matchers.refine import _offset_grid, _soft_step, _to_gray
+
+    dt = torch.float64
+    query = _to_gray(texture(96, 96).to(dt), 1.0)
+    render = _to_gray(texture(96, 96, (1.3, -0.7)).to(dt), 1.0)
+    kq = _grid_points(40, 20, 76).to(dt)
+    g = torch.Generator().manual_seed(5)
+    centre = kq + torch.tensor([1.3, -0.7], dtype=dt) + 0.8 * (torch.rand(kq.shape, generator=g,
+                                                                            dtype=dt) - 0.5)
+    offs = _offset_grid(5, "cpu", dt)
+    w = torch.exp(-(offs * offs).sum(-1) / 18.0)
+    w = w / w.sum()
+    disp = _offset_grid(1, "cpu", dt)
+    args = (render, query)
+    rest = (kq, disp, offs, w, 1e-8, 0.05)
+    _, _, jac = _soft_step(*args, centre, *rest, jacobian=True)
+    h = 1e-5
+    fd = torch.stack([(_soft_step(*args, centre + h * e, *rest)[0]
+                       - _soft_step(*args, centre - h * e, *rest)[0]) / (2 * h)
+                      for e in torch.eye(2, dtype=dt)], dim=-1)  # [N, i, j] = dF_i / dc_j
+    assert torch.allclose(jac, fd, atol=1e-5 * float(fd.abs().max()), rtol=1e-4)
+    c = centre.clone().requires_grad_(True)
+    step = _soft_step(*args, c, *rest)[0]
+    auto = torch.stack([torch.autograd.grad(step[:, i].sum(), c, retain_graph=True)[0]
+                        for i in range(2)], dim=1)
+    assert torch.allclose(jac, auto, atol=1e-9)
+    assert float(jac.abs().max()) > 0.1  # a real signal, not two zeros agreeing
+
+
 def test_refine_gradient_reaches_render_and_follows_translation():
     query = texture(96, 96).detach()
     shift = torch.tensor([1.3, -0.7], dtype=torch.float64, requires_grad=True)

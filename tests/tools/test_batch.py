@@ -411,6 +411,42 @@ def test_journal_keeps_every_row_between_rewrites(tmp_path):
         PosesLedger(tmp_path, dict(run, model_path="/other"), total=5)
 
 
+@pytest.mark.parametrize("least, share, every", [(0, 0.1, 20), (0, 0.5, 4), (0, 1.0, 2),
+                                                  (0.4, 1.0, 2), (3, 1.0, 6)])
+def test_rewrites_take_a_bounded_share_of_the_run(tmp_path, monkeypatch, least, share, every):
+    """poses.json is rewritten once the time since the last rewrite is 1/share times its cost.
+
+    And at least ``min_rewrite_seconds`` since. A fake clock: every rewrite takes 1 s, every
+    photo 0.5 s; the journal still has every row.
+    """
+    import icomma_plugin.app.ledger as ledger_mod
+
+    clock = [0.0]
+    monkeypatch.setattr(ledger_mod.time, "monotonic", lambda: clock[0])
+    led = PosesLedger(tmp_path, {"kind": "batch", "model_path": "/m", "queries": "/q"},
+                      total=41, min_rewrite_seconds=least, max_rewrite_share=share)
+    writes = []
+    real = led._write_merged
+
+    def timed_write():
+        writes.append(len(led.rows))
+        real()
+        clock[0] += 1.0
+
+    monkeypatch.setattr(led, "_write_merged", timed_write)
+    for i in range(41):
+        clock[0] += 0.5
+        led.record({"index": i, "name": f"p{i}.png", "status": "ok"})
+    assert writes == list(range(1, 42, every))
+    assert len((tmp_path / "poses.jsonl").read_text().splitlines()) == 42  # run line + 41 rows
+    led.close()
+    assert json.loads((tmp_path / "poses.json").read_text())["done"] == 41
+    with pytest.raises(ValueError, match="max_rewrite_share must be a number in"):
+        PosesLedger(tmp_path / "x", {"kind": "batch"}, total=1, max_rewrite_share=0)
+    with pytest.raises(ValueError, match="min_rewrite_seconds must be a number >= 0"):
+        PosesLedger(tmp_path / "x", {"kind": "batch"}, total=1, min_rewrite_seconds=-1)
+
+
 # ------------------------------------------------------------- the candidate index (issue 16)
 
 FOCAL_FACTORS = (0.95, 1.0, 1.05)  # per-image focal lengths ~10 % apart, as COLMAP gives

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import threading
 from types import SimpleNamespace
 
 import numpy as np
@@ -261,6 +262,44 @@ def test_tracking_a_path_from_a_folder_of_frames(path_scene, tmp_path):
         pred, gt = np.asarray(r["predicted_c2w"]), np.asarray(gts[r["name"]])
         assert rotation_error_deg(pred, gt) < 0.5
     assert (out / "trajectory.png").is_file() and not (out / "tracking.mp4").exists()
+
+
+def test_look_ahead_extracts_each_frame_in_the_prefetch_thread(path_scene, tmp_path, monkeypatch):
+    """With tracking.look_ahead the query's features of every frame are made in the prefetch
+    thread (``Localizer.prepare``), and the localization uses them: the main thread extracts
+    only renders. Without it, none there; the poses are the same either way.
+    """
+    from icomma_plugin.matchers.base import Matcher
+
+    threads = []
+    extract = Matcher.extract
+
+    def recorded(self, image):
+        threads.append(threading.current_thread().name)
+        return extract(self, image)
+
+    monkeypatch.setattr(Matcher, "extract", recorded)
+    docs, main = {}, {}
+    for look_ahead in (True, False):
+        threads.clear()
+        out = tmp_path / f"out_{look_ahead}"
+        docs[look_ahead] = localize_tool().run(
+            compose(_args(path_scene, out, f"data.sequence={path_scene['frames']}",
+                          "output.video=false", "output.trajectory_plot=false",
+                          f"tracking.look_ahead={str(look_ahead).lower()}")),
+            out,
+        )
+        ahead = threads.count("frame-prefetch")
+        assert ahead == (N_FRAMES if look_ahead else 0), threads
+        main[look_ahead] = threads.count("MainThread")
+        rows = docs[look_ahead]["photos"]
+        assert all(r["status"] == "ok" for r in rows), [r["reason"] for r in rows]
+    # the main thread extracted the renders alone: the query's features came from the memo
+    assert main[True] == main[False] - N_FRAMES
+    a, b = docs[True]["photos"], docs[False]["photos"]
+    assert [r["name"] for r in a] == [r["name"] for r in b]
+    for ra, rb in zip(a, b):
+        assert np.allclose(ra["c2w"], rb["c2w"], atol=1e-9), ra["name"]
 
 
 def test_tracking_an_mp4_every_second_frame_with_its_video(path_scene, tmp_path):

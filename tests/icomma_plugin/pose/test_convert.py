@@ -225,3 +225,21 @@ def test_rotation_error_is_well_conditioned_near_zero_and_on_float32_rotations()
     assert float(rotation_error_deg(R32, R)) < 1e-4
     flip = R @ np.diag([1.0, -1.0, -1.0])  # a half turn about the camera's x axis
     assert np.isclose(float(rotation_error_deg(flip, R)), 180.0)
+
+
+def test_same_pose_mask_agrees_with_same_pose():
+    """The vectorised test gives `same_pose` of each pose, near the tolerance too."""
+    from icomma_plugin.pose.convert import SAME_POSE_ATOL, same_pose, same_pose_mask
+
+    ref = np.eye(4)
+    ref[:3, 3] = [0.1, 0.2, 0.3]
+    c2ws = np.repeat(ref[None], 6, axis=0)
+    c2ws[1, 0, 3] += 0.5 * SAME_POSE_ATOL  # within
+    c2ws[2, 1, 3] += 3.0 * SAME_POSE_ATOL  # beyond (plus the relative 1e-5 of 0.2)
+    c2ws[3, 0, 1] += 1e-3
+    c2ws[4] = np.eye(4)
+    mask = same_pose_mask(c2ws, ref)
+    assert mask.dtype == bool and mask.shape == (6,)
+    assert mask.tolist() == [same_pose(c, ref) for c in c2ws] == [True, True, False, False, False,
+                                                                  True]
+    assert same_pose_mask(np.zeros((0, 4, 4)), ref).shape == (0,)
