@@ -35,8 +35,10 @@ def scaled_query(query: Query, scale: float, device=None, dtype=None) -> Query:
 
 
 def query_features(query: Query, scaled: Query, matcher, quarter_turns: int = 0):
-    """The matcher's features of ``scaled`` (``query`` at a working scale) turned ``quarter_turns``
-    times 90 degrees; kept in ``query.memo``, so computed once per query, size and matcher.
+    """The matcher's features of ``scaled``, ``query`` at a working scale (computed once).
+
+    Turned ``quarter_turns`` times 90 degrees; kept in ``query.memo``, so computed once per
+    query, size and matcher.
     """
     key = ("features", scaled.size, quarter_turns % 4, str(scaled.rgb.device), scaled.rgb.dtype)
     hit = query.memo.get(key)
@@ -220,7 +222,7 @@ class LocalizationState:
         return q
 
     def query_features(self, scale: float, quarter_turns: int = 0):
-        """The matcher's features of the query at ``scale`` (computed once per query: `query_features`).
+        """The matcher's features of the query at ``scale`` (once per query: `query_features`).
 
         ``quarter_turns``: of the query turned by that many times 90 degrees
         (``torch.rot90``, counter-clockwise on screen), for the candidate ranking.

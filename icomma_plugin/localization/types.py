@@ -96,8 +96,10 @@ class Query:
         return cls(im.rgb, intr, im.alpha, im.valid, str(view.name))
 
     def fresh(self) -> "Query":
-        """The same photo without what earlier localizations kept (``memo``): a benchmark times
-        each run as if it were the photo's first."""
+        """The same photo without what earlier localizations kept (``memo``).
+
+        A benchmark times each run as if it were the photo's first.
+        """
         return dataclasses.replace(self)
 
     def resized(self, side: Optional[int]) -> "Query":

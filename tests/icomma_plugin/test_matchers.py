@@ -296,8 +296,10 @@ def test_refine_is_exact_on_a_shifted_copy(shift):
 
 
 def test_refine_jacobian_in_closed_form_matches_finite_differences():
-    """dF/dc of the soft-argmax step (closed form, the Newton steps' J) against central
-    differences of F in float64, and against autograd through the whole step."""
+    """dF/dc of the soft-argmax step in closed form (the Newton steps' J).
+
+    Against central differences of F in float64, and against autograd through the whole step.
+    """
     from icomma_plugin.matchers.refine import _offset_grid, _soft_step, _to_gray
 
     dt = torch.float64

@@ -265,9 +265,10 @@ def test_tracking_a_path_from_a_folder_of_frames(path_scene, tmp_path):
 
 
 def test_look_ahead_extracts_each_frame_in_the_prefetch_thread(path_scene, tmp_path, monkeypatch):
-    """With tracking.look_ahead the query's features of every frame are made in the prefetch
-    thread (``Localizer.prepare``), and the localization uses them: the main thread extracts
-    only renders. Without it, none there; the poses are the same either way.
+    """With tracking.look_ahead the prefetch thread makes the query's features of every frame.
+
+    The localization uses them (``Localizer.prepare``): the main thread extracts only
+    renders. Without it, none there; the poses are the same either way.
     """
     from icomma_plugin.matchers.base import Matcher
 
