@@ -163,11 +163,14 @@ def plot_trajectory(
     if len(cams):
         a3.scatter(cams[:, 0], cams[:, 1], cams[:, 2], s=8, c="0.6", label=names["cameras"])
         a2.scatter(cams[:, ax_a], cams[:, ax_b], s=8, c="0.6", label=names["cameras"])
-        for c in cameras_c2w:
-            c = np.asarray(c)
-            p, d = c[:3, 3], c[:3, 2] * scale
-            a3.plot([p[0], p[0] + d[0]], [p[1], p[1] + d[1]], [p[2], p[2] + d[2]], c="0.7", lw=0.6)
-            a2.plot([p[ax_a], p[ax_a] + d[ax_a]], [p[ax_b], p[ax_b] + d[ax_b]], c="0.7", lw=0.6)
+        # the viewing directions as one collection per view (one artist, not two per camera)
+        from matplotlib.collections import LineCollection
+        from mpl_toolkits.mplot3d.art3d import Line3DCollection
+
+        ends = cams + np.array([np.asarray(c)[:3, 2] for c in cameras_c2w]).reshape(-1, 3) * scale
+        segs = np.stack([cams, ends], axis=1)  # [N, 2, 3]
+        a3.add_collection3d(Line3DCollection(segs, colors="0.7", linewidths=0.6))
+        a2.add_collection(LineCollection(segs[:, :, [ax_a, ax_b]], colors="0.7", linewidths=0.6))
     if gts is not None and len(gts):
         a3.plot(gts[:, 0], gts[:, 1], gts[:, 2], "k--", lw=1, label=names["truth"])
         a2.plot(gts[:, ax_a], gts[:, ax_b], "k--", lw=1, label=names["truth"])
