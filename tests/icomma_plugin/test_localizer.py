@@ -189,3 +189,31 @@ def test_a_stored_calibration_of_the_model_is_its_verdict(demo, xfeat, tmp_path)
     other = Localizer(model, xfeat, SMALL, verdict=tmp_path / "calibration" /
                       next((tmp_path / "calibration").iterdir()).name, cache_dir=False)
     assert other.method.verdict == strict
+
+
+def test_prepared_features_are_used_and_a_fresh_query_has_none(demo, xfeat, monkeypatch):
+    """``prepare`` extracts the query's features once; localizing that query extracts renders.
+
+    A ``fresh()`` copy extracts the query again, and the pose is the same.
+    """
+    scene, model, cams = demo
+    loc = Localizer(model, xfeat, SMALL, cameras=cams)
+    start = perturb_pose(scene.gt_c2w, 5.0, 0.02, np.random.default_rng(0))
+    calls = []
+    extract = type(xfeat).extract
+
+    def counted(self, image):
+        calls.append(tuple(image.shape))
+        return extract(self, image)
+
+    monkeypatch.setattr(type(xfeat), "extract", counted)
+    q = _query(scene)
+    assert loc.prepare(q) is q and len(calls) == 1 and len(q.memo) == 1
+    a = loc.localize(q, start)
+    in_localize = len(calls) - 1
+    b = loc.localize(q.fresh(), start)
+    assert len(calls) - 1 - in_localize == in_localize + 1  # the fresh copy extracts the query
+    assert a.verdict.status == b.verdict.status == "ok"
+    assert np.allclose(a.c2w, b.c2w, atol=1e-9)
+    with pytest.raises(ValueError, match="query must be a Query"):
+        loc.prepare("photo.png")
