@@ -99,6 +99,10 @@ class GeometricConfig:
     coarse_scale: float = 1.0
     coarse_until_deg: float = 2.0
 
+    def first_scale(self, scale: float) -> float:
+        """The scale the first rounds render and match at, for a working ``scale``."""
+        return scale * self.coarse_scale if self.coarse_scale < 1.0 else scale
+
     def __post_init__(self):
         n = "GeometricConfig."
         check_int(self.max_rounds, n + "max_rounds", 1)
@@ -217,7 +221,7 @@ def run_geometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Geometri
     first_inliers, start_cov, converged = 0, 0.0, False
     inliers_per_round: List[int] = []
     rounds = 0
-    level = scale * cfg.coarse_scale if cfg.coarse_scale < 1.0 else scale
+    level = cfg.first_scale(scale)
     for r in range(cfg.max_rounds):
         rounds = r + 1
         obs = state.observe(w2c, level)

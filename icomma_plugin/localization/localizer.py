@@ -267,9 +267,8 @@ class Localizer:
                                                             False):
             return query
         scale = cfg.work_scale(query.intrinsics)
-        coarse = cfg.geometric.coarse_scale
         with torch.no_grad():
-            for s in {scale, scale * coarse} if coarse < 1.0 else {scale}:
+            for s in {scale, cfg.geometric.first_scale(scale)}:
                 query_features(query, scaled_query(query, s, self.model.device, self.model.dtype),
                                self.matcher)
         return query

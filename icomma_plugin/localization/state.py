@@ -112,7 +112,6 @@ class LocalizationState:
     seconds: Dict[str, float] = field(default_factory=lambda: defaultdict(float))
     cpu_seconds: Dict[str, float] = field(default_factory=lambda: defaultdict(float))
     _queries: Dict[float, Query] = field(default_factory=dict)
-    _features: Dict[Tuple[float, int], Any] = field(default_factory=dict)
     steps: int = 0  # trace records made so far (also when the trace is not kept)
 
     def __post_init__(self):
@@ -230,13 +229,8 @@ class LocalizationState:
         """
         if self.matcher is None or not getattr(self.matcher, "supports_features", False):
             return None
-        key = (scale, quarter_turns % 4)
-        f = self._features.get(key)
-        if f is None:
-            with self.timed("matcher"):
-                f = query_features(self.query, self.query_at(scale), self.matcher, key[1])
-            self._features[key] = f
-        return f
+        with self.timed("matcher"):
+            return query_features(self.query, self.query_at(scale), self.matcher, quarter_turns)
 
     # ------------------------------------------------------------------ render / match
     def render(self, w2c, scale: float = 1.0, intrinsics: Optional[Intrinsics] = None):

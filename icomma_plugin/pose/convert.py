@@ -407,7 +407,7 @@ SAME_POSE_ATOL = 1e-5
 
 def same_pose(c2w_a: np.ndarray, c2w_b: np.ndarray) -> bool:
     """Whether two camera-to-world poses are the same camera (`SAME_POSE_ATOL`)."""
-    return bool(np.allclose(c2w_a, c2w_b, atol=SAME_POSE_ATOL))
+    return bool(same_pose_mask(np.asarray(c2w_a)[None], c2w_b)[0])
 
 
 def same_pose_mask(c2ws: np.ndarray, c2w: np.ndarray) -> np.ndarray:
