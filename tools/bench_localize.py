@@ -480,6 +480,31 @@ def ratios(records: List[Dict[str, Any]], rows: List[Dict[str, Any]]) -> List[Di
 # ----------------------------------------------------------------------------------------------
 # Against other code (--compare-with)
 # ----------------------------------------------------------------------------------------------
+#: Options a reference run does not take: its own output, no nested reference, --quick (already
+#: folded into --starts), and per-render timings (not compared).
+_NOT_FORWARDED = ("help", "out", "compare_with", "quick", "render_repeats")
+#: Options always passed; the others only when they differ from their default, so that a
+#: reference checkout older than an option still runs when the option is not used.
+_ALWAYS_FORWARDED = ("scenes", "methods", "starts", "paper_starts", "seed", "queries", "model",
+                     "matcher", "backend", "paper_max_iterations", "threads", "rot", "trans")
+
+
+def reference_command(args, script: Path, out: Path) -> List[str]:
+    """The command line of the reference run: every option of this run that shapes the starts,
+    the scenes and the method (all but ``_NOT_FORWARDED``)."""
+    cmd = [sys.executable, str(script), "--out", str(out)]
+    for action in build_parser()._actions:
+        name = action.dest
+        if not action.option_strings or name in _NOT_FORWARDED:
+            continue
+        value = getattr(args, name)
+        if value is None or (name not in _ALWAYS_FORWARDED and value == action.default):
+            continue
+        text = ",".join(map(str, value)) if isinstance(value, (list, tuple)) else str(value)
+        cmd += [action.option_strings[0], text]
+    return cmd
+
+
 def run_reference(args, out: Path) -> Dict[str, Any]:
     """Run ``args.compare_with``'s bench_localize on the same starts; its results.json.
 
@@ -490,16 +515,7 @@ def run_reference(args, out: Path) -> Dict[str, Any]:
     script = ref / "tools" / "bench_localize.py"
     if not script.is_file():
         raise FileNotFoundError(f"--compare-with: no tools/bench_localize.py in {ref}")
-    cmd = [sys.executable, str(script), "--out", str(out)]
-    for name in ("scenes", "methods"):
-        cmd += [f"--{name}", ",".join(getattr(args, name))]
-    for name in ("starts", "paper_starts", "seed", "queries", "model", "matcher", "backend",
-                 "paper_max_iterations", "threads"):
-        if getattr(args, name) is not None:
-            cmd += [f"--{name.replace('_', '-')}", str(getattr(args, name))]
-    cmd += ["--rot", ",".join(map(str, args.rot)), "--trans", ",".join(map(str, args.trans))]
-    if args.dataset:
-        cmd += ["--dataset", str(args.dataset)]
+    cmd = reference_command(args, script, out)
     env = dict(os.environ, PYTHONPATH=str(ref))
     log(f"reference run: {' '.join(cmd)} (PYTHONPATH={ref})")
     t = time.perf_counter()

@@ -15,6 +15,8 @@ poses called ``ok`` there were right (< 5 deg, < 0.05).
 """
 from __future__ import annotations
 
+import dataclasses
+
 import math
 from dataclasses import asdict, dataclass
 from typing import Any, Dict, Optional, Tuple
@@ -174,6 +176,12 @@ class VerdictConfig:
             check_real(getattr(self, name), f"VerdictConfig.{name}", 0.0, 1.0)
         for name in ("ok_inliers", "fail_inliers"):
             check_int(getattr(self, name), f"VerdictConfig.{name}", 0)
+
+    def pixels_scaled(self, factor: float) -> "VerdictConfig":
+        """These thresholds with their pixel ones (``*_px``) multiplied by ``factor``."""
+        return dataclasses.replace(self, inlier_px=self.inlier_px * factor,
+                                   ok_median_px=self.ok_median_px * factor,
+                                   ok_mean_px=self.ok_mean_px * factor)
 
 
 def decide(score: Optional[PoseScore], cfg: VerdictConfig, converged: Optional[bool] = None,

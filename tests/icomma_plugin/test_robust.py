@@ -353,6 +353,50 @@ def test_a_photo_sharper_than_the_model_is_worked_at_the_model_resolution(demo, 
     assert res.rot_err_deg < 0.5 and res.verdict.status == "ok"
 
 
+def test_above_the_model_resolution_poses_are_judged_in_the_model_pixels():
+    from icomma_plugin.camera import Intrinsics
+    from icomma_plugin.localization.robust import RobustConfig
+
+    intr = Intrinsics(800, 600, 700.0, 700.0)
+    cfg = RobustConfig(work_side=800)
+    at = cfg.at_model_side(intr, 200)  # 4x the model's side: its pixels are 4 of ours
+    assert (at.verdict.inlier_px, at.verdict.ok_median_px, at.verdict.ok_mean_px) == (8.0, 4.0,
+                                                                                     3.2)
+    assert at.geometric.inlier_px == 8.0 and at.rollback_median_px == 2.0
+    # counts, shares and everything else stay; the caller's config is untouched
+    assert at.verdict.ok_inliers == cfg.verdict.ok_inliers and at.verdict.ok_ratio == 0.5
+    assert at.geometric.ransac_px == cfg.geometric.ransac_px and at.work_side == 800
+    assert cfg.verdict.inlier_px == 2.0 and cfg.geometric.inlier_px == 2.0
+    # at or below the model's side nothing changes; without a work side it works at the model's
+    assert RobustConfig(work_side=200).at_model_side(intr, 200) == RobustConfig(work_side=200)
+    assert RobustConfig(work_side=100).at_model_side(intr, 200) == RobustConfig(work_side=100)
+    assert RobustConfig().at_model_side(intr, 200) == RobustConfig(work_side=200)
+    assert RobustConfig(work_side=800).at_model_side(intr, None) == cfg
+
+
+def test_a_wrong_pose_is_not_ok_in_the_model_pixels_and_the_truth_is(demo, xfeat):
+    """Worked at 2x the model's side: the scaled thresholds still tell a 1-degree error."""
+    from icomma_plugin.localization.robust import RobustConfig
+    from icomma_plugin.localization.types import resize_image
+
+    scene, model, q, _ = demo
+    big = resize_image(q, 200, 200).clamp(0, 1)
+    intr = scene.intrinsics.scaled(2.0)
+    cfg = RobustConfig(work_side=200).at_model_side(intr, 100)
+    st = LocalizationState(model, Query(big, intr), torch.zeros(3), matcher=xfeat)
+    px = cfg.geometric.inlier_px
+
+    def verdict(c2w):
+        return decide(score_observation(st.observe(np.linalg.inv(c2w)), st, px), cfg.verdict,
+                      converged=True)
+
+    for deg, seed in ((1.0, 3), (3.0, 5)):  # turned about the camera: the view moves by ~deg * fx
+        wrong = verdict(perturb_pose(scene.gt_c2w, deg, 0.0, seed))
+        assert wrong.status != "ok", (deg, wrong.reason)
+    right = verdict(scene.gt_c2w)
+    assert right.status == "ok", right.reason
+
+
 def test_the_paper_method_too_works_at_the_model_resolution(demo, xfeat):
     from icomma_plugin.localize import LocalizerConfig, localize
     from icomma_plugin.localization.types import resize_image

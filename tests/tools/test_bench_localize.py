@@ -162,3 +162,32 @@ def test_markdown_rows_match_the_header():
     assert (got["n"], got["errors"], got["wall s"], got["CPU s"]) == ("4", "1", "2.50", "1.50")
     assert (got["success"], got["verdict ok"], got["iterations"]) == ("75 %", "50 %", "7")
     assert (got["final rot deg"], got["final trans"]) == ("0.010", "0.0010")
+
+
+def test_the_reference_run_gets_every_option_that_shapes_the_runs(tmp_path):
+    """--compare-with runs the other checkout on the same scenes, starts and method settings."""
+    from pathlib import Path
+
+    from tools.bench_localize import _NOT_FORWARDED, build_parser, reference_command
+
+    assert set(_NOT_FORWARDED) == {"help", "out", "compare_with", "quick", "render_repeats"}
+    parser = build_parser()
+    argv = ["--scenes", "lego400", "--methods", "robust", "--starts", "4", "--paper-starts", "2",
+            "--rot", "40,60", "--trans", "0,0.1", "--seed", "7", "--queries", "3",
+            "--model", "/m", "--dataset", "/d", "--demo-path", "/p", "--demo-size", "64",
+            "--matcher", "sift", "--backend", "torch", "--paper-max-iterations", "9",
+            "--threads", "1", "--lod", "off", "--work-side", "800", "--query-scale", "2",
+            "--render-repeats", "3", "--compare-with", "/ref", "--out", "/o"]
+    args = parser.parse_args(argv)
+    cmd = reference_command(args, Path("/ref/tools/bench_localize.py"), tmp_path)
+    assert cmd[2:4] == ["--out", str(tmp_path)]
+    ref = parser.parse_args(cmd[4:])
+    for name, value in vars(args).items():
+        if name not in _NOT_FORWARDED:
+            assert getattr(ref, name) == value, name
+    assert ref.compare_with is None and ref.render_repeats == 0
+    # options left at their defaults are not passed (an older checkout may not know them)
+    plain = reference_command(parser.parse_args(["--starts", "2"]), Path("s"), tmp_path)
+    for option in ("--lod", "--work-side", "--query-scale", "--dataset", "--demo-size"):
+        assert option not in plain
+    assert "--starts" in plain and "--rot" in plain
