@@ -490,8 +490,11 @@ _ALWAYS_FORWARDED = ("scenes", "methods", "starts", "paper_starts", "seed", "que
 
 
 def reference_command(args, script: Path, out: Path) -> List[str]:
-    """The command line of the reference run: every option of this run that shapes the starts,
-    the scenes and the method (all but ``_NOT_FORWARDED``)."""
+    """The command line of the reference run.
+
+    Every option of this run that shapes the starts, the scenes and the method (all but
+    ``_NOT_FORWARDED``).
+    """
     cmd = [sys.executable, str(script), "--out", str(out)]
     for action in build_parser()._actions:
         name = action.dest

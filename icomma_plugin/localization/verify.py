@@ -15,10 +15,8 @@ poses called ``ok`` there were right (< 5 deg, < 0.05).
 """
 from __future__ import annotations
 
-import dataclasses
-
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
@@ -179,9 +177,8 @@ class VerdictConfig:
 
     def pixels_scaled(self, factor: float) -> "VerdictConfig":
         """These thresholds with their pixel ones (``*_px``) multiplied by ``factor``."""
-        return dataclasses.replace(self, inlier_px=self.inlier_px * factor,
-                                   ok_median_px=self.ok_median_px * factor,
-                                   ok_mean_px=self.ok_mean_px * factor)
+        return replace(self, inlier_px=self.inlier_px * factor,
+                       ok_median_px=self.ok_median_px * factor, ok_mean_px=self.ok_mean_px * factor)
 
 
 def decide(score: Optional[PoseScore], cfg: VerdictConfig, converged: Optional[bool] = None,
