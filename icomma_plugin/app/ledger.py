@@ -38,6 +38,7 @@ import time
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence
 
+from ..checks import check_real
 from ..io.atomic import file_lock, write_json_atomic, write_text_atomic
 from ..localization.types import ROW_FIELDS, VERDICTS
 
@@ -138,17 +139,10 @@ class PosesLedger:
         self.shard, self.num_shards = shard, num_shards
         self.rows: Dict[str, Dict[str, Any]] = {}  # this process's rows (this shard's)
         self._seen: Dict[str, Dict[str, Any]] = {}  # rows of earlier runs and other shards
-        if not (isinstance(max_rewrite_share, (int, float)) and 0 < max_rewrite_share <= 1):
-            raise ValueError(
-                f"max_rewrite_share must be a number in (0, 1], got {max_rewrite_share!r}"
-            )
         self.rewrite_rows, self.rewrite_seconds = int(rewrite_rows), float(rewrite_seconds)
-        if not (isinstance(min_rewrite_seconds, (int, float)) and min_rewrite_seconds >= 0):
-            raise ValueError(
-                f"min_rewrite_seconds must be a number >= 0, got {min_rewrite_seconds!r}"
-            )
-        self.max_rewrite_share = float(max_rewrite_share)
-        self.min_rewrite_seconds = float(min_rewrite_seconds)
+        self.max_rewrite_share = check_real(max_rewrite_share, "max_rewrite_share", 0.0, 1.0,
+                                            lo_open=True)
+        self.min_rewrite_seconds = check_real(min_rewrite_seconds, "min_rewrite_seconds", 0.0)
         self._last_write = float("-inf")
         self._write_cost = 0.0  # seconds the last rewrite took
         self.out_dir.mkdir(parents=True, exist_ok=True)

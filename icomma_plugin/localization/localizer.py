@@ -263,8 +263,7 @@ class Localizer:
         if not isinstance(query, Query):
             raise ValueError(f"query must be a Query, got {type(query).__name__}")
         cfg = self._method(method).at_model_side(query.intrinsics, self.model_side)
-        if not isinstance(cfg, RobustConfig) or not getattr(self.matcher, "supports_features",
-                                                            False):
+        if not isinstance(cfg, RobustConfig) or not usable(self.matcher):
             return query
         scale = cfg.work_scale(query.intrinsics)
         with torch.no_grad():

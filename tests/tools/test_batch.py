@@ -441,9 +441,9 @@ def test_rewrites_take_a_bounded_share_of_the_run(tmp_path, monkeypatch, least, 
     assert len((tmp_path / "poses.jsonl").read_text().splitlines()) == 42  # run line + 41 rows
     led.close()
     assert json.loads((tmp_path / "poses.json").read_text())["done"] == 41
-    with pytest.raises(ValueError, match="max_rewrite_share must be a number in"):
+    with pytest.raises(ValueError, match=r"max_rewrite_share must be a finite number in \(0, 1\]"):
         PosesLedger(tmp_path / "x", {"kind": "batch"}, total=1, max_rewrite_share=0)
-    with pytest.raises(ValueError, match="min_rewrite_seconds must be a number >= 0"):
+    with pytest.raises(ValueError, match="min_rewrite_seconds must be a finite number >= 0"):
         PosesLedger(tmp_path / "x", {"kind": "batch"}, total=1, min_rewrite_seconds=-1)
 
 
