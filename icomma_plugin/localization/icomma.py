@@ -199,8 +199,11 @@ class LocalizerConfig:
         d["betas"] = list(self.betas)
         return d
 
-    def at_model_side(self, intrinsics, model_side: Optional[int]) -> "LocalizerConfig":
+    def at_model_side(self, intrinsics, model_side: Optional[int],
+                      scale_pixels: bool = True) -> "LocalizerConfig":
         """This config working at no more than ``model_side`` px, unless it sets ``image_scale``.
+
+        ``scale_pixels`` is the default method's (its thresholds); this one has none to scale.
 
         A photo sharper than the model adds rendering and matching cost, not accuracy (14 s an
         iteration on a 1080x1920 fox photo against its 270x480 model).

@@ -292,7 +292,8 @@ class Localizer:
         """
         if not isinstance(query, Query):
             raise ValueError(f"query must be a Query, got {type(query).__name__}")
-        cfg = self._method(method).at_model_side(query.intrinsics, self.model_side)
+        given = self._method(method)
+        cfg = given.at_model_side(query.intrinsics, self.model_side)
         init_w2c = None if init_c2w is None else invert_rigid(as_rigid(init_c2w, "init_c2w"))
         gt = None if gt_c2w is None else as_rigid(gt_c2w, "gt_c2w")
         if init_w2c is None and cfg.needs_start:
@@ -325,7 +326,10 @@ class Localizer:
             stage_seconds=state.stage_seconds(), stage_cpu_seconds=state.stage_seconds(cpu=True),
             details={**out.details, "lod": self._lod_details(state, lod_events)},
             trace=state.trace,
-            config=cfg.to_dict(),
+            # What runs the same again: the working side resolved, pixel thresholds as given
+            # (scaled again above the model's side, not twice).
+            config=given.at_model_side(query.intrinsics, self.model_side,
+                                       scale_pixels=False).to_dict(),
         )
 
     def _lod_details(self, state: LocalizationState, events_before: int) -> Dict[str, Any]:

@@ -123,7 +123,8 @@ class RobustConfig:
         """The config as a nested dict (as `from_dict` reads it)."""
         return dataclasses.asdict(self)
 
-    def at_model_side(self, intrinsics: Intrinsics, model_side: Optional[int]) -> "RobustConfig":
+    def at_model_side(self, intrinsics: Intrinsics, model_side: Optional[int],
+                      scale_pixels: bool = True) -> "RobustConfig":
         """This config for a model fitted on images of ``model_side`` px (longer side).
 
         Without its own ``work_side`` it works at ``model_side``. With a larger one the pixel
@@ -138,7 +139,7 @@ class RobustConfig:
         if self.work_side is None:
             return dataclasses.replace(self, work_side=model_side)
         factor = self.work_side / model_side
-        if factor <= 1.0:
+        if factor <= 1.0 or not scale_pixels:
             return self
         return dataclasses.replace(
             self, verdict=self.verdict.pixels_scaled(factor),

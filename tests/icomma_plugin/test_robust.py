@@ -397,6 +397,36 @@ def test_a_wrong_pose_is_not_ok_in_the_model_pixels_and_the_truth_is(demo, xfeat
     assert right.status == "ok", right.reason
 
 
+def test_a_result_records_the_config_that_runs_the_same_again(demo, xfeat):
+    """Above the model's side the result's config holds the thresholds as given, not scaled.
+
+    Copied into a new run it is scaled there once more, the same way: the same pose and verdict.
+    """
+    from icomma_plugin.localization.robust import RobustConfig
+    from icomma_plugin.localization.types import resize_image
+    from icomma_plugin.localize import localize
+
+    scene, model, q, _ = demo
+    big = resize_image(q, 200, 200).clamp(0, 1)
+    intr = scene.intrinsics.scaled(2.0)
+    init = perturb_pose(scene.gt_c2w, 5.0, 0.02, 8, pivot=scene.scene_centre)
+    cfg = RobustConfig(work_side=200, use_candidates=False)
+    first = localize(model, Query(big, intr), matcher=xfeat, config=cfg, init_c2w=init,
+                     gt_c2w=scene.gt_c2w, model_side=100)
+    assert first.config["verdict"] == RobustConfig().to_dict()["verdict"]
+    assert first.config["geometric"]["inlier_px"] == cfg.geometric.inlier_px
+    assert first.config["rollback_median_px"] == cfg.rollback_median_px
+    again = localize(model, Query(big, intr), matcher=xfeat,
+                     config=RobustConfig.from_dict(first.config), init_c2w=init,
+                     gt_c2w=scene.gt_c2w, model_side=100)
+    assert again.config == first.config and again.verdict.status == first.verdict.status
+    np.testing.assert_allclose(again.c2w, first.c2w, atol=1e-9)
+    # without a work side the model's is recorded
+    res = localize(model, Query(q, scene.intrinsics), matcher=xfeat, init_c2w=init,
+                   config=RobustConfig(use_candidates=False), model_side=100)
+    assert res.config["work_side"] == 100
+
+
 def test_the_paper_method_too_works_at_the_model_resolution(demo, xfeat):
     from icomma_plugin.localize import LocalizerConfig, localize
     from icomma_plugin.localization.types import resize_image
