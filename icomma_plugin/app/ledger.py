@@ -287,7 +287,7 @@ class PosesLedger:
 
     def _write_merged(self) -> None:
         rows = self.all_rows()
-        write_json_atomic(self.poses_path, self._document(rows))
+        write_json_atomic(self.poses_path, self._document(rows), rows_key="photos")
         self._write_csv(rows)
 
     def flush(self) -> None:
@@ -304,7 +304,7 @@ class PosesLedger:
         mine = sorted(self.rows.values(), key=lambda r: (r.get("index", 0), r["name"]))
         part = self._document(mine, status="running")
         part.update({"shard": self.shard, "num_shards": self.num_shards})
-        write_json_atomic(self.part_path, part)
+        write_json_atomic(self.part_path, part, rows_key="photos")
         with file_lock(self.out_dir / ".poses.lock"):
             for p in self._part_paths():  # the other shards' latest rows
                 try:
