@@ -247,8 +247,34 @@ def method_config(method: str, args):
     from icomma_plugin.localize import LocalizerConfig, RobustConfig
 
     if method == "robust":
-        return RobustConfig(work_side=args.work_side)
+        return RobustConfig.from_dict(with_overrides(RobustConfig(work_side=args.work_side)
+                                                     .to_dict(), args.set or []))
     return LocalizerConfig(max_iterations=args.paper_max_iterations)
+
+
+def with_overrides(config: Dict[str, Any], overrides: List[str]) -> Dict[str, Any]:
+    """``config`` (a nested dict) with ``--set`` overrides ``dotted.key=value`` applied.
+
+    Values are read as YAML (``0.5``, ``[1.0, 0.5]``, ``null``, ``true``); a key must exist.
+
+    Raises:
+        ValueError: an override without ``=`` or naming a key the config does not have.
+    """
+    import yaml
+
+    out = json.loads(json.dumps(config))
+    for item in overrides:
+        key, sep, text = item.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--set: expected dotted.key=value, got {item!r}")
+        *path, leaf = key.split(".")
+        node = out
+        for part in path:
+            node = node.get(part) if isinstance(node, dict) else None
+        if not isinstance(node, dict) or leaf not in node:
+            raise ValueError(f"--set: the default method's config has no key {key!r}")
+        node[leaf] = yaml.safe_load(text)
+    return out
 
 
 def run_start(scene, st: Start, method: str, cfg, matcher, args) -> Dict[str, Any]:
@@ -481,8 +507,8 @@ def ratios(records: List[Dict[str, Any]], rows: List[Dict[str, Any]]) -> List[Di
 # Against other code (--compare-with)
 # ----------------------------------------------------------------------------------------------
 #: Options a reference run does not take: its own output, no nested reference, --quick (already
-#: folded into --starts), and per-render timings (not compared).
-_NOT_FORWARDED = ("help", "out", "compare_with", "quick", "render_repeats")
+#: folded into --starts), per-render timings (not compared), and --set (the config under test).
+_NOT_FORWARDED = ("help", "out", "compare_with", "quick", "render_repeats", "set")
 #: Options always passed; the others only when they differ from their default, so that a
 #: reference checkout older than an option still runs when the option is not used.
 _ALWAYS_FORWARDED = ("scenes", "methods", "starts", "paper_starts", "seed", "queries", "model",
@@ -812,6 +838,15 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=None,
         help="the default method's working side [px] (default: the model's training side)",
+    )
+    ap.add_argument(
+        "--set",
+        action="append",
+        metavar="KEY=VALUE",
+        help="override the default method's config (RobustConfig), e.g. --set "
+        "refine.hessian_scale=0.5 (repeatable; dotted keys, YAML values). Not passed to "
+        "--compare-with: the reference runs its own defaults, so '--compare-with .' measures an "
+        "override against the defaults on the same starts",
     )
     ap.add_argument(
         "--query-scale",

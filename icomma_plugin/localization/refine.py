@@ -72,6 +72,10 @@ class RefineConfig:
     hessian_scale: the finite-difference Jacobian is rendered at this share of the level's
         resolution (1: at it); the Gauss-Newton matrix is a mean over pixels, so a coarser one
         approximates it at a fraction of the cost (7 renders at a quarter of the pixels at 0.5).
+    hessian_reduced: the finite-difference Jacobian is rendered from the level of detail's
+        reduced model when the Localizer has one (the loss, its gradient and the steps stay the
+        full model's: a Hessian only scales the steps, and a step is taken only when the full
+        model's loss goes down).
     hessian_every: recompute the finite-difference Hessian after this many accepted steps (0:
         once per level; each recompute costs 6 renders). The motion-field Hessian is recomputed
         at every accepted step (free).
@@ -93,6 +97,7 @@ class RefineConfig:
     hessian: str = "finite_difference"
     fd_step: float = 1e-3
     hessian_scale: float = 1.0
+    hessian_reduced: bool = True
     hessian_every: int = 0
     secant: bool = True
     stop_rot_deg: float = 3e-3
@@ -121,6 +126,7 @@ class RefineConfig:
         check_real(self.hessian_scale, "RefineConfig.hessian_scale", 0.0, 1.0, lo_open=True)
         check_int(self.hessian_every, "RefineConfig.hessian_every", 0)
         check_bool(self.secant, "RefineConfig.secant")
+        check_bool(self.hessian_reduced, "RefineConfig.hessian_reduced")
         for name in ("stop_rot_deg", "stop_trans_rel", "still_rot_deg", "still_trans_rel"):
             check_real(getattr(self, name), f"RefineConfig.{name}", 0.0)
 
@@ -212,7 +218,18 @@ def _hessian(state, cfg, w2c, scale, out, mask, intr, blur):
         return gauss_newton_hessian(
             gaussian_blur(out.color.detach(), blur), out.depth, out.alpha, mask, intr
         )
-    if cfg.hessian_scale < 1.0:  # the Jacobian of a coarser render
+    if not (cfg.hessian_reduced and state.reduced is not None):
+        return _fd_hessian(state, cfg, w2c, scale, out, mask, blur, own_render=False)
+    with state.serving("hessian", reduced=True):
+        return _fd_hessian(state, cfg, w2c, scale, out, mask, blur, own_render=True)
+
+
+def _fd_hessian(state, cfg, w2c, scale, out, mask, blur, own_render: bool):
+    """Gauss-Newton matrix from the render's Jacobian by forward differences.
+
+    ``own_render``: the base render ``out`` is made again here (by the model now served).
+    """
+    if cfg.hessian_scale < 1.0 or own_render:  # the Jacobian of a coarser (or another) render
         scale = scale * cfg.hessian_scale
         blur = blur * cfg.hessian_scale
         with torch.no_grad():

@@ -12,10 +12,10 @@ verdict.
    result: a refinement that loses agreeing matches is rolled back.
 4. The verdict (``verify.py``) from the measured signals.
 
-With a level of detail (``level_of_detail.py``) the geometric stage and the candidate renders use
-the Localizer's reduced model; the refinement, its check and the verdict the full model (a score
-the verdict reads is always of a full-model render: a geometric score is measured again on the
-full model when it is the final one).
+With a level of detail (``level_of_detail.py``) the geometric stage, the candidate renders and
+(``refine_reduced``) the refinement use the Localizer's reduced model; the refinement's check and
+the verdict the full model (a score the verdict reads is always of a full-model render: a
+geometric score is measured again on the full model when it is the final one).
 """
 from __future__ import annotations
 
@@ -63,6 +63,11 @@ class RobustConfig:
         stage) instead of a new render-and-match at the returned pose. Tracking's fast mode sets
         it (one matcher call a frame instead of two; docs/SPEED.md); the result's
         ``details["verified_on"]`` says which render decided.
+    refine_reduced: with a level of detail, the photometric refinement renders the reduced model
+        too (its check and the verdict always render the full model). At 800 px the refinement's
+        ten renders and four backward passes were two thirds of a pose on a 300k-Gaussian lego;
+        on the reduced model they take half as long, and the poses were as precise (docs/SPEED.md).
+        False: it renders the full model.
     mutual_nn: None: renders are matched to the query by the matcher (LightGlue, ...); a cosine
         in (0, 1): by mutual nearest neighbours of the matcher's descriptors above it
         (``matchers.mutual_nn``), for a matcher with features (``supports_features``). Several
@@ -80,6 +85,7 @@ class RobustConfig:
     rollback_inliers: float = 0.9
     rollback_median_px: float = 0.5
     verify_geometric: bool = False
+    refine_reduced: bool = False
     mutual_nn: Optional[float] = None
     sh_degree: Optional[int] = None
     antialiasing: bool = False
@@ -111,7 +117,8 @@ class RobustConfig:
                    optional=True)
         if self.sh_degree is not None:
             check_choice(self.sh_degree, n + "sh_degree", (0, 1, 2, 3))
-        for name in ("use_candidates", "antialiasing", "record_trace", "verify_geometric"):
+        for name in ("use_candidates", "antialiasing", "record_trace", "verify_geometric",
+                     "refine_reduced"):
             check_bool(getattr(self, name), n + name)
 
     @classmethod
@@ -340,7 +347,12 @@ class _Search:
 
 def _geometric_on_reduced(state: LocalizationState) -> bool:
     """Whether a reduced model (level of detail) rendered the geometric stage."""
-    return state.rendered.get("geometric", {}).get("reduced", False)
+    return _on_reduced(state, "geometric")
+
+
+def _on_reduced(state: LocalizationState, stage: str) -> bool:
+    """Whether a reduced model (level of detail) rendered ``stage``."""
+    return state.rendered.get(stage, {}).get("reduced", False)
 
 
 def _full_model_score(state: LocalizationState, g: GeometricOutcome, scale: float,
@@ -357,7 +369,7 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
     """Photometric refinement of the best hypothesis, checked by a render-and-match."""
     best = search.best
     depth = median_depth(best.observation.depth, best.observation.alpha)
-    with state.serving("refine"):
+    with state.serving("refine", reduced=cfg.refine_reduced):
         ref = refine_photometric(state, best.w2c, cfg.refine, base_scale=scale,
                                  scene_depth=depth)
     geo = best.score
@@ -365,9 +377,10 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
              and not _geometric_on_reduced(state))
     if reuse:  # the PnP step that ended the geometric stage was below its stop: judged there
         sc = geo
-    else:
+    else:  # the refinement's last render is judged when it is of the full model
+        last = None if _on_reduced(state, "refine") else ref.observation
         with state.serving("verify"):
-            sc = score_pose(state, ref.w2c, scale, cfg.verdict.inlier_px, ref.observation)
+            sc = score_pose(state, ref.w2c, scale, cfg.verdict.inlier_px, last)
     keep = (sc.inliers >= cfg.rollback_inliers * geo.inliers
             and sc.median_px <= geo.median_px + cfg.rollback_median_px)
     state.record(state.new_record(Stage.VERIFY, ref.w2c, matches=sc.matches, inliers=sc.inliers,

@@ -57,24 +57,36 @@ def test_auto_leaves_a_small_model_bit_identical(demo, xfeat):
         assert a.details["lod"]["reduced_models"] == []
 
 
-def test_a_capped_config_serves_the_geometric_stage_and_candidates(demo, xfeat, capped):
+@pytest.mark.parametrize("refine_reduced", [True, False])
+def test_a_capped_config_serves_the_geometric_stage_and_candidates(demo, xfeat, capped,
+                                                                    refine_reduced):
+    import dataclasses
+
     scene, model, cams = demo
-    loc = Localizer(model, xfeat, SMALL, cameras=cams, cache_dir=False, lod=capped)
+    method = dataclasses.replace(SMALL, refine_reduced=refine_reduced)
+    loc = Localizer(model, xfeat, method, cameras=cams, cache_dir=False, lod=capped)
     res = loc.localize(_query(scene), gt_c2w=scene.gt_c2w)  # no start: candidates first
     lod = res.details["lod"]
     stages, full = lod["stages"], model.num_gaussians
     assert lod["mode"] == "config" and lod["full_gaussians"] == full
-    for name in ("candidates", "geometric"):
+    # the refinement's finite-difference Hessian is the reduced model's either way
+    reduced = ("candidates", "geometric", "hessian") + (("refine",) if refine_reduced else ())
+    for name in reduced:
         assert stages[name]["reduced"], name
         assert max(stages[name]["gaussians"]) <= capped.max_gaussians < full, stages
-    # the full model for the refinement and the verdict (its check reuses the refinement's last
-    # render, unless it renders again)
-    assert "refine" in stages and set(stages) <= {"candidates", "geometric", "refine", "verify"}
-    for name in set(stages) & {"refine", "verify"}:
+    assert {"refine", "hessian"} <= set(stages) <= {"candidates", "geometric", "hessian",
+                                                     "refine", "verify"}
+    # the verdict is always the full model's: its check renders it again after a refinement on
+    # the reduced model, and reuses the refinement's last render otherwise (or renders again)
+    assert ("verify" in stages) if refine_reduced else True
+    for name in set(stages) - set(reduced):
         assert not stages[name]["reduced"] and stages[name]["gaussians"] == [full], stages
     # one per working resolution (the demo's 96 px photo is below the candidates' 128 px: one)
     assert lod["build_seconds"] > 0 and len(lod["reduced_models"]) == loc.reduced.builds == 1
-    assert res.verdict.status == "ok" and res.rot_err_deg < 0.5, res.verdict.reason
+    if refine_reduced:  # this cap renders the demo at ~28 dB: refined on it, ~0.45 deg off
+        assert res.rot_err_deg < 1.0
+    else:
+        assert res.verdict.status == "ok" and res.rot_err_deg < 0.5, res.verdict.reason
     again = loc.localize(_query(scene), init_c2w=_start(scene), gt_c2w=scene.gt_c2w)
     assert again.details["lod"]["reduced_models"] == [] and loc.reduced.builds == 1
     assert again.details["lod"]["build_seconds"] == 0.0
@@ -123,3 +135,28 @@ def test_a_second_localizer_loads_the_reduced_models_from_disk(demo, xfeat, capp
                       lod=LodConfig(max_gaussians=capped.max_gaussians - 1))
     other.reduced.model_at(Intrinsics.from_json(intr))
     assert other.reduced.builds == 1  # another config: another key
+
+
+def test_the_hessian_from_the_reduced_model_keeps_the_full_model_precision(demo, xfeat, capped):
+    """The default renders only the finite-difference Jacobian from the reduced model.
+
+    Steps are judged on the full model's loss, so a coarse reduction (~28 dB of the full render)
+    costs no precision.
+    """
+    import dataclasses
+
+    from icomma_plugin.localization.refine import RefineConfig
+    from icomma_plugin.pose.convert import perturb_pose
+
+    scene, model, cams = demo
+    errors = {}
+    for reduced in (False, True):
+        method = dataclasses.replace(SMALL, refine=RefineConfig(hessian_reduced=reduced))
+        loc = Localizer(model, xfeat, method, cameras=cams, cache_dir=False, lod=capped)
+        errors[reduced] = []
+        for seed in range(3):
+            init = perturb_pose(scene.gt_c2w, 10.0, 0.05, np.random.default_rng(seed))
+            res = loc.localize(_query(scene), init_c2w=init, gt_c2w=scene.gt_c2w)
+            errors[reduced].append(res.rot_err_deg)
+            assert ("hessian" in res.details["lod"]["stages"]) == reduced
+    assert max(errors[True]) < 0.1 and max(errors[False]) < 0.1, errors

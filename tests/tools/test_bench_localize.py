@@ -170,14 +170,16 @@ def test_the_reference_run_gets_every_option_that_shapes_the_runs(tmp_path):
 
     from tools.bench_localize import _NOT_FORWARDED, build_parser, reference_command
 
-    assert set(_NOT_FORWARDED) == {"help", "out", "compare_with", "quick", "render_repeats"}
+    assert set(_NOT_FORWARDED) == {"help", "out", "compare_with", "quick", "render_repeats",
+                                   "set"}
     parser = build_parser()
     argv = ["--scenes", "lego400", "--methods", "robust", "--starts", "4", "--paper-starts", "2",
             "--rot", "40,60", "--trans", "0,0.1", "--seed", "7", "--queries", "3",
             "--model", "/m", "--dataset", "/d", "--demo-path", "/p", "--demo-size", "64",
             "--matcher", "sift", "--backend", "torch", "--paper-max-iterations", "9",
             "--threads", "1", "--lod", "off", "--work-side", "800", "--query-scale", "2",
-            "--render-repeats", "3", "--compare-with", "/ref", "--out", "/o"]
+            "--render-repeats", "3", "--compare-with", "/ref", "--out", "/o",
+            "--set", "refine.hessian_reduced=false"]
     args = parser.parse_args(argv)
     cmd = reference_command(args, Path("/ref/tools/bench_localize.py"), tmp_path)
     assert cmd[2:4] == ["--out", str(tmp_path)]
@@ -186,8 +188,24 @@ def test_the_reference_run_gets_every_option_that_shapes_the_runs(tmp_path):
         if name not in _NOT_FORWARDED:
             assert getattr(ref, name) == value, name
     assert ref.compare_with is None and ref.render_repeats == 0
+    assert ref.set is None  # the config under test: the reference runs its own defaults
     # options left at their defaults are not passed (an older checkout may not know them)
     plain = reference_command(parser.parse_args(["--starts", "2"]), Path("s"), tmp_path)
     for option in ("--lod", "--work-side", "--query-scale", "--dataset", "--demo-size"):
         assert option not in plain
     assert "--starts" in plain and "--rot" in plain
+
+
+def test_set_overrides_the_default_method_and_names_a_bad_key():
+    from tools.bench_localize import build_parser, method_config
+
+    parser = build_parser()
+    args = parser.parse_args(["--work-side", "400", "--set", "refine.hessian_scale=0.5",
+                              "--set", "refine.iterations=[2]", "--set", "refine_reduced=true"])
+    cfg = method_config("robust", args)
+    assert cfg.work_side == 400 and cfg.refine.hessian_scale == 0.5
+    assert cfg.refine.iterations == (2,) and cfg.refine_reduced is True
+    for bad, words in (("refine.nope=1", "no key 'refine.nope'"), ("refine", "dotted.key=value"),
+                       ("refine.scales=[2, 9]", "scales")):
+        with pytest.raises(ValueError, match=words):
+            method_config("robust", parser.parse_args(["--set", bad]))
