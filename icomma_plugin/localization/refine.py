@@ -268,15 +268,17 @@ def _bfgs_update(hess: torch.Tensor, s: torch.Tensor, y: torch.Tensor) -> torch.
 
 
 def _evaluate(state: LocalizationState, w2c: np.ndarray, scale: float, mask: Optional[torch.Tensor],
-              best: Optional[float], blur: float = 0.0, query: Optional[torch.Tensor] = None):
+              best: Optional[float], blur: float = 0.0, query: Optional[torch.Tensor] = None,
+              want_grad: bool = True):
     """Loss at ``w2c``, and its gradient and render when it beats ``best``.
 
     The gradient is w.r.t. the camera-frame twist; ``best`` None always counts as beaten.
     ``mask`` None: the coverage mask of this very render (detached) is made and returned, for the
-    caller to keep for the rest of the level.
+    caller to keep for the rest of the level. ``want_grad`` False: no backward pass (the level's
+    last step: its gradient would be used by nothing).
 
     Returns:
-        (loss, grad or None, render or None, mask).
+        (loss, grad or None, render or None, mask): render None when ``best`` was not beaten.
     """
     xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
     w2c_t = se3_exp(xi) @ torch.as_tensor(w2c, dtype=torch.float64)
@@ -292,6 +294,8 @@ def _evaluate(state: LocalizationState, w2c: np.ndarray, scale: float, mask: Opt
     val = float(loss.detach())
     if best is not None and not val < best:
         return val, None, None, mask
+    if not want_grad:
+        return val, None, out, mask
     with state.timed("backward"):
         loss.backward()
     return val, xi.grad.detach().clone(), out, mask
@@ -314,7 +318,7 @@ def _lm_level(state: LocalizationState, cfg: RefineConfig, w2c: np.ndarray, scal
     hess = _hessian(state, cfg, w2c, scale, out, mask, intr, blur)
     lam, nu = cfg.lambda_init, 2.0
     last_rot = last_trans = None
-    for _ in range(n_it):
+    for it in range(n_it):
         counts["total"] += 1
         damp = torch.diag(torch.diag(hess)).clamp_min(0) + 1e-12 * torch.eye(
             6, dtype=torch.float64
@@ -324,8 +328,10 @@ def _lm_level(state: LocalizationState, cfg: RefineConfig, w2c: np.ndarray, scal
             break
         predicted = -float(grad @ step + 0.5 * step @ hess @ step)
         w2c_try = (se3_exp(step) @ torch.as_tensor(w2c)).numpy()
-        loss_try, grad_try, out_try, _ = _evaluate(state, w2c_try, scale, mask, loss, blur, query)
-        ok = grad_try is not None
+        last = it == n_it - 1  # the last step's gradient would serve no further step
+        loss_try, grad_try, out_try, _ = _evaluate(state, w2c_try, scale, mask, loss, blur, query,
+                                                   want_grad=not last)
+        ok = out_try is not None
         state.record(state.new_record(Stage.REFINE, w2c_try, loss=loss_try, loss_compare=loss_try,
                                       accepted=ok, hypothesis=hypothesis, scale=scale, lr=lam))
         if not ok:
@@ -342,7 +348,9 @@ def _lm_level(state: LocalizationState, cfg: RefineConfig, w2c: np.ndarray, scal
         counts["accepted"] += 1
         grad_prev = grad
         w2c, loss, grad, out = w2c_try, loss_try, grad_try, out_try
-        if cfg.hessian == "motion_field" or (
+        if last:
+            pass  # no step follows: no Hessian for one
+        elif cfg.hessian == "motion_field" or (
             cfg.hessian_every and counts["accepted"] % cfg.hessian_every == 0
         ):
             hess = _hessian(state, cfg, w2c, scale, out_try, mask, intr, blur)

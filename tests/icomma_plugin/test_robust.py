@@ -138,6 +138,36 @@ def test_refinement_never_increases_the_loss_and_a_rejected_step_keeps_the_pose(
     assert np.array_equal(out2.w2c, gt_w2c)
 
 
+def test_the_last_step_of_a_level_takes_no_backward_pass_and_the_same_pose(demo, monkeypatch):
+    """Its gradient would serve no further step: one backward pass fewer, the same result."""
+    import icomma_plugin.localization.refine as refine
+    from icomma_plugin.localization.refine import RefineConfig, refine_photometric
+
+    scene, _, _, _ = demo
+    start = np.linalg.inv(perturb_pose(scene.gt_c2w, 0.5, 0.005, 2, pivot="camera"))
+    cfg = RefineConfig(scales=(0.5, 1.0), blur=(1.0, 0.0), iterations=(2, 3))
+    evaluate = refine._evaluate
+
+    def run(always_grad: bool):
+        st, calls = _state(demo), []
+
+        def counted(*args, **kwargs):
+            if always_grad:
+                kwargs["want_grad"] = True
+            loss, grad, out, mask = evaluate(*args, **kwargs)
+            calls.append(grad is not None)
+            return loss, grad, out, mask
+
+        monkeypatch.setattr(refine, "_evaluate", counted)
+        return refine_photometric(st, start, cfg, scene_depth=4.0), calls
+
+    fewer, calls = run(always_grad=False)
+    every, calls_every = run(always_grad=True)
+    assert np.array_equal(fewer.w2c, every.w2c) and fewer.loss_end == every.loss_end
+    assert fewer.accepted == every.accepted and fewer.iterations == every.iterations
+    assert sum(calls) < sum(calls_every) and fewer.accepted >= 2  # the levels' last steps
+
+
 def test_finite_difference_hessian_agrees_with_the_motion_field_model(demo):
     """The two Gauss-Newton Hessians describe the same curvature (cheap model: 15-30 % short)."""
     from icomma_plugin.localization.refine import _hessian, RefineConfig
