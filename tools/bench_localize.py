@@ -325,7 +325,18 @@ def run_start(scene, st: Start, method: str, cfg, matcher, args) -> Dict[str, An
         ),
         "c2w": res.c2w.tolist(),
         "lod_stages": (res.details.get("lod") or {}).get("stages"),
+        "trace_stages": trace_stages(res.trace),
     }
+
+
+def trace_stages(trace) -> Dict[str, int]:
+    """How many trace records each stage made (geometric rounds, refinement steps, ...)."""
+    counts: Dict[str, int] = {}
+    for r in trace or []:
+        name = getattr(getattr(r, "stage", None), "name", None)
+        if name is not None:
+            counts[name.lower()] = counts.get(name.lower(), 0) + 1
+    return counts
 
 
 def lod_arg(args):
