@@ -50,7 +50,7 @@ def _plan_and_rule(cfg: DictConfig):
         plan = AuditPlan(starts=cfg.starts, no_start=cfg.no_start,
                          rot_deg=tuple(rot) if isinstance(rot, list) else rot,
                          trans=float(cfg.trans), pivot=str(cfg.pivot), seed=cfg.seed,
-                         sample=cfg.get("sample"))
+                         sample=cfg.get("sample"), control=cfg.get("control", True))
         f = cfg.flag
         rule = FlagRule(rot_deg=float(f.rot_deg), trans=float(f.trans), min_ok=f.min_ok)
     except ValueError as e:
@@ -241,6 +241,11 @@ def summary(doc: Dict[str, Any]) -> str:
                      f"{s['median_rot_err_deg_unflagged']:.3f} deg; ok poses off the record "
                      f"{s['ok_off_record_unflagged']}" + ("" if scatter is None else
                      f"; a photo's ok poses within {scatter:.3f} deg of each other (median)"))
+    control = s.get("median_control_rot_err_deg")
+    if control is not None:
+        lines.append(f"  control: the model's renders at the records come back to {control:.3f} deg "
+                     "(median): " + _control_reading(s.get("median_rot_err_deg_unflagged"),
+                                                     control))
     if cal.get("stored"):
         moved = ", ".join(f"{k} {a:g} -> {b:g}" for k, (a, b) in cal["changed"].items())
         lines.append(f"  calibration ({cal['counts']['used']} right ok poses): "
@@ -249,6 +254,18 @@ def summary(doc: Dict[str, Any]) -> str:
         lines.append(f"  no calibration: {cal.get('reason')}")
     lines += [f"  outputs in {doc.get('output_dir')}", "=" * 72]
     return "\n".join(lines)
+
+
+def _control_reading(photos_deg, control_deg) -> str:
+    """What the control runs say about the photos' distance to their records."""
+    if photos_deg is None:
+        return "no unflagged photo to compare with"
+    if photos_deg > 2.0 * control_deg + 0.02:
+        return (f"the photos' {photos_deg:.3f} deg off their records is the photos' disagreement "
+                "with their records on this model (the records, or the model fitted on them), "
+                "not the method's precision")
+    return (f"the photos' {photos_deg:.3f} deg off their records is of the method's own "
+            "precision on this model")
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="audit")

@@ -18,6 +18,13 @@ signals, and flags the photos that disagree with their recorded pose (:func:`sum
     doc = run_audit(localizer, views, plan, rule, out_dir, scene_scale=..., scene_centre=...)
     doc["cameras"][0]["flag"], doc["cameras"][0]["reason"]
 
+With ``control`` (the default) each photo also gets a control run: the model's own render at the
+recorded pose, with the photo's camera, localized from the photo's first start (or none). It
+measures what the method itself achieves on this model at that view. A photo whose pose lands
+0.3 deg from its record while the model's render comes back to within 0.02 deg disagrees with
+its record on this model (the record, or the model fitted on it, is off), not through the method.
+Control runs are kept apart: they are not among the camera's verdicts and never flag it.
+
 ``audit.json`` (rewritten atomically after each camera): ``settings``, ``rows`` (one per run: the
 one row schema plus ``camera`` and ``start``), ``cameras`` (one summary per camera) and
 ``summary``. Every run is first appended to ``audit.jsonl``; a run on the same output folder
@@ -45,6 +52,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "AUDIT_FORMAT",
+    "CONTROL",
     "FLAGS",
     "AuditJournal",
     "AuditPlan",
@@ -72,7 +80,9 @@ class AuditPlan:
         [deg] about ``pivot`` (``camera``, ``scene_center`` or ``origin``). trans: and moved by
         this distance [scene radii]. seed: the draws' seed (each photo's starts depend only on
         it and the photo's name). sample: localize this many photos, evenly spread over the
-        name-sorted training photos (None: all).
+        name-sorted training photos (None: all). control: also localize the model's render at
+        the recorded pose from the photo's first start (or none): the method's own precision
+        on this model at that view (module docstring).
     """
 
     starts: int = 3
@@ -82,6 +92,7 @@ class AuditPlan:
     pivot: str = "camera"
     seed: int = 0
     sample: Optional[int] = None
+    control: bool = True
 
     def __post_init__(self):
         if isinstance(self.rot_deg, (int, float)) and not isinstance(self.rot_deg, bool):
@@ -93,13 +104,22 @@ class AuditPlan:
         check_choice(self.pivot, "pivot", INIT_PIVOTS)
         check_int(self.seed, "seed", 0)
         check_int(self.sample, "sample", 1, optional=True)
+        check_bool(self.control, "control")
         if self.starts == 0 and not self.no_start:
             raise ValueError("starts is 0 and no_start is false: each photo needs at least one "
                              "run (starts >= 1, or no_start=true)")
 
     def labels(self) -> List[str]:
-        """The runs of each photo: ``none`` (no start) and ``start<k>``."""
+        """The runs of each photo: ``none`` (no start) and ``start<k>`` (the control apart)."""
         return (["none"] if self.no_start else []) + [f"start{k}" for k in range(self.starts)]
+
+    def runs_per_photo(self) -> int:
+        """The photo's runs and its control run."""
+        return len(self.labels()) + int(self.control)
+
+
+#: The label of a photo's control run (:attr:`AuditPlan.control`).
+CONTROL = "control"
 
 
 @dataclass
@@ -248,7 +268,8 @@ def _flag(name: str, rows, ok, rule: FlagRule, scale: float) -> Dict[str, Any]:
 
 
 def summarize_camera(name: str, rows: Sequence[Mapping[str, Any]], rule: FlagRule,
-                     scene_scale: float) -> Dict[str, Any]:
+                     scene_scale: float, control: Optional[Mapping[str, Any]] = None
+                     ) -> Dict[str, Any]:
     """One camera's summary: agreement with the record, verdicts, signals and the flag.
 
     ``rows`` are its runs (the one row schema: ``status``, ``c2w``, ``rot_err_deg`` and
@@ -263,6 +284,9 @@ def summarize_camera(name: str, rows: Sequence[Mapping[str, Any]], rule: FlagRul
        record (the medoid's error not under both bounds) is ``registration``; on it, no flag;
     3. no consensus: no flag when every ``ok`` pose agrees with the record, else
        ``inconsistent``.
+
+    ``control``: the camera's control run (:attr:`AuditPlan.control`), summarized apart
+    (``control``: its errors against the record and its verdict; None without one).
 
     Raises:
         ValueError: no rows, or a scene scale that is not positive.
@@ -294,6 +318,9 @@ def summarize_camera(name: str, rows: Sequence[Mapping[str, Any]], rule: FlagRul
         "c2w": None if shown is None else shown.get("c2w"),
         "recorded_c2w": rows[0].get("gt_c2w"),
         "signals": None if shown is None else shown.get("signals"),
+        "control": None if control is None else {
+            k: control.get(k) for k in ("start", "status", "rot_err_deg", "trans_err_rel",
+                                        "error")},
     }
 
 
@@ -318,6 +345,11 @@ def audit_summary(cameras: Sequence[Mapping[str, Any]], rows: Sequence[Mapping[s
         "median_rot_err_deg_unflagged": _median(
             c.get("rot_err_deg") for c in cameras if not c.get("flag")),
         "median_ok_scatter_deg": _median(c.get("ok_scatter_deg") for c in cameras),
+        # the method's own precision on this model: its renders at the records, localized back
+        "median_control_rot_err_deg": _median(
+            (c.get("control") or {}).get("rot_err_deg") for c in cameras),
+        "median_control_trans_err_rel": _median(
+            (c.get("control") or {}).get("trans_err_rel") for c in cameras),
     }
 
 
@@ -391,9 +423,26 @@ def _localize(localizer, query: Query, camera: str, label: str, init, recorded, 
     return res.row(scale, camera=camera, start=label)
 
 
-def _document(settings, rows, cameras, rule, status: str) -> Dict[str, Any]:
+def _control_query(localizer, view, recorded: np.ndarray, scale: float) -> Query:
+    """The model's render at the recorded pose, with the photo's camera at ``scale``."""
+    import torch
+
+    from ..pose.convert import invert_rigid
+    from ..render import render
+
+    intr = view.intrinsics if scale == 1.0 else view.intrinsics.scaled(scale)
+    model = localizer.model
+    w2c = torch.as_tensor(invert_rigid(recorded), dtype=model.dtype, device=model.device)
+    with torch.no_grad():
+        out = render(model, intr, w2c, localizer.background, backend=localizer.backend)
+    return Query(out.color.clamp(0.0, 1.0).float().cpu(), intr,
+                 name=f"{view.name} (the model's render at its record)")
+
+
+def _document(settings, rows, controls, cameras, rule, status: str) -> Dict[str, Any]:
     return {"format": AUDIT_FORMAT, "status": status, "settings": settings,
             "summary": audit_summary(cameras, rows, rule), "cameras": cameras, "rows": rows,
+            "controls": controls,
             "conventions": "c2w: 4x4 camera-to-world, OpenCV axes; *_rel and trans in scene "
                            "radii (scene_scale); errors are against the recorded pose"}
 
@@ -427,8 +476,9 @@ def run_audit(localizer, views: Sequence[Any], plan: AuditPlan, rule: FlagRule, 
     settings = dict(settings or {}, plan=asdict(plan), flag=asdict(rule), scene_scale=scene_scale)
     journal = AuditJournal(out, {**(identity or {}), "rot_deg": list(plan.rot_deg),
                                  "trans": plan.trans, "pivot": plan.pivot, "seed": plan.seed})
-    bar = _Progress(progress, len(views) * len(plan.labels()))
+    bar = _Progress(progress, len(views) * plan.runs_per_photo())
     rows: List[Dict[str, Any]] = []
+    controls: List[Dict[str, Any]] = []
     cameras: List[Dict[str, Any]] = []
     bg = localizer.background.detach().float().cpu()
     try:
@@ -437,23 +487,34 @@ def run_audit(localizer, views: Sequence[Any], plan: AuditPlan, rule: FlagRule, 
             recorded = np.asarray(view.c2w, np.float64)
             query = None
             cam_rows = []
-            for label, init in audit_starts(name, recorded, plan, scene_scale, scene_centre):
+            starts = audit_starts(name, recorded, plan, scene_scale, scene_centre)
+            for label, init in starts:
                 if not journal.has(name, label):
                     query = query or Query.from_view(view, bg, image_scale(view))
                     journal.record(_localize(localizer, query, name, label, init, recorded,
                                              scene_scale))
                 cam_rows.append(journal.rows[(name, label)])
                 bar.run(cam_rows[-1], cameras)
+            control = None
+            if plan.control:
+                if not journal.has(name, CONTROL):  # from the first start (or none)
+                    init = next((c2w for _, c2w in starts if c2w is not None), None)
+                    journal.record(_localize(
+                        localizer, _control_query(localizer, view, recorded, image_scale(view)),
+                        name, CONTROL, init, recorded, scene_scale))
+                control = journal.rows[(name, CONTROL)]
+                controls.append(control)
+                bar.run(None, cameras)
             rows += cam_rows
-            cameras.append(summarize_camera(name, cam_rows, rule, scene_scale))
+            cameras.append(summarize_camera(name, cam_rows, rule, scene_scale, control))
             if on_camera is not None:
                 on_camera(view, query or Query.from_view(view, bg, image_scale(view)),
                           cameras[-1])
             write_json_atomic(out / "audit.json",
-                              _document(settings, rows, cameras, rule, "running"))
+                              _document(settings, rows, controls, cameras, rule, "running"))
     finally:
         bar.close()
-    doc = _document(settings, rows, cameras, rule, "complete")
+    doc = _document(settings, rows, controls, cameras, rule, "complete")
     write_json_atomic(out / "audit.json", doc)
     return doc
 
@@ -469,9 +530,10 @@ class _Progress:
 
             self.bar = tqdm(total=total, desc="audit", unit="run", dynamic_ncols=True)
 
-    def run(self, row: Mapping[str, Any], cameras: Sequence[Mapping[str, Any]]) -> None:
-        """Count one run (done now or read from the journal)."""
-        if row.get("status") in self.counts:
+    def run(self, row: Optional[Mapping[str, Any]], cameras: Sequence[Mapping[str, Any]]
+            ) -> None:
+        """Count one run (done now or read from the journal; None: a control run, not counted)."""
+        if row is not None and row.get("status") in self.counts:
             self.counts[row["status"]] += 1
         if self.bar is not None:
             flagged = sum(1 for c in cameras if c.get("flag"))

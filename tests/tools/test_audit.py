@@ -251,6 +251,15 @@ def test_the_corrupted_cameras_are_flagged_and_the_others_are_not(capture, tmp_p
     for r in doc["rows"]:
         assert set(ROW_FIELDS) <= set(r) and r["start"] in ("none", "start0")
         assert r["camera"] == r["name"] and r["gt_c2w"] is not None
+    # the control runs: the model's render at each record comes back to the record, the
+    # corrupted cameras' too; kept apart from the photos' runs and verdicts
+    assert [c["start"] for c in doc["controls"]] == ["control"] * 6
+    for n, c in cams.items():
+        assert c["control"]["rot_err_deg"] < 0.5 and c["control"]["status"] == "ok", (n, c)
+    assert doc["summary"]["median_control_rot_err_deg"] < 0.2
+    assert sum(doc["summary"]["verdicts"].values()) == 12
+    text = audit_tool().summary(doc)
+    assert "control: the model's renders at the records come back to" in text
     on_disk = json.loads((out / "audit.json").read_text())
     assert on_disk["status"] == "complete" and on_disk["summary"] == doc["summary"]
     # the pictures mark the flagged cameras (magenta frames on the sheet)
