@@ -243,9 +243,9 @@ def summary(doc: Dict[str, Any]) -> str:
                      f"; a photo's ok poses within {scatter:.3f} deg of each other (median)"))
     control = s.get("median_control_rot_err_deg")
     if control is not None:
-        lines.append(f"  control: the model's renders at the records come back to {control:.3f} deg "
-                     "(median): " + _control_reading(s.get("median_rot_err_deg_unflagged"),
-                                                     control))
+        lines.append(f"  control: the model's renders at the records come back to "
+                     f"{control:.3f} deg (median): "
+                     + _control_reading(s.get("median_rot_err_deg_unflagged"), control))
     if cal.get("stored"):
         moved = ", ".join(f"{k} {a:g} -> {b:g}" for k, (a, b) in cal["changed"].items())
         lines.append(f"  calibration ({cal['counts']['used']} right ok poses): "
@@ -256,10 +256,16 @@ def summary(doc: Dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+#: Photos this close to their records (median, deg) agree with them, whatever the control says.
+AGREE_DEG = 0.05
+
+
 def _control_reading(photos_deg, control_deg) -> str:
     """What the control runs say about the photos' distance to their records."""
     if photos_deg is None:
         return "no unflagged photo to compare with"
+    if photos_deg < AGREE_DEG:
+        return f"the photos agree with their records ({photos_deg:.3f} deg)"
     if photos_deg > 2.0 * control_deg + 0.02:
         return (f"the photos' {photos_deg:.3f} deg off their records is the photos' disagreement "
                 "with their records on this model (the records, or the model fitted on them), "

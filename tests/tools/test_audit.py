@@ -260,6 +260,10 @@ def test_the_corrupted_cameras_are_flagged_and_the_others_are_not(capture, tmp_p
     assert sum(doc["summary"]["verdicts"].values()) == 12
     text = audit_tool().summary(doc)
     assert "control: the model's renders at the records come back to" in text
+    reading = audit_tool()._control_reading
+    assert "agree with their records" in reading(0.02, 0.001)
+    assert "disagreement with their records" in reading(0.3, 0.01)
+    assert "the method's own precision" in reading(0.1, 0.08)
     on_disk = json.loads((out / "audit.json").read_text())
     assert on_disk["status"] == "complete" and on_disk["summary"] == doc["summary"]
     # the pictures mark the flagged cameras (magenta frames on the sheet)
