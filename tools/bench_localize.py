@@ -46,6 +46,7 @@ Examples:
 from __future__ import annotations
 
 import argparse
+import collections
 import datetime
 import json
 import os
@@ -331,12 +332,7 @@ def run_start(scene, st: Start, method: str, cfg, matcher, args) -> Dict[str, An
 
 def trace_stages(trace) -> Dict[str, int]:
     """How many trace records each stage made (geometric rounds, refinement steps, ...)."""
-    counts: Dict[str, int] = {}
-    for r in trace or []:
-        name = getattr(getattr(r, "stage", None), "name", None)
-        if name is not None:
-            counts[name.lower()] = counts.get(name.lower(), 0) + 1
-    return counts
+    return dict(collections.Counter(r["stage_name"] for r in trace or []))
 
 
 def lod_arg(args):

@@ -346,11 +346,6 @@ class _Search:
                                                 "rolled_back": False, "refine_iterations": 0})
 
 
-def _geometric_on_reduced(state: LocalizationState) -> bool:
-    """Whether a reduced model (level of detail) rendered the geometric stage."""
-    return _on_reduced(state, "geometric")
-
-
 def _on_reduced(state: LocalizationState, stage: str) -> bool:
     """Whether a reduced model (level of detail) rendered ``stage``."""
     return state.rendered.get(stage, {}).get("reduced", False)
@@ -359,7 +354,7 @@ def _on_reduced(state: LocalizationState, stage: str) -> bool:
 def _full_model_score(state: LocalizationState, g: GeometricOutcome, scale: float,
                       inlier_px: float) -> Optional[PoseScore]:
     """``g``'s score, measured again on the full model when a reduced one rendered it."""
-    if g.score is None or not _geometric_on_reduced(state):
+    if g.score is None or not _on_reduced(state, "geometric"):
         return g.score
     with state.serving("verify"):
         return score_pose(state, g.w2c, scale, inlier_px)
@@ -375,7 +370,7 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
                                  scene_depth=depth)
     geo = best.score
     reuse = (cfg.verify_geometric and ref.iterations == 0 and best.converged
-             and not _geometric_on_reduced(state))
+             and not _on_reduced(state, "geometric"))
     if reuse:  # the PnP step that ended the geometric stage was below its stop: judged there
         sc = geo
     else:  # the refinement's last render is judged when it is of the full model
