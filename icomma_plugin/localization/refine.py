@@ -1,7 +1,9 @@
 """Photometric refinement: Levenberg-Marquardt on the paper's comparing loss.
 
 It minimises the masked MSE between render and query over the pose, at one or more scales
-(coarse to fine).
+(coarse to fine). By default each colour channel of the render is first mapped by the gain and
+offset that fit it best to the query (``RefineConfig.exposure``): a photo's exposure is not the
+model's.
 
 The gradient is the rasterizer's exact analytic pose gradient. The Hessian is a Gauss-Newton
 matrix ``2 J^T J / N`` of the render's Jacobian ``J = dI/dxi``, either
@@ -39,10 +41,12 @@ from .verify import coverage_mask
 logger = logging.getLogger(__name__)
 
 HESSIANS = ("finite_difference", "motion_field")
+EXPOSURES = ("none", "affine")
 
 __all__ = [
     "RefineConfig",
     "RefineOutcome",
+    "exposure_fit",
     "gauss_newton_hessian",
     "gaussian_blur",
     "refine_photometric",
@@ -84,6 +88,18 @@ class RefineConfig:
         steps fall short).
     stop_rot_deg, stop_trans_rel: a step smaller than this (rotation, and translation relative to
         the scene depth) ends a level.
+    exposure: ``"none"``: the render is compared with the query as it is; ``"affine"``: each
+        colour channel of the render is first mapped by the gain and offset that fit it best to
+        the query over the mask (least squares, the gain clamped to ``exposure_gain``), so that a
+        photo's exposure and white balance (which a fitted model does not know) do not pull the
+        pose. The loss is then the profiled one, ``min_{a,b} |a I + b - Q|^2``; its gradient at
+        the fitted ``a, b`` is exact (the envelope theorem), and the Gauss-Newton matrix is
+        the profiled loss's (each channel's Jacobian scaled by ``a`` and without its part along
+        ``(I, 1)``, which ``a, b`` absorb: Kaufman's variable projection). Default
+        ``"affine"``: on fox's held-out phone photos (exposure changing from photo to photo) the
+        median error fell from 0.030 to 0.021 deg; on bird, goldcape and lego it stayed within
+        0.01 deg (docs/LOCALIZATION.md).
+    exposure_gain: the range ``(lo, hi)`` the fitted gain is clamped to.
     still_rot_deg, still_trans_rel: the pose counts as having stopped moving (a signal of the
         verdict) when the last step of the finest level was smaller than this. On a fitted scene
         the last steps creep along flat directions of the loss (0.01-0.1 deg) without changing
@@ -104,8 +120,11 @@ class RefineConfig:
     stop_trans_rel: float = 3e-5
     still_rot_deg: float = 0.25
     still_trans_rel: float = 2.5e-3
+    exposure: str = "affine"
+    exposure_gain: Tuple[float, float] = (0.5, 2.0)
 
     def __post_init__(self):
+        self.exposure_gain = tuple(float(g) for g in self.exposure_gain)
         self.scales = tuple(float(s) for s in self.scales)
         self.blur = tuple(float(b) for b in self.blur)
         self.iterations = tuple(int(i) for i in self.iterations)
@@ -119,6 +138,11 @@ class RefineConfig:
         if any(not (0 <= b <= 32) for b in self.blur):
             raise ValueError(f"RefineConfig.blur must lie in [0, 32] px, got {self.blur}")
         check_choice(self.hessian, "RefineConfig.hessian", HESSIANS)
+        check_choice(self.exposure, "RefineConfig.exposure", EXPOSURES)
+        g = self.exposure_gain
+        if len(g) != 2 or not (0 < g[0] <= 1 <= g[1]):
+            raise ValueError(f"RefineConfig.exposure_gain must be (lo, hi) with 0 < lo <= 1 <= hi, "
+                             f"got {self.exposure_gain}")
         if any(i < 0 for i in self.iterations):
             raise ValueError(f"RefineConfig.iterations must be >= 0, got {self.iterations}")
         check_real(self.lambda_init, "RefineConfig.lambda_init", 0.0, lo_open=True)
@@ -170,11 +194,14 @@ def _image_gradient(img: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
 
 
 def gauss_newton_hessian(color: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor,
-                         mask: torch.Tensor, intrinsics: Intrinsics) -> torch.Tensor:
+                         mask: torch.Tensor, intrinsics: Intrinsics,
+                         exposure: Optional[Tuple[torch.Tensor, torch.Tensor]] = None
+                         ) -> torch.Tensor:
     """6x6 Gauss-Newton Hessian (float64) of the masked MSE w.r.t. a camera-frame twist.
 
     The twist is ``(rho, phi)``; the Hessian comes from the motion-field model of the render
-    (module docstring).
+    (module docstring). ``exposure``: ``(gains [C], base [C, H, W])`` for the exposure-profiled
+    loss (``_gauss_newton``).
     """
     with torch.no_grad():
         c = color.detach().double()
@@ -192,10 +219,7 @@ def gauss_newton_hessian(color: torch.Tensor, depth: torch.Tensor, alpha: torch.
         dv = fy * torch.stack([zero, iz, -y * iz, -(1 + y * y), x * y, x])
         gx, gy = _image_gradient(c)  # [C, H, W]
         J = gx[:, None] * du[None] + gy[:, None] * dv[None]  # [C, 6, H, W]
-        m = mask.detach().double()[0]
-        Jm = (J * m.sqrt()).reshape(c.shape[0], 6, -1)
-        Hm = torch.einsum("cip,cjp->ij", Jm, Jm)
-        return 2.0 * Hm / (c.shape[0] * max(float(m.sum()), 1e-12))
+        return _gauss_newton(J, mask, exposure)
 
 
 def gaussian_blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
@@ -213,18 +237,73 @@ def gaussian_blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
     return y[0]
 
 
-def _hessian(state, cfg, w2c, scale, out, mask, intr, blur):
+def exposure_fit(render: torch.Tensor, query: torch.Tensor, mask: torch.Tensor,
+                 gain_range: Tuple[float, float]) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Per-channel gain and offset ``(a, b)``, ``[C, 1, 1]`` each: ``a render + b`` fits ``query``.
+
+    Weighted least squares over ``mask``; the gain clamped to ``gain_range``, the offset then
+    refitted. Detached: the profiled loss's gradient at the optimum needs no derivative of
+    ``a, b`` (envelope theorem).
+    """
+    with torch.no_grad():
+        r, q = render.detach(), query.detach().to(render.dtype)
+        m = mask.detach().to(render.dtype)
+        w = float(m.sum())
+        if w < 1:
+            one = torch.ones(r.shape[0], 1, 1, dtype=r.dtype, device=r.device)
+            return one, torch.zeros_like(one)
+        mr = (r * m).sum((1, 2), keepdim=True) / w
+        mq = (q * m).sum((1, 2), keepdim=True) / w
+        var = (((r - mr) ** 2) * m).sum((1, 2), keepdim=True)
+        cov = ((r - mr) * (q - mq) * m).sum((1, 2), keepdim=True)
+        a = torch.where(var > 1e-12, cov / var.clamp_min(1e-12), torch.ones_like(var))
+        a = a.clamp(gain_range[0], gain_range[1])
+        return a, mq - a * mr
+
+
+def _hessian(state, cfg, w2c, scale, out, mask, intr, blur, query):
+    """The level's Gauss-Newton matrix at ``w2c`` (``cfg.hessian``).
+
+    With ``cfg.exposure``, of the exposure-profiled loss: the gains fitted to ``query`` at the
+    render ``out``.
+    """
+    img = gaussian_blur(out.color.detach(), blur)
+    exposure = None
+    if cfg.exposure != "none":
+        gains = exposure_fit(img, query, mask, cfg.exposure_gain)[0].flatten().double()
+        exposure = (gains, img)
     if cfg.hessian == "motion_field":
-        return gauss_newton_hessian(
-            gaussian_blur(out.color.detach(), blur), out.depth, out.alpha, mask, intr
-        )
+        return gauss_newton_hessian(img, out.depth, out.alpha, mask, intr, exposure)
     if not (cfg.hessian_reduced and state.reduced is not None):
-        return _fd_hessian(state, cfg, w2c, scale, out, mask, blur, own_render=False)
+        return _fd_hessian(state, cfg, w2c, scale, out, mask, blur, exposure, own_render=False)
     with state.serving("hessian", reduced=True):
-        return _fd_hessian(state, cfg, w2c, scale, out, mask, blur, own_render=True)
+        return _fd_hessian(state, cfg, w2c, scale, out, mask, blur, exposure, own_render=True)
 
 
-def _fd_hessian(state, cfg, w2c, scale, out, mask, blur, own_render: bool):
+def _gauss_newton(J: torch.Tensor, mask: torch.Tensor, exposure=None) -> torch.Tensor:
+    """``2 J^T J / N`` of a ``[C, 6, H, W]`` Jacobian of the render over ``mask``.
+
+    ``exposure`` ``(gains [C], base [C, H, W])``: the Gauss-Newton matrix of the exposure-profiled
+    loss (Kaufman's variable projection): each channel's Jacobian scaled by its gain and with its
+    part along the fitted basis ``(base render, 1)`` removed, which the gain and offset absorb.
+    """
+    m = mask.detach().double()[0]
+    C = J.shape[0]
+    if exposure is not None:
+        gains, base = exposure
+        w = m.view(1, 1, *m.shape)
+        sw = max(float(m.sum()), 1e-12)
+        r = base.detach().double().view(C, 1, *m.shape)
+        r = r - (r * w).sum((2, 3), keepdim=True) / sw
+        J = J - (J * w).sum((2, 3), keepdim=True) / sw
+        rr = (r * r * w).sum((2, 3), keepdim=True).clamp_min(1e-12)
+        J = J - (J * r * w).sum((2, 3), keepdim=True) / rr * r
+        J = J * gains.view(C, 1, 1, 1)
+    Jm = (J * m.sqrt()).reshape(C, 6, -1)
+    return 2.0 * torch.einsum("cip,cjp->ij", Jm, Jm) / (C * max(float(m.sum()), 1e-12))
+
+
+def _fd_hessian(state, cfg, w2c, scale, out, mask, blur, exposure, own_render: bool):
     """Gauss-Newton matrix from the render's Jacobian by forward differences.
 
     ``own_render``: the base render ``out`` is made again here (by the model now served).
@@ -247,10 +326,9 @@ def _fd_hessian(state, cfg, w2c, scale, out, mask, blur, own_render: bool):
                 state.render((se3_exp(e) @ w2c_t).numpy(), scale).color.double(), blur
             )
             cols.append((img - base) / cfg.fd_step)
-    J = torch.stack(cols, 1)  # [C, 6, H, W]
-    m = mask.detach().double()[0]
-    Jm = (J * m.sqrt()).reshape(base.shape[0], 6, -1)
-    return 2.0 * torch.einsum("cip,cjp->ij", Jm, Jm) / (base.shape[0] * max(float(m.sum()), 1e-12))
+    if exposure is not None:  # the basis: the render differentiated here
+        exposure = (exposure[0], base)
+    return _gauss_newton(torch.stack(cols, 1), mask, exposure)  # J: [C, 6, H, W]
 
 
 def _bfgs_update(hess: torch.Tensor, s: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -269,13 +347,14 @@ def _bfgs_update(hess: torch.Tensor, s: torch.Tensor, y: torch.Tensor) -> torch.
 
 def _evaluate(state: LocalizationState, w2c: np.ndarray, scale: float, mask: Optional[torch.Tensor],
               best: Optional[float], blur: float = 0.0, query: Optional[torch.Tensor] = None,
-              want_grad: bool = True):
+              want_grad: bool = True, exposure_gain: Optional[Tuple[float, float]] = None):
     """Loss at ``w2c``, and its gradient and render when it beats ``best``.
 
     The gradient is w.r.t. the camera-frame twist; ``best`` None always counts as beaten.
     ``mask`` None: the coverage mask of this very render (detached) is made and returned, for the
     caller to keep for the rest of the level. ``want_grad`` False: no backward pass (the level's
-    last step: its gradient would be used by nothing).
+    last step: its gradient would be used by nothing). ``exposure_gain``: the loss is the
+    exposure-profiled one (``RefineConfig.exposure``), its gain clamped to this range.
 
     Returns:
         (loss, grad or None, render or None, mask): render None when ``best`` was not beaten.
@@ -290,7 +369,11 @@ def _evaluate(state: LocalizationState, w2c: np.ndarray, scale: float, mask: Opt
             return float("nan"), None, None, mask
     if query is None:
         query = state.query_at(scale).rgb
-    loss = compare_loss(gaussian_blur(out.color, blur), query.to(out.color.dtype), mask)
+    img = gaussian_blur(out.color, blur)
+    if exposure_gain is not None:
+        a, b = exposure_fit(img, query, mask, exposure_gain)
+        img = a * img + b
+    loss = compare_loss(img, query.to(out.color.dtype), mask)
     val = float(loss.detach())
     if best is not None and not val < best:
         return val, None, None, mask
@@ -315,7 +398,8 @@ def _lm_level(state: LocalizationState, cfg: RefineConfig, w2c: np.ndarray, scal
     """
     intr, blur, query, mask, n_it = level
     loss, grad, out = start
-    hess = _hessian(state, cfg, w2c, scale, out, mask, intr, blur)
+    hess = _hessian(state, cfg, w2c, scale, out, mask, intr, blur, query)
+    gain = None if cfg.exposure == "none" else cfg.exposure_gain
     lam, nu = cfg.lambda_init, 2.0
     last_rot = last_trans = None
     for it in range(n_it):
@@ -330,7 +414,7 @@ def _lm_level(state: LocalizationState, cfg: RefineConfig, w2c: np.ndarray, scal
         w2c_try = (se3_exp(step) @ torch.as_tensor(w2c)).numpy()
         last = it == n_it - 1  # the last step's gradient would serve no further step
         loss_try, grad_try, out_try, _ = _evaluate(state, w2c_try, scale, mask, loss, blur, query,
-                                                   want_grad=not last)
+                                                   want_grad=not last, exposure_gain=gain)
         ok = out_try is not None
         state.record(state.new_record(Stage.REFINE, w2c_try, loss=loss_try, loss_compare=loss_try,
                                       accepted=ok, hypothesis=hypothesis, scale=scale, lr=lam))
@@ -353,7 +437,7 @@ def _lm_level(state: LocalizationState, cfg: RefineConfig, w2c: np.ndarray, scal
         elif cfg.hessian == "motion_field" or (
             cfg.hessian_every and counts["accepted"] % cfg.hessian_every == 0
         ):
-            hess = _hessian(state, cfg, w2c, scale, out_try, mask, intr, blur)
+            hess = _hessian(state, cfg, w2c, scale, out_try, mask, intr, blur, query)
         elif cfg.secant:
             hess = _bfgs_update(hess, step, grad - grad_prev)
         last_rot, last_trans = math.degrees(float(step[3:].norm())), float(step[:3].norm())
@@ -383,7 +467,9 @@ def refine_photometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Ref
         if min(intr.width, intr.height) < 8:
             continue
         query = gaussian_blur(state.query_at(scale).rgb, blur)
-        loss, grad, out, mask = _evaluate(state, w2c, scale, None, None, blur, query)
+        loss, grad, out, mask = _evaluate(state, w2c, scale, None, None, blur, query,
+                                          exposure_gain=None if cfg.exposure == "none"
+                                          else cfg.exposure_gain)
         if grad is None:  # the render covers (almost) nothing: no photometric signal here
             continue
         last_scale = scale
