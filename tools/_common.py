@@ -8,12 +8,14 @@ process's thread count or seeds.
 """
 from __future__ import annotations
 
+import ast
 import contextlib
+import json
 import logging
 import os
 import random
 import sys
-from typing import Any, Callable, Iterator, Optional, Tuple, TypeVar
+from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple, TypeVar
 
 import numpy as np
 import torch
@@ -22,11 +24,13 @@ T = TypeVar("T")
 
 __all__ = [
     "UserError",
+    "apply_overrides",
     "build_matcher",
     "build_optimizer",
     "check_backend",
     "choose_threads",
     "container",
+    "parse_overrides",
     "run_or_exit",
     "seed_everything",
     "torch_threads",
@@ -100,6 +104,55 @@ def run_or_exit(job: Callable[[], T], multirun: bool, log: logging.Logger) -> T:
             raise
         print(msg, file=sys.stderr)
         sys.exit(2)
+
+
+def parse_overrides(items: Sequence[str], flag: str = "--set") -> List[Tuple[str, Any]]:
+    """``(key, value)`` of each ``key=value`` override of a tool's ``--set``.
+
+    The one syntax of every tool's ``--set``: values are YAML (``0.5``, ``[1.0, 0.5]``, ``null``,
+    ``true``), and a Python literal where YAML reads only a string (``(0.2,)``, ``None``).
+
+    Raises:
+        ValueError: an item without ``=`` or without a key (naming ``flag``).
+    """
+    import yaml
+
+    out = []
+    for item in items:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ValueError(f"{flag}: expected key=value, got {item!r}")
+        value = yaml.safe_load(text)
+        if isinstance(value, str):
+            try:
+                value = ast.literal_eval(text.strip())
+            except (ValueError, SyntaxError):
+                pass
+        out.append((key, value))
+    return out
+
+
+def apply_overrides(config: Dict[str, Any], items: Sequence[str], what: str,
+                    flag: str = "--set") -> Dict[str, Any]:
+    """A copy of the nested dict ``config`` with ``dotted.key=value`` overrides applied.
+
+    Values as :func:`parse_overrides` reads them; a key must exist in ``config`` (``what`` names
+    the config in the error).
+
+    Raises:
+        ValueError: a malformed item, or a key ``config`` does not have.
+    """
+    out = json.loads(json.dumps(config))
+    for key, value in parse_overrides(items, flag):
+        *path, leaf = key.split(".")
+        node = out
+        for part in path:
+            node = node.get(part) if isinstance(node, dict) else None
+        if not isinstance(node, dict) or leaf not in node:
+            raise ValueError(f"{flag}: {what} has no key {key!r}")
+        node[leaf] = value
+    return out
 
 
 def container(node) -> Any:

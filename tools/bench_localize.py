@@ -247,35 +247,15 @@ def method_config(method: str, args):
     """The config of ``method``: the default ``RobustConfig`` or the paper's."""
     from icomma_plugin.localize import LocalizerConfig, RobustConfig
 
+    if __package__:
+        from ._common import apply_overrides
+    else:
+        from tools._common import apply_overrides
     if method == "robust":
-        return RobustConfig.from_dict(with_overrides(RobustConfig(work_side=args.work_side)
-                                                     .to_dict(), args.set or []))
+        return RobustConfig.from_dict(apply_overrides(
+            RobustConfig(work_side=args.work_side).to_dict(), args.set or [],
+            "the default method's config"))
     return LocalizerConfig(max_iterations=args.paper_max_iterations)
-
-
-def with_overrides(config: Dict[str, Any], overrides: List[str]) -> Dict[str, Any]:
-    """``config`` (a nested dict) with ``--set`` overrides ``dotted.key=value`` applied.
-
-    Values are read as YAML (``0.5``, ``[1.0, 0.5]``, ``null``, ``true``); a key must exist.
-
-    Raises:
-        ValueError: an override without ``=`` or naming a key the config does not have.
-    """
-    import yaml
-
-    out = json.loads(json.dumps(config))
-    for item in overrides:
-        key, sep, text = item.partition("=")
-        if not sep or not key:
-            raise ValueError(f"--set: expected dotted.key=value, got {item!r}")
-        *path, leaf = key.split(".")
-        node = out
-        for part in path:
-            node = node.get(part) if isinstance(node, dict) else None
-        if not isinstance(node, dict) or leaf not in node:
-            raise ValueError(f"--set: the default method's config has no key {key!r}")
-        node[leaf] = yaml.safe_load(text)
-    return out
 
 
 def run_start(scene, st: Start, method: str, cfg, matcher, args) -> Dict[str, Any]:

@@ -29,7 +29,6 @@ comparison with upstream and measurements: docs/FITTING.md.
 from __future__ import annotations
 
 import argparse
-import ast
 import json
 import logging
 import sys
@@ -43,9 +42,9 @@ if str(REPO_ROOT) not in sys.path:
 import torch  # noqa: E402
 
 if __package__:
-    from ._common import choose_threads  # noqa: E402
+    from ._common import choose_threads, parse_overrides  # noqa: E402
 else:  # run as a script from a checkout
-    from tools._common import choose_threads  # noqa: E402
+    from tools._common import choose_threads, parse_overrides  # noqa: E402
 from icomma_plugin.fit import FitConfig, fit_scene  # noqa: E402
 
 log = logging.getLogger("fit_scene")
@@ -134,7 +133,8 @@ def parse_args(argv=None) -> argparse.Namespace:
         action="append",
         default=[],
         metavar="FIELD=VALUE",
-        help="override any FitConfig field (python literal), repeatable",
+        help="override any FitConfig field, repeatable (YAML values, or a Python literal "
+        "such as (0.25, 0.5); the syntax of every tool's --set)",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing model folder")
     p.add_argument("--no-progress", action="store_true", help="no tqdm progress bar")
@@ -184,17 +184,10 @@ def build_config(args: argparse.Namespace, capture=None) -> FitConfig:
     if args.max_gaussians is not None:
         over["max_gaussians"] = args.max_gaussians
     names = set(FitConfig.field_names())
-    for item in args.set:
-        if "=" not in item:
-            raise ValueError(f"--set expects FIELD=VALUE, got {item!r}")
-        k, v = item.split("=", 1)
-        k = k.strip()
+    for k, v in parse_overrides(args.set):
         if k not in names:
             raise ValueError(f"--set: unknown FitConfig field {k!r}; fields: {sorted(names)}")
-        try:
-            over[k] = ast.literal_eval(v)
-        except (ValueError, SyntaxError):
-            over[k] = v
+        over[k] = v
     if args.recipe == "capture" and capture is not None:
         return FitConfig.for_capture(capture.train_views, capture.width, capture.height,
                                      capture.object_render, args.iterations, **over)

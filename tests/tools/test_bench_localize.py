@@ -205,7 +205,7 @@ def test_set_overrides_the_default_method_and_names_a_bad_key():
     cfg = method_config("robust", args)
     assert cfg.work_side == 400 and cfg.refine.hessian_scale == 0.5
     assert cfg.refine.iterations == (2,) and cfg.refine_reduced is True
-    for bad, words in (("refine.nope=1", "no key 'refine.nope'"), ("refine", "dotted.key=value"),
+    for bad, words in (("refine.nope=1", "no key 'refine.nope'"), ("refine", "expected key=value"),
                        ("refine.scales=[2, 9]", "scales")):
         with pytest.raises(ValueError, match=words):
             method_config("robust", parser.parse_args(["--set", bad]))

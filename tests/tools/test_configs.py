@@ -241,3 +241,24 @@ def test_robust_config_round_trips_through_a_mapping():
     assert RobustConfig.from_dict(dataclasses.asdict(rc)) == rc
     with pytest.raises(ValueError, match="unknown RobustConfig.refine keys"):
         RobustConfig.from_dict({"refine": {"no_such_key": 1}})
+
+
+def test_every_tools_set_reads_values_one_way():
+    """bench_localize's and fit_scene's ``--set`` share one parser.
+
+    YAML values, Python literals where YAML reads only a string, dotted keys that must exist.
+    """
+    common = _tools_common()
+    apply_overrides, parse_overrides = common.apply_overrides, common.parse_overrides
+
+    got = dict(parse_overrides(["a=0.5", "b=[1, 2]", "c=null", "d=None", "e=(0.2,)", "f=true",
+                                "g=True", "h=text", " i = 3"]))
+    assert got == {"a": 0.5, "b": [1, 2], "c": None, "d": None, "e": (0.2,), "f": True,
+                   "g": True, "h": "text", "i": 3}
+    cfg = {"x": 1, "sub": {"y": [0.1], "z": None}}
+    out = apply_overrides(cfg, ["sub.y=[2, 3]", "x=4"], "the config")
+    assert out == {"x": 4, "sub": {"y": [2, 3], "z": None}} and cfg["x"] == 1  # a copy
+    for bad, words in (("sub.w=1", "the config has no key 'sub.w'"), ("x.y=1", "no key 'x.y'"),
+                       ("=1", "expected key=value"), ("x", "expected key=value")):
+        with pytest.raises(ValueError, match=words):
+            apply_overrides(cfg, [bad], "the config")
