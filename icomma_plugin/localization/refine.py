@@ -155,6 +155,12 @@ class RefineConfig:
             check_real(getattr(self, name), f"RefineConfig.{name}", 0.0)
 
 
+    @property
+    def fitted_gain_range(self) -> Optional[Tuple[float, float]]:
+        """The range of the exposure's fitted gain, or None when no exposure is fitted."""
+        return None if self.exposure == "none" else self.exposure_gain
+
+
 @dataclass
 class RefineOutcome:
     """What the refinement ends with: the pose, its steps, the loss before and after."""
@@ -269,8 +275,8 @@ def _hessian(state, cfg, w2c, scale, out, mask, intr, blur, query):
     """
     img = gaussian_blur(out.color.detach(), blur)
     exposure = None
-    if cfg.exposure != "none":
-        gains = exposure_fit(img, query, mask, cfg.exposure_gain)[0].flatten().double()
+    if cfg.fitted_gain_range is not None:
+        gains = exposure_fit(img, query, mask, cfg.fitted_gain_range)[0].flatten().double()
         exposure = (gains, img)
     if cfg.hessian == "motion_field":
         return gauss_newton_hessian(img, out.depth, out.alpha, mask, intr, exposure)
@@ -399,7 +405,7 @@ def _lm_level(state: LocalizationState, cfg: RefineConfig, w2c: np.ndarray, scal
     intr, blur, query, mask, n_it = level
     loss, grad, out = start
     hess = _hessian(state, cfg, w2c, scale, out, mask, intr, blur, query)
-    gain = None if cfg.exposure == "none" else cfg.exposure_gain
+    gain = cfg.fitted_gain_range
     lam, nu = cfg.lambda_init, 2.0
     last_rot = last_trans = None
     for it in range(n_it):
@@ -468,8 +474,7 @@ def refine_photometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Ref
             continue
         query = gaussian_blur(state.query_at(scale).rgb, blur)
         loss, grad, out, mask = _evaluate(state, w2c, scale, None, None, blur, query,
-                                          exposure_gain=None if cfg.exposure == "none"
-                                          else cfg.exposure_gain)
+                                          exposure_gain=cfg.fitted_gain_range)
         if grad is None:  # the render covers (almost) nothing: no photometric signal here
             continue
         last_scale = scale
