@@ -216,6 +216,21 @@ def test_exposure_fit_recovers_a_known_gain_and_offset_over_the_mask():
     assert torch.equal(a, torch.ones_like(a)) and torch.equal(b, torch.zeros_like(b))
 
 
+def test_a_bad_exposure_setting_is_one_error_naming_it():
+    from icomma_plugin.localization.refine import RefineConfig
+    from icomma_plugin.localization.robust import RobustConfig
+
+    with pytest.raises(ValueError, match=r"RefineConfig.exposure must be one of .*got 'auto'"):
+        RefineConfig(exposure="auto")
+    for gain in ((2.0, 3.0), (0.0, 2.0), (0.5,), (1.5, 0.5)):
+        with pytest.raises(ValueError, match="RefineConfig.exposure_gain must be"):
+            RefineConfig(exposure_gain=gain)
+    # the tools' YAML lists become tuples, and the range is None when nothing is fitted
+    cfg = RobustConfig.from_dict({"refine": {"exposure_gain": [0.8, 1.25]}}).refine
+    assert cfg.exposure_gain == (0.8, 1.25) and cfg.fitted_gain_range == (0.8, 1.25)
+    assert RefineConfig(exposure="none").fitted_gain_range is None
+
+
 def test_the_exposure_profiled_gradient_matches_finite_differences(demo):
     """The exposure-profiled loss's gradient is exact (checked by central differences).
 
