@@ -123,7 +123,10 @@ def parse_overrides(items: Sequence[str], flag: str = "--set") -> List[Tuple[str
         key = key.strip()
         if not sep or not key:
             raise ValueError(f"{flag}: expected key=value, got {item!r}")
-        value = yaml.safe_load(text)
+        try:
+            value = yaml.safe_load(text)
+        except yaml.YAMLError:  # not YAML ("[1, 2"): a literal, else the text as it is
+            value = text
         if isinstance(value, str):
             try:
                 value = ast.literal_eval(text.strip())

@@ -252,9 +252,9 @@ def test_every_tools_set_reads_values_one_way():
     apply_overrides, parse_overrides = common.apply_overrides, common.parse_overrides
 
     got = dict(parse_overrides(["a=0.5", "b=[1, 2]", "c=null", "d=None", "e=(0.2,)", "f=true",
-                                "g=True", "h=text", " i = 3"]))
+                                "g=True", "h=text", " i = 3", "j=1e-4", "k=[1, 2"]))
     assert got == {"a": 0.5, "b": [1, 2], "c": None, "d": None, "e": (0.2,), "f": True,
-                   "g": True, "h": "text", "i": 3}
+                   "g": True, "h": "text", "i": 3, "j": 1e-4, "k": "[1, 2"}
     cfg = {"x": 1, "sub": {"y": [0.1], "z": None}}
     out = apply_overrides(cfg, ["sub.y=[2, 3]", "x=4"], "the config")
     assert out == {"x": 4, "sub": {"y": [2, 3], "z": None}} and cfg["x"] == 1  # a copy
