@@ -274,16 +274,16 @@ def _hessian(state, cfg, w2c, scale, out, mask, intr, blur, query):
     render ``out``.
     """
     img = gaussian_blur(out.color.detach(), blur)
-    exposure = None
+    gains = None
     if cfg.fitted_gain_range is not None:
         gains = exposure_fit(img, query, mask, cfg.fitted_gain_range)[0].flatten().double()
-        exposure = (gains, img)
     if cfg.hessian == "motion_field":
-        return gauss_newton_hessian(img, out.depth, out.alpha, mask, intr, exposure)
+        return gauss_newton_hessian(img, out.depth, out.alpha, mask, intr,
+                                    None if gains is None else (gains, img))
     if not (cfg.hessian_reduced and state.reduced is not None):
-        return _fd_hessian(state, cfg, w2c, scale, out, mask, blur, exposure, own_render=False)
+        return _fd_hessian(state, cfg, w2c, scale, out, mask, blur, gains, own_render=False)
     with state.serving("hessian", reduced=True):
-        return _fd_hessian(state, cfg, w2c, scale, out, mask, blur, exposure, own_render=True)
+        return _fd_hessian(state, cfg, w2c, scale, out, mask, blur, gains, own_render=True)
 
 
 def _gauss_newton(J: torch.Tensor, mask: torch.Tensor, exposure=None) -> torch.Tensor:
@@ -309,10 +309,12 @@ def _gauss_newton(J: torch.Tensor, mask: torch.Tensor, exposure=None) -> torch.T
     return 2.0 * torch.einsum("cip,cjp->ij", Jm, Jm) / (C * max(float(m.sum()), 1e-12))
 
 
-def _fd_hessian(state, cfg, w2c, scale, out, mask, blur, exposure, own_render: bool):
+def _fd_hessian(state, cfg, w2c, scale, out, mask, blur, gains, own_render: bool):
     """Gauss-Newton matrix from the render's Jacobian by forward differences.
 
     ``own_render``: the base render ``out`` is made again here (by the model now served).
+    ``gains``: the exposure's per-channel gains (None: no exposure), with the render
+    differentiated here as the fitted basis.
     """
     if cfg.hessian_scale < 1.0 or own_render:  # the Jacobian of a coarser (or another) render
         scale = scale * cfg.hessian_scale
@@ -332,8 +334,7 @@ def _fd_hessian(state, cfg, w2c, scale, out, mask, blur, exposure, own_render: b
                 state.render((se3_exp(e) @ w2c_t).numpy(), scale).color.double(), blur
             )
             cols.append((img - base) / cfg.fd_step)
-    if exposure is not None:  # the basis: the render differentiated here
-        exposure = (exposure[0], base)
+    exposure = None if gains is None else (gains, base)
     return _gauss_newton(torch.stack(cols, 1), mask, exposure)  # J: [C, 6, H, W]
 
 
