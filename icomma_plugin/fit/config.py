@@ -80,6 +80,7 @@ class FitConfig:
     coarse_to_fine: Tuple[float, ...] = ()
     # rendering / data
     backend: str = "auto"
+    # a random background colour at every step (upstream --random_background; the capture recipe)
     random_background: bool = False
     # evaluation / saving
     eval_interval: int = 0  # 0: evaluate on the test split only at the end
@@ -198,9 +199,13 @@ class FitConfig:
 # What a photographed capture adds to `FitConfig.scaled_schedule` (docs/FITTING.md measures each):
 # initial Gaussians no wider than 3 px seen from the nearest camera (the nearest-neighbour
 # scales of a plane sweep, SfM outliers or the far field cover much of each image: 7x the time
-# of the first steps on goldcape) and coarse-to-fine (1/4 size until 10 % of the run, 1/2
-# until 30 %).
-CAPTURE_RECIPE = {"init_max_pixels": 3.0, "coarse_to_fine": (0.1, 0.3)}
+# of the first steps on goldcape), coarse-to-fine (1/4 size until 10 % of the run, 1/2
+# until 30 %) and a random background colour at every step (upstream's --random_background: a
+# photo has no transparent pixel, so a model that leaves fog where it should be opaque is
+# penalised; held-out PSNR raw / exposure-fitted: goldcape +0.32 / +0.24 dB, fox +0.50 / +0.00,
+# bird -0.17 / +0.58; on lego's white-background renders it cost 0.45 dB, so object renders
+# keep theirs).
+CAPTURE_RECIPE = {"init_max_pixels": 3.0, "coarse_to_fine": (0.1, 0.3), "random_background": True}
 
 # auto_iterations: steps per training view, and the bounds of the count
 STEPS_PER_VIEW = 100

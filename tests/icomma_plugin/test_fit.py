@@ -297,6 +297,40 @@ def test_tiny_end_to_end_fit():
     assert set(res.timings) >= {"render", "backward", "adam", "densify"}
 
 
+def test_random_background_draws_a_colour_each_step_and_recomposites_only_alpha_views():
+    """A photo (no alpha) is its own target over any background; a view with alpha is
+    re-composited over the step's colour (the capture recipe turns this on for photos)."""
+    gt = _gt_model()
+    rendered = _render_views(gt, _ring_poses(2), size=24)
+    (n0, img0, _, intr0, w0), (n1, img1, alpha1, intr1, w1) = rendered
+    views = [FitView(n0, img0, intr0, torch.as_tensor(w0, dtype=torch.float32)),
+             FitView(n1, img1, intr1, torch.as_tensor(w1, dtype=torch.float32), alpha=alpha1)]
+    xyz, rgb = random_cube_points(100, 0.8, seed=0)
+    cfg = FitConfig.scaled_schedule(20, sh_degree=1, random_background=True)
+    trainer = Trainer(model_from_points(xyz, rgb, sh_degree=1), views, scene_extent=3.3,
+                      config=cfg, background=(0, 0, 0))
+    seen = []
+    real = trainer._loss_and_grad
+
+    def spy(index, color, target, valid):
+        seen.append((index, target.clone()))
+        return real(index, color, target, valid)
+
+    trainer._loss_and_grad = spy
+    for _ in range(6):
+        trainer.train_step()
+    assert {i for i, _ in seen} == {0, 1}
+    for i, target in seen:
+        if i == 0:
+            assert torch.equal(target, img0)  # a photo is not touched
+    # a view with alpha: target - image = (bg - black) (1 - alpha), a new colour every step
+    colours = [((t - img1) / (1 - alpha1).clamp_min(1e-3))[:, alpha1[0] < 0.01].mean(-1)
+               for i, t in seen if i == 1]
+    assert len(colours) >= 2
+    assert all(((c >= -1e-4) & (c <= 1 + 1e-4)).all() for c in colours)
+    assert any((a - b).abs().max() > 1e-3 for a, b in zip(colours, colours[1:]))
+
+
 # --------------------------------------------------------------------------- dataset -> folder
 def _write_blender_dataset(root: Path, rendered_train, rendered_test):
     from PIL import Image

@@ -36,6 +36,7 @@ def test_for_capture():
     for k, v in CAPTURE_RECIPE.items():
         assert getattr(photo, k) == v
     assert render.coarse_to_fine == () and render.init_max_pixels is None
+    assert photo.random_background and not render.random_background
     fixed = FitConfig.for_capture(100, 200, 200, iterations=1234, coarse_to_fine=())
     assert fixed.iterations == 1234 and fixed.coarse_to_fine == ()
     assert fixed.densify_until_iter == round(0.5 * 1234)  # the scaled schedule
