@@ -298,8 +298,11 @@ def test_tiny_end_to_end_fit():
 
 
 def test_random_background_draws_a_colour_each_step_and_recomposites_only_alpha_views():
-    """A photo (no alpha) is its own target over any background; a view with alpha is
-    re-composited over the step's colour (the capture recipe turns this on for photos)."""
+    """Random background: a photo is its own target, a view with alpha is re-composited.
+
+    A photo (no alpha) is the target over any background; a view with alpha is re-composited over
+    the step's colour, a new one each step (the capture recipe turns this on for photos).
+    """
     gt = _gt_model()
     rendered = _render_views(gt, _ring_poses(2), size=24)
     (n0, img0, _, intr0, w0), (n1, img1, alpha1, intr1, w1) = rendered
