@@ -23,8 +23,8 @@ count and size unless --iterations is given, the densification / opacity-reset /
 scaled to them (densify from 4 % to 50 % of the run every 2 %, opacity reset every 30 %, SH
 degree +1 every 10 %; upstream's learning rates), and, for photographed captures, coarse-to-fine,
 bounded initial scales and a random background colour at every step. Photographed captures also
-get a far-field shell and per-photo exposure (exposure.json). Any FitConfig field can be set with --set name=value. The recipe, its
-comparison with upstream and measurements: docs/FITTING.md.
+get a far-field shell and per-photo exposure (exposure.json). Any FitConfig field can be set with
+--set name=value. The recipe, its comparison with upstream and measurements: docs/FITTING.md.
 """
 from __future__ import annotations
 
