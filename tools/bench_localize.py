@@ -66,6 +66,11 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+if __package__:
+    from ._common import apply_overrides, torch_threads  # noqa: E402
+else:  # run as a script from a checkout
+    from tools._common import apply_overrides, torch_threads  # noqa: E402
+
 SCENES = ("lego200", "lego400", "demo")
 METHODS = ("robust", "icomma")
 STAGES = ("render", "backward", "matcher", "pnp", "verify", "candidates", "other", "total")
@@ -247,10 +252,6 @@ def method_config(method: str, args):
     """The config of ``method``: the default ``RobustConfig`` or the paper's."""
     from icomma_plugin.localize import LocalizerConfig, RobustConfig
 
-    if __package__:
-        from ._common import apply_overrides
-    else:
-        from tools._common import apply_overrides
     if method == "robust":
         return RobustConfig.from_dict(apply_overrides(
             RobustConfig(work_side=args.work_side).to_dict(), args.set or [],
@@ -861,11 +862,6 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Optional[List[str]] = None) -> int:
     """Run the benchmark; write JSON and markdown. Returns the exit status."""
     args = build_parser().parse_args(argv)
-    if __package__:
-        from ._common import torch_threads
-    else:
-        from tools._common import torch_threads
-
     if args.quick:
         args.starts, args.paper_starts = min(args.starts, 3), min(args.paper_starts, 1)
     for name in ("starts", "paper_starts", "queries", "render_repeats"):
