@@ -295,10 +295,10 @@ def _gauss_newton(J: torch.Tensor, mask: torch.Tensor, exposure=None) -> torch.T
     """
     m = mask.detach().double()[0]
     C = J.shape[0]
+    sw = max(float(m.sum()), 1e-12)
     if exposure is not None:
         gains, base = exposure
         w = m.view(1, 1, *m.shape)
-        sw = max(float(m.sum()), 1e-12)
         r = base.detach().double().view(C, 1, *m.shape)
         r = r - (r * w).sum((2, 3), keepdim=True) / sw
         J = J - (J * w).sum((2, 3), keepdim=True) / sw
@@ -306,7 +306,7 @@ def _gauss_newton(J: torch.Tensor, mask: torch.Tensor, exposure=None) -> torch.T
         J = J - (J * r * w).sum((2, 3), keepdim=True) / rr * r
         J = J * gains.view(C, 1, 1, 1)
     Jm = (J * m.sqrt()).reshape(C, 6, -1)
-    return 2.0 * torch.einsum("cip,cjp->ij", Jm, Jm) / (C * max(float(m.sum()), 1e-12))
+    return 2.0 * torch.einsum("cip,cjp->ij", Jm, Jm) / (C * sw)
 
 
 def _fd_hessian(state, cfg, w2c, scale, out, mask, blur, gains, own_render: bool):
