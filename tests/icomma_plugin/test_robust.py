@@ -285,6 +285,91 @@ def test_the_exposure_keeps_a_tinted_photo_from_pulling_the_pose(demo):
     assert errors["affine"] < 0.5 * errors["none"], errors
 
 
+def test_the_cauchy_loss_gradient_matches_finite_differences(demo):
+    """The robust (Cauchy) comparison's pose gradient is exact, the exposure fitted too.
+
+    The loss's scale ``c2`` is set at the first evaluation and then fixed, as in a level.
+    """
+    from icomma_plugin.localization.refine import _Cauchy, _evaluate
+    from icomma_plugin.pose.se3 import se3_exp
+
+    scene, _, _, _ = demo
+    gt_w2c = np.linalg.inv(scene.gt_c2w)
+    clean = _state(demo).render(gt_w2c).color.detach().clamp(0, 1)
+    st = _state(demo, query=(0.8 * clean + 0.05).clamp(0, 1))
+    w2c = np.linalg.inv(perturb_pose(scene.gt_c2w, 1.0, 0.01, 4, pivot="camera"))
+    rng, robust = (0.5, 2.0), _Cauchy(1.0)
+    _, _, _, mask = _evaluate(st, w2c, 1.0, None, None, exposure_gain=rng, robust=robust)
+    c2 = robust.c2
+    assert c2 is not None and c2 > 0
+    loss, grad, _, _ = _evaluate(st, w2c, 1.0, mask, None, exposure_gain=rng, robust=robust)
+    assert robust.c2 == c2  # fixed once set
+    # below the plain mean squared difference: large residuals count less
+    plain = _evaluate(st, w2c, 1.0, mask, None, exposure_gain=rng, want_grad=False)[0]
+    assert 0 < loss < plain
+    h, fd = 1e-3, torch.zeros(6, dtype=torch.float64)
+    for k in range(6):
+        e = torch.zeros(6, dtype=torch.float64)
+        e[k] = h
+        val = [_evaluate(st, (se3_exp(sign * e) @ torch.as_tensor(w2c)).numpy(), 1.0, mask, None,
+                         exposure_gain=rng, want_grad=False, robust=robust)[0]
+               for sign in (1.0, -1.0)]
+        fd[k] = (val[0] - val[1]) / (2 * h)
+    cos = float(grad @ fd / (grad.norm() * fd.norm()))
+    assert cos > 0.99, (grad, fd)
+    assert 0.9 < float(grad.norm() / fd.norm()) < 1.1, (grad, fd)
+
+
+def test_the_cauchy_loss_keeps_an_occluder_from_pulling_the_pose(demo):
+    """A photo with a patch the model cannot explain: the robust refinement ends nearer.
+
+    The patch (a fifth of the image, of a colour the scene does not have) pulls the plain
+    comparison; the Cauchy loss counts its pixels logarithmically.
+    """
+    from icomma_plugin.localization.refine import RefineConfig, refine_photometric
+
+    scene, _, _, _ = demo
+    gt_w2c = np.linalg.inv(scene.gt_c2w)
+    photo = _state(demo).render(gt_w2c).color.detach().clamp(0, 1).clone()
+    H, W = photo.shape[1:]
+    photo[:, : H // 2, : int(0.4 * W)] = torch.tensor([1.0, 0.0, 1.0]).view(3, 1, 1)
+    start = np.linalg.inv(perturb_pose(scene.gt_c2w, 0.5, 0.005, 2, pivot="camera"))
+    errors = {}
+    for mode in ("none", "cauchy"):
+        cfg = RefineConfig(iterations=(8,), robust=mode)
+        out = refine_photometric(_state(demo, query=photo), start, cfg, scene_depth=4.0)
+        errors[mode] = float(rotation_error_deg(np.linalg.inv(out.w2c), scene.gt_c2w))
+    assert errors["cauchy"] < 0.07, errors
+    assert errors["cauchy"] < 0.5 * errors["none"], errors
+
+
+@pytest.mark.xfail(strict=True, reason="known: the Cauchy refinement stalls after one step on a "
+                   "clean image (0.5 -> 0.16-0.25 deg); why it stays opt-in (docs/LOCALIZATION.md)")
+def test_the_cauchy_loss_converges_on_a_clean_image(demo):
+    """From 0.5 deg off the demo scene's own render, the robust refinement should reach the truth.
+
+    It does not yet (strict xfail: the day it does, this test fails and the default can be
+    reconsidered).
+    """
+    from icomma_plugin.localization.refine import RefineConfig, refine_photometric
+
+    scene, _, _, _ = demo
+    start = np.linalg.inv(perturb_pose(scene.gt_c2w, 0.5, 0.005, 2, pivot="camera"))
+    cfg = RefineConfig(iterations=(6,), robust="cauchy")
+    out = refine_photometric(_state(demo), start, cfg, scene_depth=4.0)
+    assert float(rotation_error_deg(np.linalg.inv(out.w2c), scene.gt_c2w)) < 0.05
+    assert out.loss_end < out.loss_start
+
+
+def test_a_bad_robust_setting_is_one_error_naming_it():
+    from icomma_plugin.localization.refine import RefineConfig
+
+    with pytest.raises(ValueError, match=r"RefineConfig.robust must be one of .*got 'huber'"):
+        RefineConfig(robust="huber")
+    with pytest.raises(ValueError, match="RefineConfig.robust_scale"):
+        RefineConfig(robust_scale=0.0)
+
+
 def test_candidates_rank_the_nearest_camera_first(demo, xfeat, tmp_path):
     from icomma_plugin.localization.candidates import CandidateConfig
     from icomma_plugin.localization.localizer import Localizer
