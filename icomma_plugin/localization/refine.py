@@ -302,6 +302,11 @@ def _hessian(state, cfg, w2c, scale, out, mask, intr, blur, query, robust=None):
     With ``cfg.exposure``, of the exposure-profiled loss: the gains fitted to ``query`` at the
     render ``out``. With ``robust`` (the level's ``_Cauchy``), each pixel weighted by it.
     """
+    return _hessian_and_jacobian(state, cfg, w2c, scale, out, mask, intr, blur, query, robust)[0]
+
+
+def _hessian_and_jacobian(state, cfg, w2c, scale, out, mask, intr, blur, query, robust):
+    """``_hessian``, and the finite-difference ``_Jacobian`` it came from (None: motion field)."""
     img = gaussian_blur(out.color.detach(), blur)
     gains = None
     if cfg.fitted_gain_range is not None:
@@ -312,12 +317,14 @@ def _hessian(state, cfg, w2c, scale, out, mask, intr, blur, query, robust=None):
             weights = robust.weights(_sq_residual(img, query, mask, cfg.fitted_gain_range), mask)
         return gauss_newton_hessian(img, out.depth, out.alpha, weights, intr,
                                     None if gains is None else (gains, img),
-                                    norm=float(mask.sum()))
-    args = (state, cfg, w2c, scale, out, mask, blur, gains, query, robust)
+                                    norm=float(mask.sum())), None
+    args = (state, cfg, w2c, scale, out, mask, blur, gains, query)
     if not (cfg.hessian_reduced and state.reduced is not None):
-        return _fd_hessian(*args, own_render=False)
-    with state.serving("hessian", reduced=True):
-        return _fd_hessian(*args, own_render=True)
+        jac = _fd_jacobian(*args, own_render=False)
+    else:
+        with state.serving("hessian", reduced=True):
+            jac = _fd_jacobian(*args, own_render=True)
+    return jac.matrix(robust, cfg.fitted_gain_range), jac
 
 
 def _gauss_newton(J: torch.Tensor, mask: torch.Tensor, exposure=None,
@@ -345,14 +352,43 @@ def _gauss_newton(J: torch.Tensor, mask: torch.Tensor, exposure=None,
     return 2.0 * torch.einsum("cip,cjp->ij", Jm, Jm) / (C * max(norm or sw, 1e-12))
 
 
-def _fd_hessian(state, cfg, w2c, scale, out, mask, blur, gains, query, robust,
-                own_render: bool):
-    """Gauss-Newton matrix from the render's Jacobian by forward differences.
+@dataclass
+class _Jacobian:
+    """The render's Jacobian ``J`` by forward differences, and what its Gauss-Newton matrix needs.
+
+    ``base``: the (blurred) render it was taken at; ``query`` the photo at its resolution;
+    ``exposure`` ``(gains, base)`` or None; ``blur`` the level's blur at its resolution.
+    """
+
+    J: torch.Tensor  # [C, 6, H, W]
+    mask: torch.Tensor  # [1, H, W] float64
+    base: torch.Tensor
+    query: torch.Tensor
+    exposure: Optional[Tuple[torch.Tensor, torch.Tensor]]
+    blur: float
+
+    def matrix(self, robust: Optional["_Cauchy"], gain_range, color: Optional[torch.Tensor] = None
+               ) -> torch.Tensor:
+        """The Gauss-Newton matrix; with ``robust``, each pixel weighted by its residual.
+
+        The residual is the base render's, or that of ``color`` (a later render of the level at
+        the Jacobian's resolution: iteratively reweighted least squares with the Jacobian kept).
+        """
+        weights = self.mask
+        if robust is not None:
+            img = self.base if color is None else gaussian_blur(color.detach().double(), self.blur)
+            weights = robust.weights(_sq_residual(img, self.query, self.mask, gain_range),
+                                     self.mask)
+        return _gauss_newton(self.J, weights, self.exposure, float(self.mask.sum()))
+
+
+def _fd_jacobian(state, cfg, w2c, scale, out, mask, blur, gains, query,
+                 own_render: bool) -> _Jacobian:
+    """The render's Jacobian by forward differences (6 renders).
 
     ``own_render``: the base render ``out`` is made again here (by the model now served).
     ``gains``: the exposure's per-channel gains (None: no exposure), with the render
-    differentiated here as the fitted basis. ``robust``: the level's ``_Cauchy`` (None: none),
-    whose weights come from the base render's residual against ``query``.
+    differentiated here as the fitted basis.
     """
     if cfg.hessian_scale < 1.0 or own_render:  # the Jacobian of a coarser (or another) render
         if cfg.hessian_scale < 1.0:
@@ -365,10 +401,6 @@ def _fd_hessian(state, cfg, w2c, scale, out, mask, blur, gains, query, robust,
         mask = coverage_mask(Observation(w2c, scale, out.color, out.depth, out.alpha), state)
     # finite differences of the render: J[:, k] = (I(exp(h e_k) w2c) - I(w2c)) / h
     base = gaussian_blur(out.color.detach().double(), blur)
-    norm = float(mask.sum())
-    if robust is not None:
-        mask = robust.weights(_sq_residual(base, query, mask.double(), cfg.fitted_gain_range),
-                              mask.double())
     cols = []
     w2c_t = torch.as_tensor(w2c, dtype=torch.float64)
     with torch.no_grad():
@@ -380,7 +412,7 @@ def _fd_hessian(state, cfg, w2c, scale, out, mask, blur, gains, query, robust,
             )
             cols.append((img - base) / cfg.fd_step)
     exposure = None if gains is None else (gains, base)
-    return _gauss_newton(torch.stack(cols, 1), mask, exposure, norm)  # J: [C, 6, H, W]
+    return _Jacobian(torch.stack(cols, 1), mask.detach().double(), base, query, exposure, blur)
 
 
 def _bfgs_update(hess: torch.Tensor, s: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -491,7 +523,8 @@ def _lm_level(state: LocalizationState, cfg: RefineConfig, w2c: np.ndarray, scal
     """
     intr, blur, query, mask, n_it, robust = level
     loss, grad, out = start
-    hess = _hessian(state, cfg, w2c, scale, out, mask, intr, blur, query, robust)
+    hess, jac = _hessian_and_jacobian(state, cfg, w2c, scale, out, mask, intr, blur, query,
+                                      robust)
     gain = cfg.fitted_gain_range
     lam, nu = cfg.lambda_init, 2.0
     last_rot = last_trans = None
@@ -532,6 +565,10 @@ def _lm_level(state: LocalizationState, cfg: RefineConfig, w2c: np.ndarray, scal
             cfg.hessian_every and counts["accepted"] % cfg.hessian_every == 0
         ):
             hess = _hessian(state, cfg, w2c, scale, out_try, mask, intr, blur, query, robust)
+        elif robust is not None and jac is not None and jac.mask.shape == mask.shape:
+            # the weights of the new residuals (those of the level's start were of a misaligned
+            # render: too little curvature, overshooting steps; docs/LOCALIZATION.md)
+            hess = jac.matrix(robust, gain, out_try.color)
         elif cfg.secant:
             hess = _bfgs_update(hess, step, grad - grad_prev)
         last_rot, last_trans = math.degrees(float(step[3:].norm())), float(step[:3].norm())
