@@ -110,13 +110,13 @@ class RefineConfig:
         that pixels the model cannot explain (floaters, a moved background, a highlight) pull the
         pose less. ``c2`` is ``robust_scale**2`` times the median ``s`` over the mask at the
         level's first render, fixed for the level. Its Gauss-Newton matrix weighs each pixel by
-        ``1 / (1 + s / c2)`` at the Hessian's render (iteratively reweighted least squares).
-        Off by default: on five fits of three real captures (held-out photos) it lowered the
-        median and the mean error of every fit (fox 0.038 -> 0.023 deg, bird 0.327 -> 0.245,
-        goldcape 0.154 -> 0.128) and 27 more of 281 poses were called ``ok``, none wrongly, but
-        with the BFGS updates (``secant``) it can stall on a clean image: from 0.5 deg off the
-        demo scene it stopped at 0.25 deg after one step, and lego's largest errors grew from
-        0.04 to 0.07 deg (docs/LOCALIZATION.md).
+        ``1 / (1 + s / c2)``, recomputed at every accepted step from the level's Jacobian and the
+        new render (iteratively reweighted least squares): with the first render's weights kept,
+        the steps overshot and stalled.
+        Off by default: on held-out photos of five real-capture fits it gained on fox (per-photo
+        median 0.038 -> 0.025 and 0.028 -> 0.019 deg) but not on bird or goldcape (mean error
+        up 0.02-0.03 deg), and lego's largest error grew 0.04 -> 0.07 deg; more poses were
+        called ``ok`` (249 -> 280 of 281), none wrongly (docs/LOCALIZATION.md).
     robust_scale: that multiple of the median residual (1.5 and 3 gave the same errors on fox
         and bird).
     still_rot_deg, still_trans_rel: the pose counts as having stopped moving (a signal of the
