@@ -42,6 +42,16 @@ def _state(demo, matcher=None, query=None):
     )
 
 
+def _refined_error(demo, cfg, query=None):
+    """Rotation error [deg] (and the outcome) of a refinement from 0.5 deg off the truth."""
+    from icomma_plugin.localization.refine import refine_photometric
+
+    scene = demo[0]
+    start = np.linalg.inv(perturb_pose(scene.gt_c2w, 0.5, 0.005, 2, pivot="camera"))
+    out = refine_photometric(_state(demo, query=query), start, cfg, scene_depth=4.0)
+    return float(rotation_error_deg(np.linalg.inv(out.w2c), scene.gt_c2w)), out
+
+
 # ------------------------------------------------------------------------------------------- PnP
 
 
@@ -268,19 +278,15 @@ def test_the_exposure_keeps_a_tinted_photo_from_pulling_the_pose(demo):
 
     Nearer the truth than the plain comparison, from the same start.
     """
-    from icomma_plugin.localization.refine import RefineConfig, refine_photometric
+    from icomma_plugin.localization.refine import RefineConfig
 
     scene, _, _, _ = demo
     gt_w2c = np.linalg.inv(scene.gt_c2w)
     clean = _state(demo).render(gt_w2c).color.detach().clamp(0, 1)
     gains = torch.tensor([0.55, 0.75, 1.1]).view(3, 1, 1)
     tinted = (gains * clean + torch.tensor([0.08, 0.02, -0.03]).view(3, 1, 1)).clamp(0, 1)
-    start = np.linalg.inv(perturb_pose(scene.gt_c2w, 0.5, 0.005, 2, pivot="camera"))
-    errors = {}
-    for mode in ("none", "affine"):
-        cfg = RefineConfig(iterations=(8,), exposure=mode)
-        out = refine_photometric(_state(demo, query=tinted), start, cfg, scene_depth=4.0)
-        errors[mode] = float(rotation_error_deg(np.linalg.inv(out.w2c), scene.gt_c2w))
+    errors = {mode: _refined_error(demo, RefineConfig(iterations=(8,), exposure=mode), tinted)[0]
+              for mode in ("none", "affine")}
     assert errors["affine"] < 0.05, errors
     assert errors["affine"] < 0.5 * errors["none"], errors
 
@@ -326,19 +332,15 @@ def test_the_cauchy_loss_keeps_an_occluder_from_pulling_the_pose(demo):
     The patch (a fifth of the image, of a colour the scene does not have) pulls the plain
     comparison; the Cauchy loss counts its pixels logarithmically.
     """
-    from icomma_plugin.localization.refine import RefineConfig, refine_photometric
+    from icomma_plugin.localization.refine import RefineConfig
 
     scene, _, _, _ = demo
     gt_w2c = np.linalg.inv(scene.gt_c2w)
     photo = _state(demo).render(gt_w2c).color.detach().clamp(0, 1).clone()
     H, W = photo.shape[1:]
     photo[:, : H // 2, : int(0.4 * W)] = torch.tensor([1.0, 0.0, 1.0]).view(3, 1, 1)
-    start = np.linalg.inv(perturb_pose(scene.gt_c2w, 0.5, 0.005, 2, pivot="camera"))
-    errors = {}
-    for mode in ("none", "cauchy"):
-        cfg = RefineConfig(iterations=(8,), robust=mode)
-        out = refine_photometric(_state(demo, query=photo), start, cfg, scene_depth=4.0)
-        errors[mode] = float(rotation_error_deg(np.linalg.inv(out.w2c), scene.gt_c2w))
+    errors = {mode: _refined_error(demo, RefineConfig(iterations=(8,), robust=mode), photo)[0]
+              for mode in ("none", "cauchy")}
     assert errors["cauchy"] < 0.07, errors
     assert errors["cauchy"] < 0.5 * errors["none"], errors
 
@@ -349,14 +351,12 @@ def test_the_cauchy_loss_converges_on_a_clean_image(demo):
     Its Gauss-Newton matrix is reweighted at every accepted step: with the weights of the
     level's first (misaligned) render kept, it stalled after one step at 0.16-0.25 deg.
     """
-    from icomma_plugin.localization.refine import RefineConfig, refine_photometric
+    from icomma_plugin.localization.refine import RefineConfig
 
-    scene, _, _, _ = demo
-    start = np.linalg.inv(perturb_pose(scene.gt_c2w, 0.5, 0.005, 2, pivot="camera"))
     for exposure in ("none", "affine"):
         cfg = RefineConfig(iterations=(6,), robust="cauchy", exposure=exposure)
-        out = refine_photometric(_state(demo), start, cfg, scene_depth=4.0)
-        assert float(rotation_error_deg(np.linalg.inv(out.w2c), scene.gt_c2w)) < 0.02, exposure
+        err, out = _refined_error(demo, cfg)
+        assert err < 0.02, exposure
         assert out.accepted >= 3 and out.loss_end < out.loss_start
 
 
