@@ -111,14 +111,15 @@ class RefineConfig:
         pose less. ``c2`` is ``robust_scale**2`` times the median ``s`` over the mask at the
         level's first render, fixed for the level. Its Gauss-Newton matrix weighs each pixel by
         ``1 / (1 + s / c2)``, recomputed at every accepted step from the level's Jacobian and the
-        new render (iteratively reweighted least squares): with the first render's weights kept,
-        the steps overshot and stalled.
+        new render (iteratively reweighted least squares; with ``hessian_scale`` below 1 the
+        Jacobian's pixels are not the level's, and BFGS updates it as for the squared
+        difference): with the first render's weights kept, the steps overshot and stalled.
         Off by default: on held-out photos of five real-capture fits it gained on fox (per-photo
         median 0.038 -> 0.025 and 0.028 -> 0.019 deg) but not on bird or goldcape (mean error
         up 0.02-0.03 deg), and lego's largest error grew 0.04 -> 0.07 deg; more poses were
         called ``ok`` (249 -> 280 of 281), none wrongly (docs/LOCALIZATION.md).
     robust_scale: that multiple of the median residual (1.5 and 3 gave the same errors on fox
-        and bird).
+        and bird, measured with the first, fixed-weight version).
     still_rot_deg, still_trans_rel: the pose counts as having stopped moving (a signal of the
         verdict) when the last step of the finest level was smaller than this. On a fitted scene
         the last steps creep along flat directions of the loss (0.01-0.1 deg) without changing

@@ -52,6 +52,27 @@ def _refined_error(demo, cfg, query=None):
     return float(rotation_error_deg(np.linalg.inv(out.w2c), scene.gt_c2w)), out
 
 
+def _assert_matches_central_differences(grad, st, w2c, mask, **evaluate_kwargs):
+    """``grad`` (the refinement's pose gradient at ``w2c``) against central differences.
+
+    Of ``refine._evaluate``'s loss with ``evaluate_kwargs``, step 1e-3 per twist component.
+    """
+    from icomma_plugin.localization.refine import _evaluate
+    from icomma_plugin.pose.se3 import se3_exp
+
+    h, fd = 1e-3, torch.zeros(6, dtype=torch.float64)
+    for k in range(6):
+        e = torch.zeros(6, dtype=torch.float64)
+        e[k] = h
+        val = [_evaluate(st, (se3_exp(sign * e) @ torch.as_tensor(w2c)).numpy(), 1.0, mask, None,
+                         want_grad=False, **evaluate_kwargs)[0]
+               for sign in (1.0, -1.0)]
+        fd[k] = (val[0] - val[1]) / (2 * h)
+    cos = float(grad @ fd / (grad.norm() * fd.norm()))
+    assert cos > 0.99, (grad, fd)
+    assert 0.9 < float(grad.norm() / fd.norm()) < 1.1, (grad, fd)
+
+
 # ------------------------------------------------------------------------------------------- PnP
 
 
@@ -248,7 +269,6 @@ def test_the_exposure_profiled_gradient_matches_finite_differences(demo):
     at the fitted ``a, b`` is its derivative (envelope theorem).
     """
     from icomma_plugin.localization.refine import _evaluate
-    from icomma_plugin.pose.se3 import se3_exp
 
     scene, _, _, _ = demo
     gt_w2c = np.linalg.inv(scene.gt_c2w)
@@ -259,18 +279,7 @@ def test_the_exposure_profiled_gradient_matches_finite_differences(demo):
     rng = (0.5, 2.0)
     _, _, _, mask = _evaluate(st, w2c, 1.0, None, None, exposure_gain=rng)
     _, grad, _, _ = _evaluate(st, w2c, 1.0, mask, None, exposure_gain=rng)
-    h, fd = 1e-3, torch.zeros(6, dtype=torch.float64)
-    for k in range(6):
-        e = torch.zeros(6, dtype=torch.float64)
-        e[k] = h
-        plus = _evaluate(st, (se3_exp(e) @ torch.as_tensor(w2c)).numpy(), 1.0, mask, None,
-                         exposure_gain=rng, want_grad=False)[0]
-        minus = _evaluate(st, (se3_exp(-e) @ torch.as_tensor(w2c)).numpy(), 1.0, mask, None,
-                          exposure_gain=rng, want_grad=False)[0]
-        fd[k] = (plus - minus) / (2 * h)
-    cos = float(grad @ fd / (grad.norm() * fd.norm()))
-    assert cos > 0.99, (grad, fd)
-    assert 0.9 < float(grad.norm() / fd.norm()) < 1.1, (grad, fd)
+    _assert_matches_central_differences(grad, st, w2c, mask, exposure_gain=rng)
 
 
 def test_the_exposure_keeps_a_tinted_photo_from_pulling_the_pose(demo):
@@ -297,7 +306,6 @@ def test_the_cauchy_loss_gradient_matches_finite_differences(demo):
     The loss's scale ``c2`` is set at the first evaluation and then fixed, as in a level.
     """
     from icomma_plugin.localization.refine import _Cauchy, _evaluate
-    from icomma_plugin.pose.se3 import se3_exp
 
     scene, _, _, _ = demo
     gt_w2c = np.linalg.inv(scene.gt_c2w)
@@ -313,17 +321,7 @@ def test_the_cauchy_loss_gradient_matches_finite_differences(demo):
     # below the plain mean squared difference: large residuals count less
     plain = _evaluate(st, w2c, 1.0, mask, None, exposure_gain=rng, want_grad=False)[0]
     assert 0 < loss < plain
-    h, fd = 1e-3, torch.zeros(6, dtype=torch.float64)
-    for k in range(6):
-        e = torch.zeros(6, dtype=torch.float64)
-        e[k] = h
-        val = [_evaluate(st, (se3_exp(sign * e) @ torch.as_tensor(w2c)).numpy(), 1.0, mask, None,
-                         exposure_gain=rng, want_grad=False, robust=robust)[0]
-               for sign in (1.0, -1.0)]
-        fd[k] = (val[0] - val[1]) / (2 * h)
-    cos = float(grad @ fd / (grad.norm() * fd.norm()))
-    assert cos > 0.99, (grad, fd)
-    assert 0.9 < float(grad.norm() / fd.norm()) < 1.1, (grad, fd)
+    _assert_matches_central_differences(grad, st, w2c, mask, exposure_gain=rng, robust=robust)
 
 
 def test_the_cauchy_loss_keeps_an_occluder_from_pulling_the_pose(demo):
