@@ -10,7 +10,7 @@ import torch
 
 from gaussian_renderer_pose.camera import camera_matrices
 from tests.helpers.scenes import make_scene, se3_exp
-from tests.gaussian_renderer_pose.test_native_vs_reference import run_backend
+from tests.gaussian_renderer_pose.test_native_vs_reference import compare, run_backend
 
 pytestmark = pytest.mark.usefixtures("native_backend")
 
@@ -260,3 +260,57 @@ def test_mark_visible():
     z = scene.means3D @ cam.viewmatrix[:3, 2] + cam.viewmatrix[3, 2]
     assert vis.dtype == torch.bool
     assert torch.equal(vis, z > 0.2)
+
+
+
+# ------------------------------------------------------------------------------------------------
+def test_tile_lists_hold_exactly_the_tiles_an_alpha_box_reaches():
+    # Faint Gaussians (a split or an upstream-trained model has many): their alpha >= 1/255
+    # ellipse lies well inside upstream's 3-sigma square, and the tile lists keep only the tiles
+    # that the ellipse's box reaches. A tile may be left out only when none of its pixels can pass
+    # the alpha test; every tile where one does must be listed; the images stay the reference's.
+    scene = make_scene(600, height=72, width=104, sh_degree=0, seed=83,
+                       opacity_range=(0.005, 0.08), frac_behind=0.0)
+    compare(scene)
+    tensors, settings = _direct_args(scene)
+    outs = _ops().rasterize_forward(*tensors, *settings, False, False)
+    radii, geom, binning, tile_ranges = outs[4], outs[5], outs[6], outs[7]
+    tile = _ops()._C.TILE_SIZE
+    H, W = scene.height, scene.width
+    grid_x, grid_y = -(-W // tile), -(-H // tile)
+    px, py, ca, cb, cc, o = (geom[:, k].double() for k in range(6))
+    bx, by = geom[:, 11], geom[:, 12]
+    listed = torch.zeros(geom.shape[0], grid_y * grid_x, dtype=torch.bool)
+    for t in range(grid_y * grid_x):
+        listed[binning[tile_ranges[t]:tile_ranges[t + 1], 0].long(), t] = True
+
+    # Every pixel where a Gaussian passes the alpha test (with a margin for the kernel's own exp)
+    # lies in a tile that lists it.
+    ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float64),
+                            torch.arange(W, dtype=torch.float64), indexing="ij")
+    dx, dy = px[:, None, None] - xs, py[:, None, None] - ys
+    a, b, c = (v[:, None, None] for v in (ca, cb, cc))
+    power = -0.5 * (a * dx**2 + c * dy**2) - b * dx * dy
+    passes = (o[:, None, None] * power.exp() >= 1.001 / 255) & (power <= 0)
+    passes &= (radii > 0)[:, None, None]
+    tile_of = (ys.long() // tile) * grid_x + xs.long() // tile
+    g, yy, xx = passes.nonzero(as_tuple=True)
+    assert len(g) > 1000
+    assert bool(listed[g, tile_of[yy, xx]].all()), "a tile where a Gaussian is visible misses it"
+
+    # Every listed tile holds a pixel within the Gaussian's alpha box.
+    g, t = listed.nonzero(as_tuple=True)
+    x0, y0 = (t % grid_x) * tile, (t // grid_x) * tile
+    x1, y1 = torch.clamp(x0 + tile - 1, max=W - 1), torch.clamp(y0 + tile - 1, max=H - 1)
+    reach_x = (px[g] + bx[g] >= x0) & (px[g] - bx[g] <= x1)
+    reach_y = (py[g] + by[g] >= y0) & (py[g] - by[g] <= y1)
+    assert bool((reach_x & reach_y).all()), "a tile lists a Gaussian whose alpha box misses it"
+
+    # And the lists are much shorter than upstream's 3-sigma squares would make them.
+    vis = radii > 0
+    r = radii[vis].double()
+    sq = lambda c, n: (torch.clamp(((c - r) / tile).long(), 0, n),  # noqa: E731
+                       torch.clamp(((c + r + tile - 1) / tile).long(), 0, n))
+    (mx0, mx1), (my0, my1) = sq(px[vis], grid_x), sq(py[vis], grid_y)
+    squares = int(((mx1 - mx0) * (my1 - my0)).sum())
+    assert binning.shape[0] < 0.6 * squares, (binning.shape[0], squares)

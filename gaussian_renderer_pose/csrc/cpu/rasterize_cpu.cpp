@@ -100,17 +100,46 @@ struct ChunkCounts {
   int64_t tiles = 0;    // their (tile, Gaussian) pairs
 };
 
-// Stores the preprocess result of Gaussian g (its record is at gd) and counts it.
-inline void store_preprocessed(int64_t g, const PreprocessResult& r, const float* gd,
-                               int32_t* radii, cpu::TileFootprint* footprints, ChunkCounts& n) {
+// Narrows the tile range [t0, t1) to the tiles holding a pixel of [0, npix) within `half` of
+// `centre` (the alpha >= 1/255 box of the geom record, with the float arithmetic of box_range,
+// which the tile loops apply); an empty range when none.
+inline void clip_to_box(float centre, float half, int tile_px, int npix, int32_t& t0,
+                        int32_t& t1) {
+  if (!(half < INFINITY)) {  // NaN box: reaches no pixel; an infinite one: no narrowing
+    if (!(half >= 0.f)) t1 = t0;
+    return;
+  }
+  const double lo = std::max(0.0, std::ceil((double)(centre - half)));
+  const double hi = std::min((double)(npix - 1), std::floor((double)(centre + half)));
+  if (!(half >= 0.f) || lo > hi) {
+    t1 = t0;
+    return;
+  }
+  t0 = std::max(t0, (int32_t)(lo / tile_px));
+  t1 = std::max(t0, std::min(t1, (int32_t)(hi / tile_px) + 1));
+}
+
+// Stores the preprocess result of Gaussian g (its record is at gd) and counts it. Its tile rect
+// (the 3-sigma square of upstream, which the radius keeps) is narrowed to the tiles that its
+// alpha >= 1/255 box reaches: the tile loops skip every pixel outside that box, so the lists
+// lose only entries that update nothing (the images and gradients are the same bits) and a faint
+// or elongated Gaussian is walked by fewer tiles.
+inline void store_preprocessed(const RasterArgs& in, int64_t g, const PreprocessResult& r,
+                               const float* gd, int32_t* radii, cpu::TileFootprint* footprints,
+                               ChunkCounts& n) {
   radii[g] = r.radius;
   cpu::TileFootprint& f = footprints[g];
   for (int k = 0; k < 4; ++k) f.rect[k] = r.rect[k];
-  f.offset = r.area;
-  std::memcpy(&f.depth_key, gd + kGZ, 4);
   if (r.radius > 0) {
+    clip_to_box(gd[kGPx], gd[kGBoxX], kBlockX, in.W, f.rect[0], f.rect[2]);
+    clip_to_box(gd[kGPy], gd[kGBoxY], kBlockY, in.H, f.rect[1], f.rect[3]);
+  }
+  const int64_t area = cpu::footprint_area(f);
+  f.offset = area;
+  std::memcpy(&f.depth_key, gd + kGZ, 4);
+  if (area > 0) {
     ++n.visible;
-    n.tiles += r.area;
+    n.tiles += area;
   }
 }
 
@@ -125,13 +154,13 @@ void preprocess(const RasterArgs& in, int nchunks, float* geom, int32_t* radii,
       for (; g + cpu::kLanes <= e; g += cpu::kLanes) {
         cpu::preprocess_lanes(in, g, geom, res);
         for (int i = 0; i < cpu::kLanes; ++i)
-          store_preprocessed(g + i, res[i], geom + kGStride * (g + i), radii, footprints, n);
+          store_preprocessed(in, g + i, res[i], geom + kGStride * (g + i), radii, footprints, n);
       }
     }
     for (; g < e; ++g) {
       float* gd = geom + kGStride * g;
       const PreprocessResult r = preprocess_gaussian(in, g, in.viewmatrix, in.projmatrix, gd);
-      store_preprocessed(g, r, gd, radii, footprints, n);
+      store_preprocessed(in, g, r, gd, radii, footprints, n);
     }
     counts[c] = n;
   });
