@@ -262,7 +262,6 @@ def test_mark_visible():
     assert torch.equal(vis, z > 0.2)
 
 
-
 # ------------------------------------------------------------------------------------------------
 def test_tile_lists_hold_exactly_the_tiles_an_alpha_box_reaches():
     # Faint Gaussians (a split or an upstream-trained model has many): their alpha >= 1/255
@@ -278,6 +277,7 @@ def test_tile_lists_hold_exactly_the_tiles_an_alpha_box_reaches():
     tile = _ops()._C.TILE_SIZE
     H, W = scene.height, scene.width
     grid_x, grid_y = -(-W // tile), -(-H // tile)
+    # The geom record's fields (csrc/common/raster.h GeomField): kGPx .. kGOpacity, kGBoxX/Y.
     px, py, ca, cb, cc, o = (geom[:, k].double() for k in range(6))
     bx, by = geom[:, 11], geom[:, 12]
     listed = torch.zeros(geom.shape[0], grid_y * grid_x, dtype=torch.bool)
@@ -309,8 +309,11 @@ def test_tile_lists_hold_exactly_the_tiles_an_alpha_box_reaches():
     # And the lists are much shorter than upstream's 3-sigma squares would make them.
     vis = radii > 0
     r = radii[vis].double()
-    sq = lambda c, n: (torch.clamp(((c - r) / tile).long(), 0, n),  # noqa: E731
-                       torch.clamp(((c + r + tile - 1) / tile).long(), 0, n))
-    (mx0, mx1), (my0, my1) = sq(px[vis], grid_x), sq(py[vis], grid_y)
+
+    def square_tiles(centre, n):  # upstream's getRect along one axis
+        return (torch.clamp(((centre - r) / tile).long(), 0, n),
+                torch.clamp(((centre + r + tile - 1) / tile).long(), 0, n))
+
+    (mx0, mx1), (my0, my1) = square_tiles(px[vis], grid_x), square_tiles(py[vis], grid_y)
     squares = int(((mx1 - mx0) * (my1 - my0)).sum())
     assert binning.shape[0] < 0.6 * squares, (binning.shape[0], squares)

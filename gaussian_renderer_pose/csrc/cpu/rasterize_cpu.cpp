@@ -19,7 +19,8 @@
 // Backward:
 //   4. per tile, walk the list back to front from the last contributor (upstream renderCUDA bwd,
 //      T recovered by division), over the rows that hold a pixel the entry reaches; reduce each
-//      Gaussian's per-pixel terms over the tile in a fixed order, store them in its slot and mark
+//      Gaussian's per-pixel terms over the tile in a fixed order (rows, then lanes by a fixed tree:
+//      simd.h hsum), store them in its slot and mark
 //      the slot live.
 //   5. per Gaussian (parallel over fixed-size blocks): sum its live slots in tile order (a
 //      Gaussian with none reaches no pixel and is skipped), chain through the per-Gaussian VJPs;
@@ -535,13 +536,15 @@ void backward_tile(const RasterArgs& in, int64_t tile, const float* geom, const 
         unblend_vec<kOpacitySlot, kColourSlot>(rows[r][h], qx[h], dx[h], dy, gd, j - start,
                                                 acc[h]);
     }
-    // the skipped vectors' lanes would add zeros: the same sums
-    float red[kSlot] = {0};
-    for (int c = h0 * kLanes; c < (h1 + 1) * kLanes; ++c)
-      for (int k = 0; k < kSlot; ++k) red[k] += acc[c / kLanes].v[k][c % kLanes];
+    // Each slot: the row's vectors added lane-wise in order, then the lanes by a fixed tree (the
+    // skipped vectors' lanes would add zeros).
     const int64_t slot_id = binning[2 * j + 1];
     float* slot = slots + slot_id * kSlot;
-    for (int k = 0; k < kSlot; ++k) slot[k] = red[k];
+    for (int k = 0; k < kSlot; ++k) {
+      vf t = acc[h0].v[k];
+      for (int h = h0 + 1; h <= h1; ++h) t += acc[h].v[k];
+      slot[k] = cpu::hsum(t);
+    }
     live[slot_id] = 1;
   }
 }

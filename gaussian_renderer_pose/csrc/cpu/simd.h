@@ -61,6 +61,20 @@ inline vf vceil(vf x) {
 #endif
 }
 
+// Sum of the lanes of v by a fixed tree (the upper half added to the lower, then again): the
+// same bits on every call and thread, not those of a left-to-right sum.
+inline float hsum(vf v) {
+#if defined(__AVX512F__)
+  return _mm512_reduce_add_ps((__m512)v);
+#else
+  float s[kLanes];
+  for (int i = 0; i < kLanes; ++i) s[i] = v[i];
+  for (int w = kLanes / 2; w >= 1; w /= 2)
+    for (int i = 0; i < w; ++i) s[i] += s[i + w];
+  return s[0];
+#endif
+}
+
 // Lane-wise |x| (clears the sign bit, as fabsf).
 inline vf vabs(vf x) { return (vf)((vi)x & splat_i(0x7fffffff)); }
 
