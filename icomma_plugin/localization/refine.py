@@ -110,8 +110,8 @@ class RefineConfig:
         that pixels the model cannot explain (floaters, a moved background, a highlight) pull the
         pose less. ``c2`` is ``robust_scale**2`` times the median ``s`` over the mask at the
         level's first render, fixed for the level. Its Gauss-Newton matrix weighs each pixel by
-        ``1 / (1 + s / c2)``, recomputed at every accepted step from the level's Jacobian and the
-        new render (iteratively reweighted least squares; with ``hessian_scale`` below 1 the
+        ``1 / (1 + s / c2)``, recomputed at every accepted step from the level's latest Jacobian
+        and the new render (iteratively reweighted least squares; with ``hessian_scale`` below 1 the
         Jacobian's pixels are not the level's, and BFGS updates it as for the squared
         difference): with the first render's weights kept, the steps overshot and stalled.
         Off by default: on held-out photos of five real-capture fits it gained on fox (per-photo
@@ -297,17 +297,13 @@ def _affine_fit(r: torch.Tensor, q: torch.Tensor, m: torch.Tensor,
     return a, mq - a * mr
 
 
-def _hessian(state, cfg, w2c, scale, out, mask, intr, blur, query, robust=None):
-    """The level's Gauss-Newton matrix at ``w2c`` (``cfg.hessian``).
-
-    With ``cfg.exposure``, of the exposure-profiled loss: the gains fitted to ``query`` at the
-    render ``out``. With ``robust`` (the level's ``_Cauchy``), each pixel weighted by it.
-    """
-    return _hessian_and_jacobian(state, cfg, w2c, scale, out, mask, intr, blur, query, robust)[0]
-
-
 def _hessian_and_jacobian(state, cfg, w2c, scale, out, mask, intr, blur, query, robust):
-    """``_hessian``, and the finite-difference ``_Jacobian`` it came from (None: motion field)."""
+    """The level's Gauss-Newton matrix at ``w2c`` (``cfg.hessian``), and its ``_Jacobian``.
+
+    The Jacobian is the finite-difference one it came from (None: motion field). With
+    ``cfg.exposure``, of the exposure-profiled loss: the gains fitted to ``query`` at the render
+    ``out``. With ``robust`` (the level's ``_Cauchy``), each pixel weighted by it.
+    """
     img = gaussian_blur(out.color.detach(), blur)
     gains = None
     if cfg.fitted_gain_range is not None:
@@ -565,7 +561,9 @@ def _lm_level(state: LocalizationState, cfg: RefineConfig, w2c: np.ndarray, scal
         elif cfg.hessian == "motion_field" or (
             cfg.hessian_every and counts["accepted"] % cfg.hessian_every == 0
         ):
-            hess = _hessian(state, cfg, w2c, scale, out_try, mask, intr, blur, query, robust)
+            # a new Jacobian too: the robust reweighting below must not go on with the old one
+            hess, jac = _hessian_and_jacobian(state, cfg, w2c, scale, out_try, mask, intr, blur,
+                                              query, robust)
         elif robust is not None and jac is not None and jac.mask.shape == mask.shape:
             # the weights of the new residuals (those of the level's start were of a misaligned
             # render: too little curvature, overshooting steps; docs/LOCALIZATION.md)

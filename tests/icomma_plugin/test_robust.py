@@ -201,7 +201,7 @@ def test_the_last_step_of_a_level_takes_no_backward_pass_and_the_same_pose(demo,
 
 def test_finite_difference_hessian_agrees_with_the_motion_field_model(demo):
     """The two Gauss-Newton Hessians describe the same curvature (cheap model: 15-30 % short)."""
-    from icomma_plugin.localization.refine import _hessian, RefineConfig
+    from icomma_plugin.localization.refine import _hessian_and_jacobian, RefineConfig
     from icomma_plugin.localization.state import Observation
     from icomma_plugin.localization.verify import coverage_mask
 
@@ -211,12 +211,13 @@ def test_finite_difference_hessian_agrees_with_the_motion_field_model(demo):
     out = st.render(w2c)
     mask = coverage_mask(Observation(w2c, 1.0, out.color, out.depth, out.alpha), st)
     q = st.query_at(1.0).rgb
-    h_fd = _hessian(
+    h_fd, _ = _hessian_and_jacobian(
         st, RefineConfig(hessian="finite_difference"), w2c, 1.0, out, mask, scene.intrinsics, 0.0,
-        q,
+        q, None,
     )
-    h_mf = _hessian(
-        st, RefineConfig(hessian="motion_field"), w2c, 1.0, out, mask, scene.intrinsics, 0.0, q
+    h_mf, _ = _hessian_and_jacobian(
+        st, RefineConfig(hessian="motion_field"), w2c, 1.0, out, mask, scene.intrinsics, 0.0, q,
+        None,
     )
     cos = float((h_fd * h_mf).sum() / (h_fd.norm() * h_mf.norm()))
     assert cos > 0.9
