@@ -171,14 +171,15 @@ class GaussianTrainState:
     @torch.no_grad()
     def add_densification_stats(self, means2D_grad: torch.Tensor, radii: torch.Tensor) -> None:
         """Upstream `add_densification_stats` + max radii, for one rendered view."""
+        # dense selects, not boolean-mask indexing (4 gathers and scatters: 7 ms a step at 100k)
         vis = radii > 0
         if means2D_grad is not None:
-            g = means2D_grad[vis, :2].to(self.grad_accum.dtype)
-            self.grad_accum[vis] += torch.linalg.vector_norm(g, dim=-1)
-            self.denom[vis] += 1
-        self.max_radii2D[vis] = torch.maximum(
-            self.max_radii2D[vis], radii[vis].to(self.max_radii2D.dtype)
-        )
+            norm = torch.linalg.vector_norm(means2D_grad[:, :2].to(self.grad_accum.dtype), dim=-1)
+            self.grad_accum += torch.where(vis, norm, 0.0)
+            self.denom += vis
+        self.max_radii2D = torch.where(
+            vis, torch.maximum(self.max_radii2D, radii.to(self.max_radii2D.dtype)),
+            self.max_radii2D)
 
     def mean_grads(self) -> torch.Tensor:
         """Mean screen-space gradient norm [P] per view seen (0 where never seen)."""

@@ -170,7 +170,8 @@ def test_knn_scales_and_init():
 # --------------------------------------------------------------------------- densification units
 def test_densification_stats_only_visible():
     st = GaussianTrainState(_tiny_model(3), 1.0)
-    g = torch.tensor([[3.0, 4.0, 100.0], [1.0, 0.0, 0.0], [0.0, 2.0, 0.0]])
+    # the unseen Gaussian's NaN must not reach its statistics
+    g = torch.tensor([[3.0, 4.0, 100.0], [float("nan"), 0.0, 0.0], [0.0, 2.0, 0.0]])
     st.add_densification_stats(g, torch.tensor([2, 0, 5], dtype=torch.int32))
     st.add_densification_stats(g, torch.tensor([4, 0, 1], dtype=torch.int32))
     assert torch.allclose(st.grad_accum, torch.tensor([10.0, 0.0, 4.0]))  # norm of [:, :2] only
