@@ -144,6 +144,34 @@ def test_ssim_identical_and_loss():
     assert psnr(torch.zeros(3, 4, 4), torch.full((3, 4, 4), 0.1)) == pytest.approx(20.0, abs=1e-4)
 
 
+def _upstream_ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Upstream 3DGS's `ssim`: the 11x11 window as one 2D convolution per channel, zero padding 5."""
+    x = torch.arange(11, dtype=a.dtype) - 5
+    g = torch.exp(-(x ** 2) / (2 * 1.5 ** 2))
+    g = g / g.sum()
+    win = (g[:, None] * g[None, :]).expand(3, 1, 11, 11)
+
+    def f(t):
+        return torch.nn.functional.conv2d(t[None], win, padding=5, groups=3)[0]
+
+    mu1, mu2 = f(a), f(b)
+    s11, s22, s12 = f(a * a) - mu1 ** 2, f(b * b) - mu2 ** 2, f(a * b) - mu1 * mu2
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    return (((2 * mu1 * mu2 + c1) * (2 * s12 + c2))
+            / ((mu1 ** 2 + mu2 ** 2 + c1) * (s11 + s22 + c2))).mean()
+
+
+def test_ssim_matches_upstream_window():
+    g = torch.Generator().manual_seed(5)
+    a = torch.rand(3, 17, 23, generator=g, dtype=torch.float64)
+    b = (a + 0.3 * torch.rand(3, 17, 23, generator=g, dtype=torch.float64)).clamp(0, 1)
+    want = _upstream_ssim(a, b).item()
+    assert ssim(a, b).item() == pytest.approx(want, rel=1e-12)
+    from icomma_plugin.fit.losses import ssim_value_and_grad
+
+    assert ssim_value_and_grad(a, b)[0].item() == pytest.approx(want, rel=1e-12)
+
+
 def test_expon_lr_endpoints():
     assert expon_lr(0, 1e-2, 1e-4, 100) == pytest.approx(1e-2)
     assert expon_lr(100, 1e-2, 1e-4, 100) == pytest.approx(1e-4)
