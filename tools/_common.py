@@ -14,7 +14,9 @@ import json
 import logging
 import os
 import random
+import subprocess
 import sys
+from pathlib import Path
 from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple, TypeVar
 
 import numpy as np
@@ -23,6 +25,7 @@ import torch
 T = TypeVar("T")
 
 __all__ = [
+    "CheckoutWorker",
     "UserError",
     "apply_overrides",
     "build_matcher",
@@ -30,6 +33,7 @@ __all__ = [
     "check_backend",
     "choose_threads",
     "container",
+    "git_describe",
     "parse_overrides",
     "run_or_exit",
     "seed_everything",
@@ -213,3 +217,64 @@ def build_optimizer(ocfg, key: str = "optimizer"):
         if isinstance(cause, (ValueError, TypeError)):
             raise UserError(f"{key}: {cause}") from None
         raise
+
+
+# ----------------------------------------------------------------------------------------------
+# Benchmarks against another checkout (--checkouts)
+# ----------------------------------------------------------------------------------------------
+class CheckoutWorker:
+    """A process that runs ``script --worker ROOT`` with ``root``'s packages on its path.
+
+    The benchmarks' way to time two checkouts in one run: the worker answers JSON requests, one
+    line each on stdin / stdout. Its first line must be ``{"package": path}``, the folder of the
+    package it imported, which must lie in ``root`` (else the comparison would time the wrong
+    code). ``flag`` names the command-line option in the errors.
+    """
+
+    def __init__(self, root: Path, script: Path, flag: str):
+        self.root = root
+        self.flag = flag
+        self.proc = subprocess.Popen(
+            [sys.executable, str(Path(script).resolve()), "--worker", str(root)],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=str(root),
+            env={**os.environ, "PYTHONPATH": str(root)},
+        )
+        package = Path(self._read()["package"])
+        if package.parent != root:
+            self.close()
+            raise ValueError(f"{flag}: {root} imported {package.name} from {package}")
+        self.name = f"{root.name}@{git_describe(root)}"
+
+    def _read(self) -> Dict[str, Any]:
+        line = self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError(f"{self.flag}: the worker for {self.root} exited "
+                               f"(rc {self.proc.poll()})")
+        return json.loads(line)
+
+    def ask(self, **request) -> Dict[str, Any]:
+        """Send one request and return the reply."""
+        self.proc.stdin.write(json.dumps(request) + "\n")
+        self.proc.stdin.flush()
+        return self._read()
+
+    def close(self) -> None:
+        """Stop the worker."""
+        if self.proc.poll() is None:
+            try:
+                self.ask(cmd="quit")
+            except (BrokenPipeError, RuntimeError):
+                pass
+            self.proc.wait(timeout=60)
+
+
+def git_describe(root: Path) -> str:
+    """Short commit of ``root`` ("+" when its tracked files differ from it), or "?"."""
+    try:
+        head = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"],
+                              capture_output=True, text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(root), "diff", "--quiet", "HEAD"],
+                               capture_output=True).returncode != 0
+    except (OSError, subprocess.CalledProcessError):
+        return "?"
+    return head + ("+" if dirty else "")

@@ -34,19 +34,20 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import os
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Tuple
+from typing import TYPE_CHECKING, Callable, Dict, List, Optional, Tuple
 
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
+
+if TYPE_CHECKING:
+    from tools._common import CheckoutWorker
 
 # the one home of synthetic scenes, and of atomic writes
 from icomma_plugin.app.demo_scene import raster_bench_scene  # noqa: E402
@@ -215,57 +216,7 @@ def worker_loop(root: Path) -> int:
     return 0
 
 
-class _Worker:
-    """A worker process serving the CPU kernel of one checkout (see :func:`worker_loop`)."""
-
-    def __init__(self, root: Path):
-        self.root = root
-        self.proc = subprocess.Popen(
-            [sys.executable, str(Path(__file__).resolve()), "--worker", str(root)],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=str(root),
-            env={**os.environ, "PYTHONPATH": str(root)},
-        )
-        package = Path(self._read()["package"])
-        if package.parent != root:
-            self.close()
-            raise ValueError(f"--checkouts: {root} imported gaussian_renderer_pose from {package}")
-        self.name = f"{root.name}@{_git_describe(root)}"
-
-    def _read(self) -> Dict[str, object]:
-        line = self.proc.stdout.readline()
-        if not line:
-            raise RuntimeError(f"bench worker for {self.root} exited (rc {self.proc.poll()})")
-        return json.loads(line)
-
-    def ask(self, **request) -> Dict[str, object]:
-        """Send one request and return the reply."""
-        self.proc.stdin.write(json.dumps(request) + "\n")
-        self.proc.stdin.flush()
-        return self._read()
-
-    def close(self) -> None:
-        """Stop the worker."""
-        if self.proc.poll() is None:
-            try:
-                self.ask(cmd="quit")
-            except (BrokenPipeError, RuntimeError):
-                pass
-            self.proc.wait(timeout=60)
-
-
-def _git_describe(root: Path) -> str:
-    """Short commit of ``root`` ("+" when its tracked files differ from it), or "?"."""
-    try:
-        head = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"],
-                              capture_output=True, text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "-C", str(root), "diff", "--quiet", "HEAD"],
-                               capture_output=True).returncode != 0
-    except (OSError, subprocess.CalledProcessError):
-        return "?"
-    return head + ("+" if dirty else "")
-
-
-def _time_interleaved(workers: List[_Worker], modes: List[str], threads: int,
+def _time_interleaved(workers: List["CheckoutWorker"], modes: List[str], threads: int,
                       repeats: int) -> Dict[Tuple[int, str], Tuple[float, float]]:
     """(worker index, mode) -> median (wall ms, CPU ms) over ``repeats`` rounds after a warm-up.
 
@@ -291,7 +242,10 @@ def _time_interleaved(workers: List[_Worker], modes: List[str], threads: int,
 def compare_checkouts(roots: List[Path], scenes: List[Tuple[int, int]], thread_counts: List[int],
                       modes: List[str], repeats: int, seed: int) -> List[Dict[str, object]]:
     """Time the CPU kernels of ``roots`` interleaved; prints a markdown table, returns its rows."""
-    workers = [_Worker(r) for r in roots]
+    # imported here: a worker runs with the compared checkout's packages first on its path
+    from tools._common import CheckoutWorker
+
+    workers = [CheckoutWorker(r, Path(__file__), "--checkouts") for r in roots]
     rows: List[Dict[str, object]] = []
     try:
         for P, R in scenes:
