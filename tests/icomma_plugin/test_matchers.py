@@ -251,6 +251,40 @@ def test_small_images_are_enlarged_for_detection(lego_pair, no_kornia_download):
     assert share > 0.7, f"only {share:.2f} of the enlarged matches agree with the true poses"
 
 
+def test_xfeat_fast_cpu_backbone_finds_the_same_features(lego_pair, no_kornia_download):
+    """The frozen oneDNN backbone gives eager's keypoints, at two sizes from one traced copy."""
+    im0, _, _ = lego_pair
+    fast, eager = make_matcher("xfeat"), make_matcher("xfeat", fast_cpu=False)
+    assert type(fast.model.net).__name__ == "_CpuInferenceNet"
+    assert type(eager.model.net).__name__ != "_CpuInferenceNet"
+    for im in (im0, torch.nn.functional.interpolate(im0[None], size=(120, 168), mode="area")[0]):
+        f, e = fast.extract(im), eager.extract(im)
+        assert len(f) == len(e) > 50 and torch.equal(f.kpts, e.kpts)
+        torch.testing.assert_close(f.desc, e.desc, rtol=0, atol=1e-5)
+    assert fast.model.net._frozen["net"] is not None
+    # with gradients on, the eager module runs (the copy is for inference only)
+    x = torch.rand(1, 1, 64, 64)
+    with torch.enable_grad():
+        out = fast.model.net(x)
+    torch.testing.assert_close(out[2], eager.model.net(x)[2], rtol=0, atol=0)
+    with pytest.raises(ValueError, match="fast_cpu"):
+        make_matcher("xfeat", fast_cpu="yes")
+
+
+def test_xfeat_without_an_optimised_backbone_runs_eager(monkeypatch, lego_pair, caplog,
+                                                        no_kornia_download):
+    im0, _, _ = lego_pair
+
+    def no_trace(*args, **kwargs):
+        raise RuntimeError("tracing is unavailable here")
+
+    monkeypatch.setattr(torch.jit, "trace", no_trace)
+    with caplog.at_level("WARNING"):
+        f = make_matcher("xfeat").extract(im0)
+    assert "no optimised CPU backbone" in caplog.text and "tracing is unavailable" in caplog.text
+    assert torch.equal(f.kpts, make_matcher("xfeat", fast_cpu=False).extract(im0).kpts)
+
+
 def test_min_detect_side_must_be_a_non_negative_int():
     with pytest.raises(ValueError, match="min_detect_side"):
         make_matcher("xfeat", min_detect_side=-1)
