@@ -190,7 +190,7 @@ def load_model_folder_scene(
         raise ValueError(f"photos must be auto or none, got {photos!r}")
     from ..io.datasets import detect_dataset_kind, read_dataset
     from ..io.model_folder import load_model_folder
-    from ..pose.convert import same_pose
+    from ..pose.convert import same_as_any_mask
     from ..pose.views import scene_frame
 
     mp = Path(str(model_path)).expanduser()
@@ -249,12 +249,12 @@ def load_model_folder_scene(
             np.asarray(v.c2w, np.float64)
             for v in (sd.train if split_of_views == "test" else sd.test)
         ]
-    cams = [c for c in cams if not any(same_pose(c, t) for t in split_c2ws)]
+    cams = [c for c, seen in zip(cams, same_as_any_mask(cams, split_c2ws)) if not seen]
     if split_of_views != "train" and sd.train:
         # Keep the cameras the model was fitted from (upstream's cameras.json lists the other
         # held-out views too, e.g. lego's 200 test cameras when the queries are its val views).
         train_c2ws = [np.asarray(v.c2w, np.float64) for v in sd.train]
-        fitted = [c for c in cams if any(same_pose(c, t) for t in train_c2ws)]
+        fitted = [c for c, fit in zip(cams, same_as_any_mask(cams, train_c2ws)) if fit]
         cams = fitted or cams
     centre, _, _ = scene_frame(mf.model.means.numpy(), cams)
     return BenchScene(

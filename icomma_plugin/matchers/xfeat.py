@@ -53,8 +53,8 @@ class _CpuInferenceNet(torch.nn.Module):
     def _copy(self, x: torch.Tensor):
         if "net" not in self._frozen:
             try:
-                # torch.jit says it is deprecated, and the tracer warns of the input-size checks
-                # it freezes (instance norm's "more than one pixel"): neither is the user's to act on
+                # torch.jit says it is deprecated, and the tracer warns of the input-size checks it
+                # freezes (instance norm's "more than one pixel"): neither is the user's to act on
                 with torch.no_grad(), warnings.catch_warnings():
                     warnings.simplefilter("ignore")
                     traced = torch.jit.trace(self.eager.eval(), torch.zeros_like(x[:1]),

@@ -9,7 +9,7 @@ input's kind, dtype and device; metrics are computed in float64.
 from __future__ import annotations
 
 import math
-from typing import Optional, Union
+from typing import Optional, Sequence, Union
 
 import numpy as np
 import torch
@@ -34,6 +34,7 @@ __all__ = [
     "cameras_extent",
     "rigid_problem",
     "same_pose",
+    "same_as_any_mask",
     "same_pose_mask",
 ]
 
@@ -413,3 +414,17 @@ def same_pose(c2w_a: np.ndarray, c2w_b: np.ndarray) -> bool:
 def same_pose_mask(c2ws: np.ndarray, c2w: np.ndarray) -> np.ndarray:
     """`same_pose` of each of the [N, 4, 4] ``c2ws`` with ``c2w``, in one pass: a bool [N]."""
     return np.isclose(c2ws, c2w, atol=SAME_POSE_ATOL).all(axis=(-2, -1))
+
+
+def same_as_any_mask(c2ws: Sequence[np.ndarray], others: Sequence[np.ndarray]) -> np.ndarray:
+    """For each of ``c2ws``, whether it is `same_pose` as one of ``others``: a bool [N].
+
+    One vectorised pass per pose of ``others`` instead of a call per pair.
+    """
+    out = np.zeros(len(c2ws), dtype=bool)
+    if len(c2ws) == 0:
+        return out
+    stack = np.stack([np.asarray(c, np.float64) for c in c2ws])
+    for other in others:
+        out |= same_pose_mask(stack, np.asarray(other, np.float64))
+    return out

@@ -145,7 +145,7 @@ def test_ssim_identical_and_loss():
 
 
 def _upstream_ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Upstream 3DGS's `ssim`: the 11x11 window as one 2D convolution per channel, zero padding 5."""
+    """Upstream 3DGS's `ssim`: the 11x11 window as one 2D convolution a channel, zero padding 5."""
     x = torch.arange(11, dtype=a.dtype) - 5
     g = torch.exp(-(x ** 2) / (2 * 1.5 ** 2))
     g = g / g.sum()

@@ -243,3 +243,18 @@ def test_same_pose_mask_agrees_with_same_pose():
     assert mask.tolist() == [same_pose(c, ref) for c in c2ws] == [True, True, False, False, False,
                                                                   True]
     assert same_pose_mask(np.zeros((0, 4, 4)), ref).shape == (0,)
+
+
+def test_same_as_any_mask_is_same_pose_of_every_pair():
+    from icomma_plugin.pose.convert import SAME_POSE_ATOL, same_as_any_mask, same_pose
+
+    rng = np.random.default_rng(4)
+    others = [np.eye(4) for _ in range(3)]
+    for i, o in enumerate(others):
+        o[:3, 3] = rng.normal(size=3)
+    c2ws = [others[1].copy(), others[2] + 0.5 * SAME_POSE_ATOL, others[0] + 3 * SAME_POSE_ATOL,
+            np.eye(4)]
+    want = [any(same_pose(c, o) for o in others) for c in c2ws]
+    assert same_as_any_mask(c2ws, others).tolist() == want == [True, True, False, False]
+    assert same_as_any_mask([], others).shape == (0,)
+    assert not same_as_any_mask(c2ws, []).any()
