@@ -250,7 +250,7 @@ def test_same_as_any_mask_is_same_pose_of_every_pair():
 
     rng = np.random.default_rng(4)
     others = [np.eye(4) for _ in range(3)]
-    for i, o in enumerate(others):
+    for o in others:
         o[:3, 3] = rng.normal(size=3)
     c2ws = [others[1].copy(), others[2] + 0.5 * SAME_POSE_ATOL, others[0] + 3 * SAME_POSE_ATOL,
             np.eye(4)]
