@@ -33,24 +33,14 @@ def _gauss_1d(size: int, sigma: float, dtype: torch.dtype, device: torch.device)
 
 
 def _filter(x: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
-    """Separable Gaussian filter of x [N, C, H, W] with zero padding (same size).
-
-    Each pass is a weighted sum of the k shifted copies of the zero-padded input: on a CPU,
-    0.7x the time of the two depthwise convolutions (oneDNN) it replaces, with the same sums.
-    """
-    H, W = x.shape[-2:]
+    """Separable Gaussian filter of x [N, C, H, W] with zero padding (same size)."""
+    C = x.shape[1]
     k = g.numel()
     pad = k // 2
-    weights = g.tolist()
-    xp = F.pad(x, (pad, pad, 0, 0))
-    y = xp[..., 0:W] * weights[0]
-    for i in range(1, k):
-        y = y.add_(xp[..., i:i + W], alpha=weights[i])
-    yp = F.pad(y, (0, 0, pad, pad))
-    out = yp[..., 0:H, :] * weights[0]
-    for i in range(1, k):
-        out = out.add_(yp[..., i:i + H, :], alpha=weights[i])
-    return out
+    wx = g.view(1, 1, 1, k).expand(C, 1, 1, k)
+    wy = g.view(1, 1, k, 1).expand(C, 1, k, 1)
+    x = F.conv2d(x, wx, padding=(0, pad), groups=C)
+    return F.conv2d(x, wy, padding=(pad, 0), groups=C)
 
 
 def _check_mask(mask: Optional[torch.Tensor], img: torch.Tensor, what: str) -> None:
