@@ -103,7 +103,8 @@ def worker_loop(root: Path) -> int:
             if req["cmd"] == "setup":
                 torch.set_num_threads(req["threads"])
                 trainer = build_trainer(Path(req["model"]), req["at"])
-                time_steps(trainer, req["warmup"])
+                if req["warmup"]:
+                    time_steps(trainer, req["warmup"])
                 reply: Dict[str, object] = {}
             else:
                 reply = time_steps(trainer, req["steps"])

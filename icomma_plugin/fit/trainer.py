@@ -210,6 +210,9 @@ class Trainer:
         )
         self.white_background = bool(self.background.min() >= 1.0)
         self.rng = torch.Generator().manual_seed(config.seed)
+        # the random backgrounds' own stream: a fit is repeatable from config.seed alone (the
+        # global RNG is seeded at random in each process) and the view order does not move
+        self.background_rng = torch.Generator().manual_seed(config.seed + 1)
         self._stack: List[int] = []
         self.iteration = 0
         self.history: List[Dict[str, float]] = []
@@ -309,7 +312,7 @@ class Trainer:
         index = self._next_index()
         view = self._view_at(index, self.downsample_factor(it))
         bg = (
-            torch.rand(3, dtype=self.dtype, device=self.device)
+            torch.rand(3, generator=self.background_rng, dtype=self.dtype).to(self.device)
             if c.random_background
             else self.background
         )
