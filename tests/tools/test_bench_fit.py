@@ -9,16 +9,11 @@ import pytest
 
 def test_steps_timed_in_two_workers(tmp_path, capsys):
     from tests.helpers.paths import REPO
-    from tests.icomma_plugin.fit.test_capture_fit import _write_llff
+    from tests.icomma_plugin.fit.test_recipe import fit_tiny_capture
     from tools.bench_fit import PARTS
     from tools.bench_fit import main as bench
-    from tools.fit_scene import main as fit
 
-    _write_llff(tmp_path / "data", n=8, size=64)
-    model = tmp_path / "model"
-    assert fit(["-s", str(tmp_path / "data"), "-m", str(model), "--iterations", "10",
-                "--threads", "1", "--no-progress", "--set", "num_sweep_points=300",
-                "--set", "far_field_points=300"]) == 0
+    model = fit_tiny_capture(tmp_path, 10)
     capsys.readouterr()
     out = tmp_path / "fit_steps.json"
     assert bench(["-m", str(model), "--checkouts", f"{REPO},{REPO}", "--at", "3", "--steps", "2",

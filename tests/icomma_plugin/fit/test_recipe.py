@@ -58,18 +58,26 @@ def test_tool_builds_the_recipe_of_the_capture():
         build_config(parse_args(["-m", "x", "--set", "nope=1"]), cap)
 
 
-def test_tool_fits_then_evaluates_with_a_grid(tmp_path, capsys):
-    """tools/fit_scene.py end to end on a tiny capture: the capture recipe, then --evaluate."""
-    import json
-
+def fit_tiny_capture(tmp_path, iterations: int):
+    """tools/fit_scene.py on a tiny LLFF capture written under ``tmp_path``: the model folder."""
     from tests.icomma_plugin.fit.test_capture_fit import _write_llff
     from tools.fit_scene import main
 
     _write_llff(tmp_path / "data", n=8, size=64)
     model = tmp_path / "model"
-    assert main(["-s", str(tmp_path / "data"), "-m", str(model), "--iterations", "20",
+    assert main(["-s", str(tmp_path / "data"), "-m", str(model), "--iterations", str(iterations),
                  "--threads", "1", "--no-progress", "--set", "num_sweep_points=300",
                  "--set", "far_field_points=300"]) == 0
+    return model
+
+
+def test_tool_fits_then_evaluates_with_a_grid(tmp_path, capsys):
+    """tools/fit_scene.py end to end on a tiny capture: the capture recipe, then --evaluate."""
+    import json
+
+    from tools.fit_scene import main
+
+    model = fit_tiny_capture(tmp_path, 20)
     fitted = json.loads(capsys.readouterr().out)
     assert fitted["iterations"] == 20 and fitted["test_psnr_right_half_exposure"] is not None
     metrics = json.loads((model / "metrics.json").read_text())
