@@ -201,6 +201,12 @@ def main(argv: Optional[List[str]] = None) -> int:
             ap.error(f"--{name} must be at least 1, got {getattr(args, name)}")
     if args.warmup < 0:
         ap.error(f"--warmup must be 0 or more, got {args.warmup}")
+    try:
+        starts = [int(a) for a in args.at.split(",") if a.strip()]
+    except ValueError:
+        starts = []
+    if not starts or min(starts) < 0:
+        ap.error(f"--at must be a comma list of schedule steps (0 or more), got {args.at!r}")
     rows = run(args)
     if args.json is not None:
         from icomma_plugin.io.atomic import write_json_atomic

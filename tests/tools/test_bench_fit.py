@@ -32,3 +32,6 @@ def test_steps_timed_in_two_workers(tmp_path, capsys):
                "--threads", "1"])
     with pytest.raises(SystemExit):
         bench(["-m", str(tmp_path / "nowhere")])
+    for bad in (",", "x", "-5"):
+        with pytest.raises(SystemExit):
+            bench(["-m", str(model), "--at", bad])
