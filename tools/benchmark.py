@@ -145,6 +145,14 @@ def headline(spec: ProtocolSpec, summary: Dict[str, Any]) -> float:
     return float(np.mean(vals)) if vals else float("nan")
 
 
+def count_run(counts: Dict[str, int], record: Dict[str, Any]) -> None:
+    """Add a finished run to the progress bar's counts by verdict (``error``: it raised)."""
+    if record.get("error"):
+        counts["error"] += 1
+    elif record.get("status") in counts:
+        counts[record["status"]] += 1
+
+
 def run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
     """Run the configured protocol into ``output_dir``, with the tool's thread count.
 
@@ -222,11 +230,7 @@ def _run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
                 f"{spec.name} {ev['interval']} {ev['method']} q{ev['query']} p{ev['pose']}"
             )
         elif ev["event"] == "run_end":
-            rec = ev.get("record") or {}
-            if rec.get("error"):
-                counts["error"] += 1
-            elif rec.get("verdict") in counts:
-                counts[rec["verdict"]] += 1
+            count_run(counts, ev.get("record") or {})
             bar.set_postfix(counts, refresh=False)
             bar.update(1)
 

@@ -178,6 +178,7 @@ def run_protocol(
                                     "count": count,
                                     "total": total,
                                     "reused": True,
+                                    "record": done[key],
                                 }
                             )
                         continue

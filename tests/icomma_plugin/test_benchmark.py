@@ -426,7 +426,10 @@ def test_run_protocol_in_process_with_essential_baseline():
     assert recs[1]["method"] == "essential" and "num_matches" in recs[1]
     s = summarize(spec, recs)
     assert {c["method"] for c in s["cells"]} == {"compare_only", "essential"}
-    # resuming reuses finished runs
+    # resuming reuses finished runs; the progress bar counts them by verdict as well
+    from tools.benchmark import count_run
+
+    events = []
     again = run_protocol(
         scene,
         spec,
@@ -434,8 +437,15 @@ def test_run_protocol_in_process_with_essential_baseline():
         make_matcher("sift"),
         done={r["key"]: r for r in recs},
         on_record=lambda r: pytest.fail("recomputed a finished run"),
+        progress=events.append,
     )
     assert [r["key"] for r in again] == [r["key"] for r in recs]
+    counts = {"ok": 0, "uncertain": 0, "failed": 0, "error": 0}
+    for ev in events:
+        if ev["event"] == "run_end":
+            count_run(counts, ev["record"])
+    assert sum(counts.values()) >= 1, counts  # the essential baseline gives no verdict
+    assert counts == {k: sum(r.get("status") == k for r in recs) for k in counts}, counts
 
 
 def test_tool_smoke_run_on_synthetic_scene(tmp_path):
