@@ -46,14 +46,20 @@ def _to_gray(image: torch.Tensor, blur: float = 0.0) -> torch.Tensor:
         w = image.new_tensor(_GRAY).view(3, 1, 1)
         g = (image * w).sum(0, keepdim=True)
     g = g.unsqueeze(0)
-    if blur > 0:
+    if blur > 0:  # separable, as shifted sums (a third of the time of two 1-channel convolutions)
         r = max(1, int(math.ceil(3 * blur)))
-        x = torch.arange(-r, r + 1, device=g.device, dtype=g.dtype)
+        x = torch.arange(-r, r + 1, dtype=torch.float64)
         k = torch.exp(-x * x / (2 * blur * blur))
-        k = k / k.sum()
-        g = F.pad(g, (r, r, r, r), mode="replicate")
-        g = F.conv2d(g, k.view(1, 1, 1, -1))
-        g = F.conv2d(g, k.view(1, 1, -1, 1))
+        k = (k / k.sum()).tolist()
+        h, w = g.shape[-2:]
+        p = F.pad(g, (r, r, r, r), mode="replicate")[0, 0]
+        rows = p.new_zeros((h + 2 * r, w))
+        for i, ki in enumerate(k):
+            rows = rows.add_(p[:, i:i + w], alpha=ki)
+        out = p.new_zeros((h, w))
+        for i, ki in enumerate(k):
+            out = out.add_(rows[i:i + h], alpha=ki)
+        g = out[None, None]
     return g
 
 
@@ -74,44 +80,93 @@ def _sample(gray: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
     return out[0, 0]
 
 
+def _grid_radius(grid: torch.Tensor) -> int:
+    """r of an ``_offset_grid(r)`` ((2r+1)^2 rows)."""
+    return (math.isqrt(grid.shape[0]) - 1) // 2
+
+
+def _half_grid_patches(gray, centre, radius, patch, sign, grad=False):
+    """Samples of gray [1,1,H,W] at ``centre + sign d / 2 + o``: [N, D, O].
+
+    For every displacement d of ``_offset_grid(radius)`` and offset o of ``_offset_grid(patch)``.
+    All those positions lie on one half-pixel grid around each centre, ``centre + j / 2`` for
+    ``|j| <= radius + 2 patch``: it is sampled once (half the samples of sampling each patch
+    apart) and the patches are strided views of it. With ``grad`` also the samples' derivatives
+    by x and by y of their positions, [N, D, O] each (from the image as a constant).
+    """
+    n = centre.shape[0]
+    h, w = gray.shape[-2:]
+    half = radius + 2 * patch
+    g = 2 * half + 1
+    scale = centre.new_tensor([2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1)])
+    j = torch.arange(-half, half + 1, device=centre.device, dtype=centre.dtype) * 0.5
+    # in grid_sample's units, by the same operations as sampling position by position: the
+    # positions of integer keypoints are integers, where the side of a bilinear derivative
+    # depends on the last bit (per axis on [N, G], then spread over the grid)
+    x = ((centre[:, 0:1] + j) * scale[0] - 1.0).view(n, 1, g).expand(n, g, g)
+    y = ((centre[:, 1:2] + j) * scale[1] - 1.0).view(n, g, 1).expand(n, g, g)
+    grid = torch.stack([x, y], -1).view(n, g * g, 2).to(gray.dtype)
+    k, m = 2 * radius + 1, 2 * patch + 1
+
+    def sample(image, at):
+        return F.grid_sample(image, at.unsqueeze(0), mode=_MODE, padding_mode="border",
+                             align_corners=True)[0, 0]
+
+    def patches(t):  # [N, G*G] -> [N, D, O]
+        t = t.reshape(n, g, g)
+        if t.requires_grad:  # a gather, whose backward accumulates the overlapping patches
+            line = (sign * torch.arange(-radius, radius + 1, device=t.device).view(-1, 1)
+                    + 2 * torch.arange(-patch, patch + 1, device=t.device).view(1, -1) + half)
+            return t[:, line.view(k, 1, m, 1), line.view(1, k, 1, m)].reshape(n, k * k, m * m)
+        st = t.stride()  # patch d starts at j = sign d - 2 patch, its samples 2 apart
+        v = t.as_strided((n, k, k, m, m), (st[0], st[1], st[2], 2 * st[1], 2 * st[2]),
+                         t.storage_offset())
+        if sign < 0:  # the first patch in memory is that of d = +radius: one copy, reversed
+            return torch.stack([v[:, k - 1 - i // k, k - 1 - i % k] for i in range(k * k)],
+                               1).reshape(n, k * k, m * m)
+        return v.reshape(n, k * k, m * m)
+
+    if not grad:
+        return patches(sample(gray, grid))
+    leaf = grid.detach().requires_grad_(True)
+    with torch.enable_grad():
+        s = sample(gray.detach(), leaf)
+        deriv = torch.autograd.grad(s.sum(), leaf)[0]
+    s = sample(gray, grid.detach()) if gray.requires_grad else s.detach()
+    # by pixel position: d/dx = d/dgrid_x * scale_x
+    return patches(s), patches(deriv[..., 0] * scale[0]), patches(deriv[..., 1] * scale[1])
+
+
 def _ncc_scores(render_g, query_g, centre, kpts_query, disp, offs, weights, eps,
                 grad_centre: bool = False):
     """NCC of render at centre + d/2 + o against query at p - d/2 + o.
 
-    centre, kpts_query: [N, 2]; disp: [D, 2]; offs: [O, 2]; weights: [O] (sum 1) -> [N, D];
-    with ``grad_centre`` also dNCC/dcentre [N, D, 2] (detached): the NCC's derivative by its
-    samples (closed form) times the samples' by their positions (one backward pass of the
-    bilinear sampling alone, instead of two through the whole step).
+    centre, kpts_query: [N, 2]; disp, offs: ``_offset_grid`` of the soft window's and the patch's
+    radius; weights: [O] (sum 1) -> [N, D]; with ``grad_centre`` also dNCC/dcentre [N, D, 2]
+    (detached): the NCC's derivative by its samples (closed form) times the samples' by their
+    positions (one backward pass of the bilinear sampling alone, instead of two through the
+    whole step).
     """
-    n, d, o = centre.shape[0], disp.shape[0], offs.shape[0]
-    half = 0.5 * disp.view(1, d, 1, 2)
-    pos_r = (centre.view(n, 1, 1, 2) + half + offs.view(1, 1, o, 2)).reshape(n, d * o, 2)
-    pos_q = kpts_query.view(n, 1, 1, 2) - half + offs.view(1, 1, o, 2)
-    if grad_centre:  # the samples' derivative by their positions, from the render as a constant
-        pos_leaf = pos_r.detach().requires_grad_(True)
-        with torch.enable_grad():
-            a = _sample(render_g.detach(), pos_leaf)
-            da_dpos = torch.autograd.grad(a.sum(), pos_leaf)[0]
-        # the step's own gradient reaches the render through samples at fixed positions
-        a = _sample(render_g, pos_r.detach()) if render_g.requires_grad else a.detach()
-    else:
-        a = _sample(render_g, pos_r)
-    a = a.view(n, d, o)
-    b = _sample(query_g, pos_q.reshape(n, d * o, 2)).view(n, d, o)
-    wts = weights.view(1, 1, o)
-    a = a - (a * wts).sum(-1, keepdim=True)
-    b = b - (b * wts).sum(-1, keepdim=True)
-    cov = (a * b * wts).sum(-1)
-    var_a = (a * a * wts).sum(-1)
-    var_b = (b * b * wts).sum(-1)
+    radius, patch = _grid_radius(disp), _grid_radius(offs)
+    out = _half_grid_patches(render_g, centre, radius, patch, 1, grad_centre)
+    a = out[0] if grad_centre else out
+    b = _half_grid_patches(query_g, kpts_query, radius, patch, -1)
+    # weighted moments as matrix-vector products over the patch
+    a = a - (a @ weights).unsqueeze(-1)
+    b = b - (b @ weights).unsqueeze(-1)
+    cov = (a * b) @ weights
+    var_a = (a * a) @ weights
+    var_b = (b * b) @ weights
     den = torch.sqrt(var_a * var_b + eps)
     s = cov / den
     if not grad_centre:
         return s
     with torch.no_grad():  # d s / d a_o = w_o (b_o - cov var_b a_o / den^2) / den (centred a, b)
-        a, cov, den = a.detach(), cov.detach(), den.detach()
-        ds_da = wts * (b - (cov * var_b / (den * den)).unsqueeze(-1) * a) / den.unsqueeze(-1)
-        ds_dc = (ds_da.unsqueeze(-1) * da_dpos.view(n, d, o, 2)).sum(2)
+        a, cov = a.detach(), cov.detach()
+        den = den.detach()
+        q = b - (cov * var_b / (den * den)).unsqueeze(-1) * a
+        ds_dc = torch.stack([(q * out[1]) @ weights, (q * out[2]) @ weights], -1)
+        ds_dc = ds_dc / den.unsqueeze(-1)
     return s, ds_dc
 
 
@@ -188,10 +243,14 @@ def _step(render_g, query_g, centre, kpts_query, disp, offs, weights, eps, tempe
         step, score, jac = _soft_step(render_g, query_g, c, kpts_query, disp, offs, weights, eps,
                                       temperature, jacobian=True)
         m = -jac  # [N, 2, 2] = -dF/dc
-        sv_min = torch.linalg.svdvals(m)[:, -1]
-        good = sv_min > 0.05
+        # 2x2 in closed form: the smallest singular value |det| / s_max, and the inverse
+        det = m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] * m[:, 1, 0]
+        fro2 = (m * m).sum((1, 2))
+        s_max = torch.sqrt(0.5 * (fro2 + torch.sqrt((fro2 * fro2 - 4 * det * det).clamp_min(0))))
+        good = det.abs() > 0.05 * s_max
         eye = torch.eye(2, device=c.device, dtype=c.dtype).expand(n, 2, 2)
-        inv = torch.linalg.inv(torch.where(good.view(n, 1, 1), m, eye))
+        adj = torch.stack([m[:, 1, 1], -m[:, 0, 1], -m[:, 1, 0], m[:, 0, 0]], -1).view(n, 2, 2)
+        inv = adj / torch.where(good, det, torch.ones_like(det)).view(n, 1, 1)
         a_mat = torch.where(good.view(n, 1, 1), inv, eye)
         newton = (a_mat @ step.detach().unsqueeze(-1)).squeeze(-1)
         # a Newton step against the soft-argmax step would leave the basin: plain step there

@@ -329,6 +329,56 @@ def test_refine_is_exact_on_a_shifted_copy(shift):
     assert float(err.median()) < 0.03
 
 
+def test_refine_blur_is_the_separable_gaussian_convolution():
+    from icomma_plugin.matchers.refine import _to_gray
+
+    img = texture(40, 52).to(torch.float64)
+    gray = _to_gray(img)
+    for sigma in (0.6, 1.0, 2.0):
+        r = max(1, math.ceil(3 * sigma))
+        x = torch.arange(-r, r + 1, dtype=torch.float64)
+        k = torch.exp(-x * x / (2 * sigma * sigma))
+        k = k / k.sum()
+        want = torch.nn.functional.pad(gray, (r, r, r, r), mode="replicate")
+        want = torch.nn.functional.conv2d(want, k.view(1, 1, 1, -1))
+        want = torch.nn.functional.conv2d(want, k.view(1, 1, -1, 1))
+        assert torch.allclose(_to_gray(img, sigma), want, atol=1e-12)
+
+
+@pytest.mark.parametrize("sign", [1, -1])
+def test_refine_half_grid_patches_are_the_patches_sampled_one_by_one(sign):
+    """Patches gathered from one half-pixel grid against samples taken one by one.
+
+    At centre + sign d/2 + o: values, derivatives by position, and the gradient to the image.
+    """
+    from icomma_plugin.matchers.refine import _half_grid_patches, _offset_grid, _sample, _to_gray
+
+    dt = torch.float64
+    gray = _to_gray(texture(64, 80).to(dt), 1.0).requires_grad_(True)
+    g = torch.Generator().manual_seed(7)
+    centre = torch.rand(30, 2, generator=g, dtype=dt) * torch.tensor([79.0, 63.0], dtype=dt)
+    centre[0] = torch.tensor([0.2, 62.9], dtype=dt)  # patches over the border
+    # integer keypoints (a matcher's): a bilinear derivative at an integer position is one-sided,
+    # and which side must not change with the way the grid is computed
+    centre[1:8] = centre[1:8].round()
+    disp, offs = _offset_grid(1, "cpu", dt), _offset_grid(3, "cpu", dt)
+    pos = (centre.view(-1, 1, 1, 2) + sign * 0.5 * disp.view(1, -1, 1, 2)
+           + offs.view(1, 1, -1, 2))  # [N, D, O, 2]
+    leaf = pos.reshape(30, -1, 2).clone().requires_grad_(True)
+    ref = _sample(gray.detach(), leaf)
+    ref_dx, ref_dy = torch.autograd.grad(ref.sum(), leaf)[0].view(30, 9, 49, 2).unbind(-1)
+    vals, dx, dy = _half_grid_patches(gray.detach(), centre, 1, 3, sign, grad=True)
+    assert torch.allclose(vals, ref.view(30, 9, 49), atol=1e-12)
+    assert torch.allclose(dx, ref_dx, atol=1e-9) and torch.allclose(dy, ref_dy, atol=1e-9)
+    assert float(dx.abs().max()) > 0.01 and float(dy.abs().max()) > 0.01
+    # through the image: the gather's gradient accumulates the samples shared by patches
+    wts = torch.rand(30, 9, 49, generator=g, dtype=dt)
+    (got,) = torch.autograd.grad((_half_grid_patches(gray, centre, 1, 3, sign) * wts).sum(), gray)
+    (want,) = torch.autograd.grad((_sample(gray, pos.view(30, -1, 2)).view(30, 9, 49)
+                                   * wts).sum(), gray)
+    assert torch.allclose(got, want, atol=1e-12)
+
+
 def test_refine_jacobian_in_closed_form_matches_finite_differences():
     """dF/dc of the soft-argmax step in closed form (the Newton steps' J).
 
@@ -537,12 +587,18 @@ def test_bad_images_are_value_errors_naming_the_argument(name):
         "0..255": good * 255,
         "normalised": (good - 0.5) / 0.2,
         "nan": torch.full_like(good, float("nan")),
+        "one nan": good.clone().index_put_((torch.tensor(1), torch.tensor(5), torch.tensor(7)),
+                                           torch.tensor(float("nan"))),
+        "inf": good.clone().index_put_((torch.tensor(0), torch.tensor(3), torch.tensor(2)),
+                                       torch.tensor(float("-inf"))),
         "tiny": torch.rand(3, 8, 8),
         "numpy": good.numpy(),
     }
     for label, bad in cases.items():
-        with pytest.raises(ValueError, match="image0"):
+        with pytest.raises(ValueError, match="image0") as exc:
             matcher.match(bad, good)
+        if label in ("nan", "one nan", "inf"):
+            assert "NaN or infinite" in str(exc.value), label
         with pytest.raises(ValueError, match="image1"):
             matcher.match(good, bad)
     if matcher.supports_image_gradient:
