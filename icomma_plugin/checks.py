@@ -16,6 +16,7 @@ from typing import Any, Dict, Iterable, Mapping, Optional, Sequence, Tuple, Unio
 
 __all__ = [
     "HYDRA_KEYS",
+    "all_finite",
     "check_bool",
     "check_choice",
     "check_int",
@@ -156,9 +157,24 @@ def check_tensor(value: Any, name: str, shape: Optional[Sequence[Union[int, str]
             raise ValueError(f"{name} must be {kind}{want}, got shape {list(value.shape)}")
     if floating and not value.is_floating_point():
         raise ValueError(f"{name} must be {kind}{want}, got dtype {value.dtype}")
-    if finite and not bool(torch.isfinite(value).all()):
+    if finite and not all_finite(value):
         raise ValueError(f"{name} contains NaN or infinite values")
     return value
+
+
+def all_finite(value) -> bool:
+    """No NaN or infinity in the tensor ``value``.
+
+    A finite sum proves every entry finite (NaN and infinities propagate into it): one
+    reduction, and the element-wise scan only when the sum is not finite (a NaN or an infinity,
+    or finite entries whose sum overflows). The rasterizer's input check does the same.
+    """
+    import torch
+
+    if value.numel() == 0 or not value.is_floating_point():
+        return True
+    with torch.no_grad():
+        return bool(torch.isfinite(value.sum())) or bool(torch.isfinite(value).all())
 
 
 def config_from_dict(cls, d: Optional[Mapping[str, Any]], where: Optional[str] = None):

@@ -125,9 +125,12 @@ class GaussianModel(GaussianTensors):
 
     def detach(self) -> "GaussianModel":
         """The same tensors, detached from autograd."""
-        return GaussianModel(
+        out = GaussianModel(
             **{k: v.detach() for k, v in self.tensors().items()}, sh_degree=self.sh_degree
         )
+        if "_zero_sh" in self.__dict__:  # same storage and version counter: the scan holds
+            out.__dict__["_zero_sh"] = self.__dict__["_zero_sh"]
+        return out
 
     def index(self, mask: torch.Tensor) -> "GaussianModel":
         """Subset by boolean mask or index tensor over the P Gaussians."""
@@ -161,6 +164,26 @@ class GaussianModel(GaussianTensors):
         return GaussianModel(
             self.means, self.sh_dc, rest, self.opacity_logit, self.scale_log, self.quat, degree
         )
+
+    def without_zero_sh(self) -> "GaussianModel":
+        """This model, or the same at SH degree 0 when its higher bands are all zero.
+
+        Such a model renders the same image (and gradients) at degree 0, faster. The scan of
+        ``sh_rest`` is remembered on this object until ``sh_rest`` changes (its version counter,
+        which in-place changes and those of tensors it was detached from advance), so a caller
+        that asks once a localization does not scan the model each time.
+        """
+        if self.sh_degree == 0:
+            return self
+        try:
+            key = (self.sh_rest.data_ptr(), self.sh_rest._version)
+        except RuntimeError:  # an inference-mode tensor has no version counter: scan each time
+            key = None
+        known = self.__dict__.get("_zero_sh")
+        if key is None or known is None or known[0] != key:
+            known = (key, not bool(self.sh_rest.any()))
+            self.__dict__["_zero_sh"] = known
+        return self.with_sh_degree(0) if known[1] else self
 
     @classmethod
     def empty(cls, sh_degree: int = 3, dtype=torch.float32, device=None) -> "GaussianModel":

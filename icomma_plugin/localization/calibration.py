@@ -298,9 +298,7 @@ def model_key(model: GaussianModel) -> str:
     """
     if not isinstance(model, GaussianModel):
         raise ValueError(f"model must be a GaussianModel, got {type(model).__name__}")
-    if model.sh_degree > 0 and not bool(model.sh_rest.any()):
-        model = model.with_sh_degree(0)
-    return model_fingerprint(model)
+    return model_fingerprint(model.without_zero_sh())
 
 
 def calibration_path(model_id: str, cache_dir: Optional[PathLike] = None) -> Path:

@@ -54,10 +54,10 @@ def median_depth(depth: torch.Tensor, alpha: torch.Tensor, min_alpha: float = 0.
     The one definition of the project (thresholds relative to the scene's depth use it); 1.0
     when the render shows nothing.
     """
-    sel = alpha > min_alpha
-    if not bool(sel.any()):
+    shown = depth[alpha > min_alpha].detach()
+    if shown.numel() == 0:
         return 1.0
-    return float(np.median(depth[sel].detach().cpu().numpy()))
+    return float(np.median(shown.cpu().numpy()))
 
 
 def depth_edges(depth: torch.Tensor, rel: float) -> torch.Tensor:

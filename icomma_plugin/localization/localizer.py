@@ -175,10 +175,7 @@ class Localizer:
         self.backend = check_choice(backend, "backend", BACKENDS)
         self.model_side = check_int(model_side, "model_side", 1, optional=True)
         self.matcher = matcher
-        self.model = model.detach()
-        if self.model.sh_degree > 0 and not bool(self.model.sh_rest.any()):
-            # Higher SH bands all zero: degree 0 renders the same image (and gradients), faster.
-            self.model = self.model.with_sh_degree(0)
+        self.model = model.without_zero_sh().detach()
         bg = torch.zeros(3) if background is None else torch.as_tensor(background)
         if bg.numel() != 3 or not bool(torch.isfinite(bg).all()):
             raise ValueError(f"background must be 3 finite values (RGB), got {background!r}")

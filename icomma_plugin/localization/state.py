@@ -115,14 +115,9 @@ class LocalizationState:
     steps: int = 0  # trace records made so far (also when the trace is not kept)
 
     def __post_init__(self):
-        self.model = self.model.detach()
-        if (
-            self.sh_degree is None
-            and self.model.sh_degree > 0
-            and not bool(self.model.sh_rest.any())
-        ):
-            # Higher SH bands all zero: degree 0 renders the same image (and gradients), faster.
-            self.model = self.model.with_sh_degree(0)
+        # (the scan of the SH is remembered on the caller's model: a Localizer's, each frame)
+        self.model = (self.model if self.sh_degree is not None
+                      else self.model.without_zero_sh()).detach()
         dev, dt = self.model.device, self.model.dtype
         self.bg = torch.as_tensor(self.bg, device=dev, dtype=dt).reshape(3)
         self._t0, self._c0 = time.perf_counter(), time.process_time()

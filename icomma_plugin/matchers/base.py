@@ -9,6 +9,7 @@ coordinates (the 3DGS convention: the first pixel's centre is `(0, 0)`, the imag
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 from typing import Any, ClassVar, Dict, Mapping, Optional, Tuple
 
@@ -186,10 +187,10 @@ def check_image(image: Any, name: str) -> torch.Tensor:
         raise ValueError(
             f"{name} must be at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE} pixels, got {h}x{w} (HxW)"
         )
-    with torch.no_grad():
-        if not bool(torch.isfinite(image).all()):
-            raise ValueError(f"{name} contains NaN or infinite values")
-        lo, hi = float(image.min()), float(image.max())
+    with torch.no_grad():  # one pass: the extremes are NaN or infinite when any value is
+        lo, hi = (float(v) for v in torch.aminmax(image))
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        raise ValueError(f"{name} contains NaN or infinite values")
     if lo < -RANGE_TOLERANCE or hi > 1.0 + RANGE_TOLERANCE:
         raise ValueError(
             f"{name} must hold values in [0, 1] (float RGB), got the range [{lo:.3g}, {hi:.3g}]; "

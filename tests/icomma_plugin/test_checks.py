@@ -54,3 +54,24 @@ def test_ints_bools_choices_pairs():
     for bad in ([2, 1], [1], [0, 200], "ab"):
         with pytest.raises(ValueError, match="rot_deg must be a pair"):
             check_pair(bad, "rot_deg", 0, 180)
+
+
+def test_tensors_shapes_and_finite_values():
+    import torch
+
+    from icomma_plugin.checks import all_finite, check_tensor
+
+    img = torch.rand(3, 4, 5)
+    assert check_tensor(img, "image", (3, "H", "W"), floating=True, finite=True) is img
+    with pytest.raises(ValueError, match=r"image must be a floating-point tensor of shape \[3, H"):
+        check_tensor(img[:1], "image", (3, "H", "W"), floating=True)
+    big = torch.full((4,), 3e38)  # finite entries whose sum overflows
+    assert all_finite(big) and check_tensor(big, "x", finite=True) is big
+    for bad in (float("nan"), float("inf")):
+        t = img.clone()
+        t[1, 2, 3] = bad
+        assert not all_finite(t)
+        with pytest.raises(ValueError, match="image contains NaN or infinite values"):
+            check_tensor(t, "image", finite=True)
+    both = torch.tensor([float("inf"), -float("inf")])  # their sum is NaN
+    assert not all_finite(both) and all_finite(torch.zeros(0)) and all_finite(torch.arange(3))

@@ -103,6 +103,30 @@ def test_sh_degree_and_errors():
         render(m, None, _w2c(), bg)
 
 
+def test_without_zero_sh_renders_the_same_and_remembers_its_scan(monkeypatch):
+    m = _blobs(degree=2)
+    assert m.without_zero_sh() is m  # higher bands in use
+    K = Intrinsics(16, 12, 15.0, 15.0)
+    bg = torch.zeros(3, dtype=torch.float64)
+    m.sh_rest.zero_()  # an in-place change is seen (the version counter moves)
+    low = m.without_zero_sh()
+    assert low.sh_degree == 0
+    assert torch.equal(render(low, K, _w2c(), bg, backend="reference").color,
+                       render(m, K, _w2c(), bg, backend="reference").color)
+    scans = []
+    real_any = torch.Tensor.any
+    monkeypatch.setattr(torch.Tensor, "any",
+                        lambda t, *a, **k: scans.append(1) or real_any(t, *a, **k))
+    det = m.detach()
+    assert det.without_zero_sh().sh_degree == 0 and m.without_zero_sh().sh_degree == 0
+    assert scans == []  # remembered, also by a detached copy (same storage and counter)
+    det.sh_rest[0, 0, 0] = 1.0
+    assert m.without_zero_sh() is m and len(scans) == 1
+    with torch.inference_mode():  # no version counter: scanned each time, still right
+        inf = _blobs(degree=1)
+    assert inf.without_zero_sh() is inf and inf.without_zero_sh() is inf and len(scans) == 3
+
+
 # ---------------------------------------------------------------------------------- prepared scene
 from icomma_plugin.gaussians import SH_C0  # noqa: E402
 from icomma_plugin.render import PreparedScene, prepare_scene  # noqa: E402

@@ -103,6 +103,15 @@ def test_pnp_gives_up_on_pure_noise():
     assert solve_pnp(np.zeros((3, 3)), np.zeros((3, 2)), intr, 1.0) is None  # too few points
 
 
+def test_median_depth_of_the_shown_pixels():
+    from icomma_plugin.localization.geometry import median_depth
+
+    depth = torch.tensor([[[1.0, 2.0, 3.0, 4.0, 50.0]]])
+    alpha = torch.tensor([[[0.9, 0.9, 0.9, 0.9, 0.1]]])
+    assert median_depth(depth, alpha) == 2.5  # numpy's median of the four shown
+    assert median_depth(depth, torch.zeros_like(alpha)) == 1.0  # nothing shown
+
+
 def test_lift_keypoints_inverts_the_projection(demo):
     scene, model, _, _ = demo
     st = _state(demo)
