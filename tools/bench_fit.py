@@ -137,6 +137,18 @@ def _print_table(names: List[str], rows: List[Dict[str, object]]) -> None:
             print("| " + " | ".join(cells) + " |")
 
 
+def _schedule_steps(text: str) -> List[int]:
+    """``--at``: a comma list of schedule steps, 0 or more (a usage error otherwise)."""
+    try:
+        steps = [int(a) for a in text.split(",") if a.strip()]
+    except ValueError:
+        steps = []
+    if not steps or min(steps) < 0:
+        raise argparse.ArgumentTypeError(
+            f"must be a comma list of schedule steps (0 or more), got {text!r}")
+    return steps
+
+
 def run(args: argparse.Namespace) -> List[Dict[str, object]]:
     """Time every checkout at every ``--at``; prints the table, returns its rows."""
     from tools._common import CheckoutWorker
@@ -146,7 +158,7 @@ def run(args: argparse.Namespace) -> List[Dict[str, object]]:
         if not (r / "icomma_plugin" / "fit").is_dir():
             raise SystemExit(f"--checkouts: {r} is not a checkout with icomma_plugin/fit")
     rows: List[Dict[str, object]] = []
-    for at in [int(a) for a in args.at.split(",") if a.strip()]:
+    for at in args.at:
         workers = [CheckoutWorker(r, Path(__file__), "--checkouts") for r in roots]
         try:
             for w in workers:
@@ -179,7 +191,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("-m", "--model", type=Path, help="a fitted model folder (its cfg_args "
                     "source_path must exist)")
-    ap.add_argument("--at", default="5000", help="comma list of schedule steps to start at")
+    ap.add_argument("--at", type=_schedule_steps, default="5000",
+                    help="comma list of schedule steps to start at")
     ap.add_argument("--steps", type=int, default=20, help="steps a round")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--warmup", type=int, default=5)
@@ -201,12 +214,6 @@ def main(argv: Optional[List[str]] = None) -> int:
             ap.error(f"--{name} must be at least 1, got {getattr(args, name)}")
     if args.warmup < 0:
         ap.error(f"--warmup must be 0 or more, got {args.warmup}")
-    try:
-        starts = [int(a) for a in args.at.split(",") if a.strip()]
-    except ValueError:
-        starts = []
-    if not starts or min(starts) < 0:
-        ap.error(f"--at must be a comma list of schedule steps (0 or more), got {args.at!r}")
     rows = run(args)
     if args.json is not None:
         from icomma_plugin.io.atomic import write_json_atomic
