@@ -70,14 +70,21 @@ def _offset_grid(radius: int, device, dtype) -> torch.Tensor:
     return torch.stack([xx.reshape(-1), yy.reshape(-1)], dim=-1)
 
 
+def _pixel_scale(gray: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """(sx, sy) with grid_sample's coordinate = pixel position * s - 1 (align_corners)."""
+    h, w = gray.shape[-2:]
+    return like.new_tensor([2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1)])
+
+
+def _grid_sample(gray: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+    """Bilinear samples of gray [1,1,H,W] at grid_sample coordinates grid [N, K, 2] -> [N, K]."""
+    return F.grid_sample(gray, grid.to(gray.dtype).unsqueeze(0), mode=_MODE,
+                         padding_mode="border", align_corners=True)[0, 0]
+
+
 def _sample(gray: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
     """Bilinear samples of gray [1,1,H,W] at pixel positions pos [N, K, 2] -> [N, K]."""
-    h, w = gray.shape[-2:]
-    scale = pos.new_tensor([2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1)])
-    grid = (pos * scale - 1.0).unsqueeze(0)  # [1, N, K, 2]
-    out = F.grid_sample(gray, grid.to(gray.dtype), mode=_MODE, padding_mode="border",
-                        align_corners=True)
-    return out[0, 0]
+    return _grid_sample(gray, pos * _pixel_scale(gray, pos) - 1.0)
 
 
 def _grid_radius(grid: torch.Tensor) -> int:
@@ -95,10 +102,9 @@ def _half_grid_patches(gray, centre, radius, patch, sign, grad=False):
     by x and by y of their positions, [N, D, O] each (from the image as a constant).
     """
     n = centre.shape[0]
-    h, w = gray.shape[-2:]
     half = radius + 2 * patch
     g = 2 * half + 1
-    scale = centre.new_tensor([2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1)])
+    scale = _pixel_scale(gray, centre)
     j = torch.arange(-half, half + 1, device=centre.device, dtype=centre.dtype) * 0.5
     # in grid_sample's units, by the same operations as sampling position by position: the
     # positions of integer keypoints are integers, where the side of a bilinear derivative
@@ -107,10 +113,6 @@ def _half_grid_patches(gray, centre, radius, patch, sign, grad=False):
     y = ((centre[:, 1:2] + j) * scale[1] - 1.0).view(n, g, 1).expand(n, g, g)
     grid = torch.stack([x, y], -1).view(n, g * g, 2).to(gray.dtype)
     k, m = 2 * radius + 1, 2 * patch + 1
-
-    def sample(image, at):
-        return F.grid_sample(image, at.unsqueeze(0), mode=_MODE, padding_mode="border",
-                             align_corners=True)[0, 0]
 
     def patches(t):  # [N, G*G] -> [N, D, O]
         t = t.reshape(n, g, g)
@@ -127,12 +129,12 @@ def _half_grid_patches(gray, centre, radius, patch, sign, grad=False):
         return v.reshape(n, k * k, m * m)
 
     if not grad:
-        return patches(sample(gray, grid))
+        return patches(_grid_sample(gray, grid))
     leaf = grid.detach().requires_grad_(True)
     with torch.enable_grad():
-        s = sample(gray.detach(), leaf)
+        s = _grid_sample(gray.detach(), leaf)
         deriv = torch.autograd.grad(s.sum(), leaf)[0]
-    s = sample(gray, grid.detach()) if gray.requires_grad else s.detach()
+    s = _grid_sample(gray, grid.detach()) if gray.requires_grad else s.detach()
     # by pixel position: d/dx = d/dgrid_x * scale_x
     return patches(s), patches(deriv[..., 0] * scale[0]), patches(deriv[..., 1] * scale[1])
 
