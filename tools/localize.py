@@ -181,6 +181,7 @@ class _Bar:
 def _worker_setup(cfg: DictConfig, data: Dict[str, Any], out: Path, sequence: bool):
     """(WorkerSetup, model folder, matcher) of a batch or a sequence; UserError on bad input."""
     from icomma_plugin.app.batch import WorkerSetup
+    from icomma_plugin.app.inputs import LensDistortion
     from icomma_plugin.app.output import OutputOptions
     from icomma_plugin.app.problem import open_model_folder
 
@@ -210,6 +211,7 @@ def _worker_setup(cfg: DictConfig, data: Dict[str, Any], out: Path, sequence: bo
         thumb_side=int(oc.get("thumb_side") or 192), config=common.container(cfg),
         seed=int(cfg.seed), cache_dir=_cache_dir(cfg),
         photos=str(data.get("photos") or "auto").lower(), verdict=_verdict(cfg), lod=_lod(cfg),
+        distortion=LensDistortion.from_config(data.get("intrinsics")),
     )
     return setup, mf, matcher
 

@@ -22,6 +22,7 @@ from ..localization.localizer import Localizer, source_photos
 from ..localization.types import Query
 from ..pose.convert import cameras_extent
 from .inputs import (
+    LensDistortion,
     ProblemError,
     fit_intrinsics,
     init_group,
@@ -29,6 +30,7 @@ from .inputs import (
     photo_intrinsics,
     start_poses,
     truths,
+    VIEWS_UNDISTORTED,
 )
 
 logger = logging.getLogger(__name__)
@@ -241,6 +243,11 @@ def _query(d: Dict[str, Any], mf, white: bool, bg: torch.Tensor) -> Tuple[Query,
         raise ProblemError(
             "query intrinsics unknown: set data.intrinsics.fx/fy or data.intrinsics.camera"
         )
+    lens = LensDistortion.from_config(it)
+    if lens is not None:
+        if view is not None:
+            raise ProblemError(VIEWS_UNDISTORTED)
+        rgb, alpha, valid = lens.undistort(rgb, alpha, intr)
     return Query(rgb.contiguous(), intr, alpha, valid, str(name)), view, cam
 
 

@@ -294,9 +294,14 @@ def prefetched(frames: Iterable, ahead: int, prepare: Optional[Callable[[Any], A
         stop.set()
 
 
-def _query(rgb: np.ndarray, intr: Intrinsics, name: str, resize: Optional[int]) -> Query:
+def _query(rgb: np.ndarray, intr: Intrinsics, name: str, resize: Optional[int],
+           distortion=None) -> Query:
+    """A frame (``[H, W, 3]`` uint8) as a query: undistorted (``LensDistortion``), resized."""
     t = torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1).float() / 255.0
-    return Query(t.contiguous(), intr, None, None, name).resized(resize)
+    valid = None
+    if distortion is not None:
+        t, _, valid = distortion.undistort(t, None, intr)
+    return Query(t.contiguous(), intr, None, valid, name).resized(resize)
 
 
 class _Tracker:
@@ -324,7 +329,8 @@ class _Tracker:
 
     def _query(self, name: str, rgb: np.ndarray) -> Tuple[Intrinsics, Query]:
         intr = self.intrinsics_of((int(rgb.shape[1]), int(rgb.shape[0])))
-        return intr, _query(rgb, intr, name, self.worker.setup.resize)
+        setup = self.worker.setup
+        return intr, _query(rgb, intr, name, setup.resize, getattr(setup, "distortion", None))
 
     def ahead(self, item: Tuple[int, str, np.ndarray]) -> Tuple[int, str, np.ndarray, Any]:
         """``(index, name, rgb)`` -> ``(index, name, rgb, (intrinsics, query) or None)``.
@@ -468,9 +474,8 @@ def write_tracking_video(
         r = by_name.get(name)
         if r is None:
             continue
-        q = _query(
-            rgb, intrinsics_of((int(rgb.shape[1]), int(rgb.shape[0]))), name, worker.setup.resize
-        )
+        q = _query(rgb, intrinsics_of((int(rgb.shape[1]), int(rgb.shape[0]))), name,
+                   worker.setup.resize, getattr(worker.setup, "distortion", None))
         if r.get("c2w") is not None:
             w2c = torch.as_tensor(invert_rigid(np.asarray(r["c2w"], np.float64)),
                                   dtype=model.dtype, device=model.device)

@@ -540,3 +540,17 @@ def test_a_second_call_without_a_start_loads_the_candidate_index(scene, colmap_p
     assert second.stage_seconds["candidates"] < 0.5 * first.stage_seconds["candidates"]
     assert first.verdict.status == second.verdict.status == "ok"
     assert first.rot_err_deg < 0.1 and np.array_equal(first.c2w, second.c2w)
+
+
+def test_a_distortion_for_dataset_views_is_refused(scene, colmap_photos):
+    """data.intrinsics.distortion is for photo files: a dataset's views are undistorted already."""
+    from icomma_plugin.app.batch import plan_batch
+    from icomma_plugin.app.inputs import ProblemError
+
+    data = {"kind": "model_folder", "model_path": str(scene["model"]),
+            "queries": str(colmap_photos["root"]), "init": "none",
+            "intrinsics": {"distortion": [0.1, 0.0, 0.0, 0.0]}}
+    with pytest.raises(ProblemError, match="data.intrinsics.distortion is for photo files"):
+        plan_batch(data)
+    data["intrinsics"]["distortion"] = [0.0, 0.0, 0.0, 0.0]  # none at all: planned as before
+    assert len(plan_batch(data)[0].tasks) == 3

@@ -20,6 +20,8 @@ from ..inputs import (
     PhotoMismatch,
     ProblemError,
     intrinsics_for_photos,
+    LensDistortion,
+    VIEWS_UNDISTORTED,
     list_photos,
     start_poses,
     truths,
@@ -117,6 +119,8 @@ def plan_batch(data: Dict[str, Any], mf=None) -> Tuple[BatchPlan, Any]:
     mode, inits, init_errs = start_poses(data.get("init"), names, gts, mf.cameras,
                                          scene_centre_of(mf.model))
     of = None if views is not None else intrinsics_for_photos(data.get("intrinsics"), mf.cameras)
+    if views is not None and LensDistortion.from_config(data.get("intrinsics")) is not None:
+        raise ProblemError(VIEWS_UNDISTORTED)
     tasks = []
     for i, name in enumerate(names):
         if views is not None:

@@ -52,6 +52,8 @@ class WorkerSetup:
     photos: ``auto`` (the model's source photos as anchors, when found) or ``none``.
     verdict: the Localizer's verdict thresholds (``auto``: the model's calibration, when any).
     lod: the Localizer's level of detail (``auto``, ``off`` or ``LodConfig`` fields).
+    distortion: the photo files' lens distortion (``inputs.LensDistortion``, removed before a
+        photo is localized), or None.
     """
 
     model_path: str
@@ -72,6 +74,7 @@ class WorkerSetup:
     photos: str = "auto"
     verdict: Any = "auto"
     lod: Any = "auto"
+    distortion: Any = None
 
 
 @contextlib.contextmanager
@@ -128,7 +131,10 @@ class BatchWorker:
                     f"the photo {task.path} is {W}x{H}, not the {task.intrinsics.width}x"
                     f"{task.intrinsics.height} its intrinsics were planned for"
                 )
-            q = Query(rgb, task.intrinsics, alpha, None, task.name)
+            valid = None
+            if self.setup.distortion is not None:
+                rgb, alpha, valid = self.setup.distortion.undistort(rgb, alpha, task.intrinsics)
+            q = Query(rgb, task.intrinsics, alpha, valid, task.name)
         return q.resized(self.setup.resize)
 
     def problem(self, task: PhotoTask, query: Query) -> Problem:
