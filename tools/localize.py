@@ -181,9 +181,8 @@ class _Bar:
 def _worker_setup(cfg: DictConfig, data: Dict[str, Any], out: Path, sequence: bool):
     """(WorkerSetup, model folder, matcher) of a batch or a sequence; UserError on bad input."""
     from icomma_plugin.app.batch import WorkerSetup
-    from icomma_plugin.app.inputs import LensDistortion
     from icomma_plugin.app.output import OutputOptions
-    from icomma_plugin.app.problem import open_model_folder
+    from icomma_plugin.app.problem import open_model_folder, photo_camera
 
     if data.get("kind") != "model_folder":
         raise common.UserError(
@@ -211,7 +210,7 @@ def _worker_setup(cfg: DictConfig, data: Dict[str, Any], out: Path, sequence: bo
         thumb_side=int(oc.get("thumb_side") or 192), config=common.container(cfg),
         seed=int(cfg.seed), cache_dir=_cache_dir(cfg),
         photos=str(data.get("photos") or "auto").lower(), verdict=_verdict(cfg), lod=_lod(cfg),
-        distortion=LensDistortion.from_config(data.get("intrinsics")),
+        distortion=photo_camera(data, mf, white)[1],
     )
     return setup, mf, matcher
 
@@ -288,7 +287,7 @@ def _run_sequence(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, An
     from icomma_plugin.app.batch import BatchWorker, run_identity
     from icomma_plugin.app.inputs import intrinsics_for_photos
     from icomma_plugin.app.ledger import PosesLedger
-    from icomma_plugin.app.problem import scene_centre_of
+    from icomma_plugin.app.problem import photo_camera, scene_centre_of
     from icomma_plugin.app.tracking import (
         FrameSource,
         TrackingConfig,
@@ -302,7 +301,8 @@ def _run_sequence(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, An
     source = FrameSource.open(data["sequence"], int(data.get("every") or 1), data.get("limit"))
     gt_of = sequence_truths(data)
     init_c2w = first_frame_start(data, source, mf.cameras, scene_centre_of(mf.model), gt_of)
-    intrinsics_of = intrinsics_for_photos(data.get("intrinsics"), mf.cameras)
+    intrinsics_of = intrinsics_for_photos(data.get("intrinsics"), mf.cameras,
+                                          photo_camera(data, mf, setup.white_background)[0])
     worker = BatchWorker(setup, mf, matcher)
     ledger = PosesLedger(
         out, {**run_identity("sequence", data, setup.model_path), "config": common.container(cfg)},

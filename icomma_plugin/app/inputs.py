@@ -336,13 +336,15 @@ def truths(gt_cfg, names: Sequence[str], views) -> List[Optional[np.ndarray]]:
 
 
 def photo_intrinsics(
-    size: Tuple[int, int], it: Dict[str, Any], cameras: Sequence[Any]
+    size: Tuple[int, int], it: Dict[str, Any], cameras: Sequence[Any],
+    camera: Optional[Intrinsics] = None,
 ) -> Intrinsics:
     """Intrinsics of a photo of ``size`` (W, H) from the ``data.intrinsics`` group.
 
     ``fx`` (with ``fy``, ``cx``, ``cy``) are for the size ``width x height`` when those are set,
     else for the photo's own size; a photo of another size is refused. ``camera`` takes a
-    cameras.json entry, scaled to the photo when the aspect ratio agrees (1 %).
+    cameras.json entry, or ``camera`` (that entry's full camera from the source dataset,
+    ``problem.photo_camera``) when given, scaled to the photo when the aspect ratio agrees (1 %).
 
     Raises:
         ProblemError: naming the key: no intrinsics given, a photo of another size or shape.
@@ -377,7 +379,7 @@ def photo_intrinsics(
                 f"data.intrinsics.camera={it['camera']!r}: the model folder has no cameras.json"
             )
         try:
-            src = entry_to_intrinsics(find_entry(cameras, it["camera"]))
+            src = camera or entry_to_intrinsics(find_entry(cameras, it["camera"]))
         except ValueError as e:
             raise ProblemError(f"data.intrinsics.camera: {e}") from None
         return fit_intrinsics(src, size, f"data.intrinsics.camera={it['camera']!r}")
@@ -400,7 +402,11 @@ def fit_intrinsics(src: Intrinsics, size: Tuple[int, int], what: str) -> Intrins
         raise PhotoMismatch(
             f"the photo is {W}x{H} but {what} is {src.width}x{src.height} (another aspect ratio)"
         )
-    return Intrinsics(W, H, src.fx * W / src.width, src.fy * H / src.height)
+    sx, sy = W / src.width, H / src.height
+    # pixel centres at integers: a principal point scales about the image's corner (-0.5, -0.5)
+    cx = None if src.cx is None else (src.cx + 0.5) * sx - 0.5
+    cy = None if src.cy is None else (src.cy + 0.5) * sy - 0.5
+    return Intrinsics(W, H, src.fx * sx, src.fy * sy, cx, cy)
 
 
 #: Why a lens distortion is refused for dataset views.
@@ -473,7 +479,8 @@ class LensDistortion:
                 torch.from_numpy(valid[None].astype(np.float32)))
 
 
-def intrinsics_for_photos(it: Dict[str, Any], cameras: Sequence[Any]
+def intrinsics_for_photos(it: Dict[str, Any], cameras: Sequence[Any],
+                          camera: Optional[Intrinsics] = None
                           ) -> Callable[[Tuple[int, int]], Intrinsics]:
     """``(W, H) -> Intrinsics`` for the photos of a batch or a video (see `photo_intrinsics`).
 
@@ -499,7 +506,7 @@ def intrinsics_for_photos(it: Dict[str, Any], cameras: Sequence[Any]
 
     def of(size: Tuple[int, int]) -> Intrinsics:
         if size not in known:
-            known[size] = photo_intrinsics(size, it, cameras)
+            known[size] = photo_intrinsics(size, it, cameras, camera)
         return known[size]
 
     return of

@@ -8,6 +8,7 @@ of the ``data`` group that caused it, so the tools print it as one line.
 """
 from __future__ import annotations
 
+import functools
 import logging
 import os
 from dataclasses import dataclass, field
@@ -17,6 +18,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 import torch
 
+from ..camera import Intrinsics
 from ..io.poses_file import read_c2w_file
 from ..localization.localizer import Localizer, source_photos
 from ..localization.types import Query
@@ -39,6 +41,7 @@ __all__ = [
     "Problem",
     "load_problem",
     "open_model_folder",
+    "photo_camera",
     "photos_of",
     "read_query_image",
     "scene_centre_of",
@@ -189,6 +192,56 @@ def _dataset(q: Dict[str, Any], mf, white: bool, what: str):
     return read_dataset(Path(str(root)).expanduser(), white_background=white)
 
 
+def photo_camera(data: Dict[str, Any], mf, white: bool
+                 ) -> Tuple[Optional[Intrinsics], Optional[LensDistortion]]:
+    """The camera photo files were taken with: (intrinsics for ``data.intrinsics.camera``, lens).
+
+    The lens is ``data.intrinsics.distortion`` when given. With ``data.intrinsics.camera`` (and
+    no ``fx``), that camera's view in the model's source dataset (``data.query.dataset``, else
+    cfg_args ``source_path``, when it is a folder here) gives its full camera: the principal
+    point and, unless given, the lens distortion, which cameras.json does not keep (fox's own
+    photos tracked with ``camera=0``: 0.448 deg median without them, 0.038 with them;
+    docs/BATCHES.md). ``(None, lens)`` when there is no such view: cameras.json alone.
+    """
+    it = data.get("intrinsics") or {}
+    lens = LensDistortion.from_config(it)
+    if it.get("fx") is not None or it.get("camera") is None:
+        return None, lens
+    q = data.get("query") or {}
+    root = q.get("dataset") or mf.cfg.get("source_path")
+    if not root or not Path(str(root)).expanduser().is_dir():
+        return None, lens
+    entry = _entry(mf, it["camera"], "data.intrinsics.camera")
+    view = _view_named(str(Path(str(root)).expanduser().resolve()),
+                       os.path.splitext(entry.img_name)[0], white)
+    if view is None:
+        return None, lens
+    if lens is None and view.distortion is not None and any(view.distortion):
+        lens = LensDistortion(tuple(float(v) for v in view.distortion), view.distortion_model)
+    return view.intrinsics, lens
+
+
+@functools.lru_cache(maxsize=8)
+def _view_named(root: str, stem: str, white: bool):
+    """The view of the dataset at ``root`` whose name has ``stem``, or None (read once)."""
+    from ..io.datasets import read_dataset
+
+    try:
+        scene = read_dataset(Path(root), white_background=white)
+    except Exception as e:  # noqa: BLE001 - cameras.json still gives the focal lengths
+        logger.warning("could not read the source dataset %s for data.intrinsics.camera (%s: %s):"
+                       " the principal point is taken at the centre, no distortion removed",
+                       root, type(e).__name__, e)
+        return None
+    view = next((v for v in scene.train + scene.test if os.path.splitext(v.name)[0] == stem),
+                None)
+    if view is not None:
+        logger.info("data.intrinsics.camera: the camera of the dataset's view %s (principal point "
+                    "%.1f, %.1f; %s distortion %s)", view.name, view.intrinsics.cx_px,
+                    view.intrinsics.cy_px, view.distortion_model, view.distortion)
+    return view
+
+
 def _query_view(q: Dict[str, Any], mf, white: bool, cam):
     """The dataset view of ``data.query.camera`` / ``data.query.index``."""
     if cam is not None:
@@ -233,8 +286,10 @@ def _query(d: Dict[str, Any], mf, white: bool, bg: torch.Tensor) -> Tuple[Query,
         rgb, alpha, valid, name = im.rgb, im.alpha, im.valid, view.name
     size = (int(rgb.shape[2]), int(rgb.shape[1]))
     it = d.get("intrinsics") or {}
+    camera, lens = (None, LensDistortion.from_config(it)) if view is not None \
+        else photo_camera(d, mf, white)
     if it.get("fx") is not None or it.get("camera") is not None:
-        intr = photo_intrinsics(size, it, mf.cameras)
+        intr = photo_intrinsics(size, it, mf.cameras, camera)
     elif view is not None:
         intr = view.intrinsics
     elif cam is not None:
@@ -243,7 +298,6 @@ def _query(d: Dict[str, Any], mf, white: bool, bg: torch.Tensor) -> Tuple[Query,
         raise ProblemError(
             "query intrinsics unknown: set data.intrinsics.fx/fy or data.intrinsics.camera"
         )
-    lens = LensDistortion.from_config(it)
     if lens is not None:
         if view is not None:
             raise ProblemError(VIEWS_UNDISTORTED)

@@ -137,3 +137,29 @@ def test_a_batch_of_raw_photos_is_undistorted(lens_scene, tmp_path):
         "output.contact_sheet=false"]), out)
     (row,) = doc["photos"]
     assert row["status"] == "ok" and row["rot_err_deg"] < 0.2, row["reason"]
+
+
+def test_a_camera_of_the_model_brings_its_datasets_lens(lens_scene, tmp_path):
+    """data.intrinsics.camera: the source dataset's view of that camera gives its distortion.
+
+    cameras.json keeps fx and fy only; a COLMAP dataset with the photo's OPENCV camera is the
+    source (data.query.dataset, as cfg_args source_path would be).
+    """
+    from icomma_plugin.app.problem import _view_named
+    from tests.helpers.colmap import qvec_tvec, write_colmap_bin
+
+    scene, root = lens_scene["scene"], tmp_path / "dataset"
+    (root / "images").mkdir(parents=True)
+    (root / "images" / "ring_000.png").write_bytes((lens_scene["root"] / "raw.png").read_bytes())
+    f = scene.intrinsics.fx
+    # COLMAP's pixel centres are at +0.5: the image centre is (SIZE / 2, SIZE / 2) there
+    cams = [(1, "OPENCV", SIZE, SIZE, [f, f, SIZE / 2, SIZE / 2, *DIST])]
+    q, t = qvec_tvec(np.linalg.inv(scene.gt_c2w))
+    write_colmap_bin(root / "sparse" / "0", cams, [(1, q, t, 1, "ring_000.png", [])], [])
+    _view_named.cache_clear()
+    res = _localize(lens_scene, tmp_path / "a", f"data.query.dataset={root}")
+    assert res["rot_err_deg"] < 0.2, res["reason"]
+    # an explicit distortion wins over the dataset's (here a wrong one: the pose suffers)
+    res_wrong = _localize(lens_scene, tmp_path / "b", f"data.query.dataset={root}",
+                          "data.intrinsics.distortion=[-0.25,0,0,0]")
+    assert res_wrong["rot_err_deg"] > 2 * res["rot_err_deg"]

@@ -26,7 +26,7 @@ from ..inputs import (
     start_poses,
     truths,
 )
-from ..problem import open_model_folder, scene_centre_of
+from ..problem import open_model_folder, photo_camera, scene_centre_of
 
 __all__ = ["BatchPlan", "PhotoTask", "plan_batch", "run_identity", "select"]
 
@@ -118,7 +118,8 @@ def plan_batch(data: Dict[str, Any], mf=None) -> Tuple[BatchPlan, Any]:
     gts = truths(data.get("gt"), names, views)
     mode, inits, init_errs = start_poses(data.get("init"), names, gts, mf.cameras,
                                          scene_centre_of(mf.model))
-    of = None if views is not None else intrinsics_for_photos(data.get("intrinsics"), mf.cameras)
+    of = None if views is not None else intrinsics_for_photos(
+        data.get("intrinsics"), mf.cameras, photo_camera(data, mf, white)[0])
     if views is not None and LensDistortion.from_config(data.get("intrinsics")) is not None:
         raise ProblemError(VIEWS_UNDISTORTED)
     tasks = []
