@@ -423,8 +423,9 @@ class LensDistortion:
     The model renders pinhole images, so a photo is remapped to the pinhole camera with the same
     intrinsics before it is localized, as the dataset readers do with their views
     (``io.datasets.undistort_image``); pixels filled from outside the photo are marked invalid.
-    On fox's own phone photos (k1 = 0.058) tracked as a folder, leaving the distortion in put
-    the poses 0.15 deg off (median) against 0.03 deg undistorted (docs/BATCHES.md).
+    On fox's own phone photos (k1 = 0.058) tracked as a folder with their principal point,
+    leaving the distortion in put the poses 0.145 deg off (median), against 0.038 undistorted
+    (docs/BATCHES.md).
 
     coefficients: OpenCV's (k1, k2, p1, p2[, k3[, k4, k5, k6]]) for ``model`` "opencv", or
         (k1, k2, k3, k4) for "fisheye". Resolution-free: they act on normalised coordinates.

@@ -200,7 +200,7 @@ def photo_camera(data: Dict[str, Any], mf, white: bool
     no ``fx``), that camera's view in the model's source dataset (``data.query.dataset``, else
     cfg_args ``source_path``, when it is a folder here) gives its full camera: the principal
     point and, unless given, the lens distortion, which cameras.json does not keep (fox's own
-    photos tracked with ``camera=0``: 0.448 deg median without them, 0.038 with them;
+    photos tracked with ``camera=0``: 0.448 deg median without them, 0.029 with them;
     docs/BATCHES.md). ``(None, lens)`` when there is no such view: cameras.json alone.
     """
     it = data.get("intrinsics") or {}

@@ -22,6 +22,7 @@ Image loading (`View.load_image`, and `View.load` for (rgb, alpha) only) does, i
 """
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import os
@@ -148,22 +149,36 @@ def undistort_image(img: np.ndarray, K: np.ndarray, dist: Sequence[float],
     h, w = img.shape[:2]
     K = np.asarray(K, dtype=np.float64)
     d = np.asarray(dist, dtype=np.float64)
-    if model == "fisheye":
-        if d.shape != (4,):
-            raise ValueError(f"dist must hold 4 fisheye coefficients (k1, k2, k3, k4), got "
-                             f"{d.tolist()}")
-        map1, map2 = cv2.fisheye.initUndistortRectifyMap(K, d, np.eye(3), K, (w, h), cv2.CV_32FC1)
-    else:
-        map1, map2 = cv2.initUndistortRectifyMap(K, d, None, K, (w, h), cv2.CV_32FC1)
+    if model == "fisheye" and d.shape != (4,):
+        raise ValueError(f"dist must hold 4 fisheye coefficients (k1, k2, k3, k4), got "
+                         f"{d.tolist()}")
+    map1, map2, valid = _undistort_maps(tuple(K.ravel().tolist()), tuple(d.ravel().tolist()),
+                                        model, w, h)
     out = cv2.remap(img, map1, map2, interpolation=cv2.INTER_LINEAR,
                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     if out.ndim == 2:
         out = out[:, :, None]
+    return out, valid.copy()
+
+
+@functools.lru_cache(maxsize=4)
+def _undistort_maps(K: Tuple[float, ...], dist: Tuple[float, ...], model: str, w: int, h: int):
+    """(map1, map2, valid [H, W] bool) of ``undistort_image`` for one camera, made once.
+
+    The frames of a video (and the views of one camera) share them: the maps and the validity
+    remap are two thirds of an undistortion's time at 1080x1920.
+    """
+    import cv2
+
+    K, d = np.asarray(K, np.float64).reshape(3, 3), np.asarray(dist, np.float64)
+    if model == "fisheye":
+        map1, map2 = cv2.fisheye.initUndistortRectifyMap(K, d, np.eye(3), K, (w, h), cv2.CV_32FC1)
+    else:
+        map1, map2 = cv2.initUndistortRectifyMap(K, d, None, K, (w, h), cv2.CV_32FC1)
     # remapping ones with the same maps gives the weight of the taps that fell inside the image
     inside = cv2.remap(np.ones((h, w), np.float32), map1, map2, interpolation=cv2.INTER_LINEAR,
                        borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    valid = inside >= VALID_THRESHOLD
-    return out, valid
+    return map1, map2, inside >= VALID_THRESHOLD
 
 
 def resize_image(img: np.ndarray, width: int, height: int) -> np.ndarray:
