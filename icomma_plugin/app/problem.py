@@ -210,6 +210,7 @@ def photo_camera(data: Dict[str, Any], mf, white: bool
     q = data.get("query") or {}
     root = q.get("dataset") or mf.cfg.get("source_path")
     if not root or not Path(str(root)).expanduser().is_dir():
+        _no_dataset(str(root or ""), lens is None)
         return None, lens
     entry = _entry(mf, it["camera"], "data.intrinsics.camera")
     view = _view_named(str(Path(str(root)).expanduser().resolve()),
@@ -219,6 +220,16 @@ def photo_camera(data: Dict[str, Any], mf, white: bool
     if lens is None and view.distortion is not None and any(view.distortion):
         lens = LensDistortion(tuple(float(v) for v in view.distortion), view.distortion_model)
     return view.intrinsics, lens
+
+
+@functools.lru_cache(maxsize=8)
+def _no_dataset(root: str, no_lens: bool) -> None:
+    """Say once that ``data.intrinsics.camera`` comes from cameras.json alone (no dataset here)."""
+    logger.info("data.intrinsics.camera: the model's source dataset %s is not a folder here, so "
+                "the camera is cameras.json's: principal point at the centre%s (a distorted "
+                "camera needs data.intrinsics.cx/cy/distortion or data.query.dataset)",
+                repr(root) if root else "(none in cfg_args)",
+                ", no lens distortion removed" if no_lens else "")
 
 
 @functools.lru_cache(maxsize=8)
