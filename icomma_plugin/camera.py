@@ -65,12 +65,20 @@ class Intrinsics:
 
         Sizes are rounded; the focal lengths are scaled by the real ratio.
         """
-        w = max(1, int(round(self.width * scale)))
-        h = max(1, int(round(self.height * scale)))
-        sx, sy = w / self.width, h / self.height
+        return self.resized_to(max(1, int(round(self.width * scale))),
+                               max(1, int(round(self.height * scale))))
+
+    def resized_to(self, width: int, height: int) -> "Intrinsics":
+        """Intrinsics of the image resized to ``width x height`` (each axis by its own ratio).
+
+        Pixel centres sit at integers, so a principal point scales about the image's corner
+        (-0.5, -0.5).
+        """
+        sx, sy = width / self.width, height / self.height
         cx = None if self.cx is None else (self.cx + 0.5) * sx - 0.5
         cy = None if self.cy is None else (self.cy + 0.5) * sy - 0.5
-        return replace(self, width=w, height=h, fx=self.fx * sx, fy=self.fy * sy, cx=cx, cy=cy)
+        return replace(self, width=width, height=height, fx=self.fx * sx, fy=self.fy * sy,
+                       cx=cx, cy=cy)
 
     def scale_to_side(self, side: int, enlarge: bool = False) -> float:
         """The scale that brings the longer image side to ``side`` px.

@@ -402,11 +402,7 @@ def fit_intrinsics(src: Intrinsics, size: Tuple[int, int], what: str) -> Intrins
         raise PhotoMismatch(
             f"the photo is {W}x{H} but {what} is {src.width}x{src.height} (another aspect ratio)"
         )
-    sx, sy = W / src.width, H / src.height
-    # pixel centres at integers: a principal point scales about the image's corner (-0.5, -0.5)
-    cx = None if src.cx is None else (src.cx + 0.5) * sx - 0.5
-    cy = None if src.cy is None else (src.cy + 0.5) * sy - 0.5
-    return Intrinsics(W, H, src.fx * sx, src.fy * sy, cx, cy)
+    return src.resized_to(W, H)
 
 
 #: Why a lens distortion is refused for dataset views.

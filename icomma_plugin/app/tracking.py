@@ -330,7 +330,7 @@ class _Tracker:
     def _query(self, name: str, rgb: np.ndarray) -> Tuple[Intrinsics, Query]:
         intr = self.intrinsics_of((int(rgb.shape[1]), int(rgb.shape[0])))
         setup = self.worker.setup
-        return intr, _query(rgb, intr, name, setup.resize, getattr(setup, "distortion", None))
+        return intr, _query(rgb, intr, name, setup.resize, setup.distortion)
 
     def ahead(self, item: Tuple[int, str, np.ndarray]) -> Tuple[int, str, np.ndarray, Any]:
         """``(index, name, rgb)`` -> ``(index, name, rgb, (intrinsics, query) or None)``.
@@ -475,7 +475,7 @@ def write_tracking_video(
         if r is None:
             continue
         q = _query(rgb, intrinsics_of((int(rgb.shape[1]), int(rgb.shape[0]))), name,
-                   worker.setup.resize, getattr(worker.setup, "distortion", None))
+                   worker.setup.resize, worker.setup.distortion)
         if r.get("c2w") is not None:
             w2c = torch.as_tensor(invert_rigid(np.asarray(r["c2w"], np.float64)),
                                   dtype=model.dtype, device=model.device)

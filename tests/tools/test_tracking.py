@@ -117,7 +117,7 @@ class _FakeWorker:
 
     def __init__(self, truth):
         self.truth, self.calls = truth, []
-        self.setup = SimpleNamespace(resize=None)
+        self.setup = SimpleNamespace(resize=None, distortion=None)
         self.scene_scale = 1.0
         self.localizer = _FakeLocalizer(self)
 
