@@ -63,7 +63,9 @@ class TrackingConfig:
             geometric rounds that stop at a step below ``fast_stop_deg``, ``fast_refine``
             refinement steps, matching at ``fast_scale`` of the working resolution, no candidate
             search, renders matched by mutual nearest neighbours of the matcher's descriptors
-            above ``fast_mutual_nn`` (None: by the matcher), ``fast_subpixel_iterations`` Newton
+            above ``fast_mutual_nn`` (None: by the matcher), or first by searching the frame's
+            keypoints in the render within ``fast_patch_search`` pixels (NCC above
+            ``fast_patch_ncc``; None: not), ``fast_subpixel_iterations`` Newton
             iterations of the PnP's sub-pixel step, and with no refinement step the
             verdict decided on the geometric stage's last render-and-match:
             ``RobustConfig.verify_geometric``); the full method only when its verdict is not
@@ -81,6 +83,8 @@ class TrackingConfig:
     fast_refine: int = 0
     fast_scale: float = 1.0
     fast_mutual_nn: Optional[float] = 0.82
+    fast_patch_search: Optional[int] = 3
+    fast_patch_ncc: float = 0.8
     fast_subpixel_iterations: int = 0
     prefetch: int = 4
     look_ahead: bool = True
@@ -96,6 +100,8 @@ class TrackingConfig:
         check_real(self.fast_scale, "tracking.fast_scale", 0.0, 1.0, lo_open=True)
         check_real(self.fast_mutual_nn, "tracking.fast_mutual_nn", 0.0, 1.0, lo_open=True,
                    hi_open=True, optional=True)
+        check_int(self.fast_patch_search, "tracking.fast_patch_search", 1, optional=True)
+        check_real(self.fast_patch_ncc, "tracking.fast_patch_ncc", -1.0, 1.0)
         check_int(self.fast_subpixel_iterations, "tracking.fast_subpixel_iterations", 0)
         check_int(self.prefetch, "tracking.prefetch", 0)
 
@@ -109,13 +115,15 @@ class TrackingConfig:
 
         if not self.fast or not isinstance(method, RobustConfig):
             return None
+        features = getattr(matcher, "supports_features", False)
         return dataclasses.replace(
             method,
             work_side=max(16, int(round(side * self.fast_scale))),
             use_candidates=False,
             verify_geometric=True,
-            mutual_nn=(self.fast_mutual_nn if getattr(matcher, "supports_features", False)
-                       else None),
+            mutual_nn=self.fast_mutual_nn if features else None,
+            patch_search=self.fast_patch_search if features else None,
+            patch_search_ncc=self.fast_patch_ncc,
             geometric=dataclasses.replace(method.geometric, max_rounds=self.fast_rounds,
                                           subpixel_iterations=self.fast_subpixel_iterations,
                                           stop_rot_deg=self.fast_stop_deg,

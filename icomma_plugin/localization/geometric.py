@@ -160,7 +160,7 @@ def _render_correspondences(state: LocalizationState, obs: Observation, cfg: Geo
         return np.zeros((0, 3)), np.zeros((0, 2))
     intr = state.intrinsics_at(obs.scale)
     kpts0, kpts1 = m.kpts0.detach(), m.kpts1.detach()
-    if subpixel:
+    if subpixel and not m.subpixel:  # (a patch search's are sub-pixel already)
         from ..matchers.refine import refine_render_keypoints
 
         with state.timed("pnp"):

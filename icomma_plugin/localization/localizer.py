@@ -54,6 +54,12 @@ BACKENDS = ("auto", "cpu", "cuda", "reference")
 Method = Union[RobustConfig, LocalizerConfig]
 
 
+def _patch_search(cfg) -> Optional[Tuple[int, float]]:
+    """``(window, min NCC)`` of a method that matches renders by patch search, else None."""
+    window = getattr(cfg, "patch_search", None)
+    return None if window is None else (window, cfg.patch_search_ncc)
+
+
 def _camera_parts(cameras) -> Tuple[List[np.ndarray], List[str], List[Optional[Intrinsics]]]:
     """(c2w, names, intrinsics) of ``cameras``: ``CameraEntry``s or ``[4, 4]`` c2w arrays."""
     from ..io.cameras_json import CameraEntry, entry_to_intrinsics
@@ -298,7 +304,8 @@ class Localizer:
                              "(init_c2w); without one use the default method (optimizer=robust)")
         state = LocalizationState(
             self.model, query, self.background, backend=self.backend, matcher=self.matcher,
-            mutual_nn=getattr(cfg, "mutual_nn", None), sh_degree=cfg.sh_degree,
+            mutual_nn=getattr(cfg, "mutual_nn", None), patch_search=_patch_search(cfg),
+            sh_degree=cfg.sh_degree,
             antialiasing=cfg.antialiasing, gt_c2w=gt,
             progress=progress, record_trace=cfg.record_trace, scene=self._scene(cfg.sh_degree),
             reduced=self._reduced_scene(cfg.sh_degree))

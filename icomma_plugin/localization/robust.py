@@ -74,6 +74,14 @@ class RobustConfig:
         (``matchers.mutual_nn``), for a matcher with features (``supports_features``). Several
         times cheaper, and enough between a render and a photo from nearly the same pose:
         tracking's fast mode (``tracking.fast_mutual_nn``).
+    patch_search: None, or a window in pixels: renders are matched to the query by searching each
+        of the query's keypoints (the matcher's features, extracted once) in the render within
+        that window of the same position, by normalised cross-correlation above
+        ``patch_search_ncc`` (``matchers.patch_search``): no features of the render, and
+        matches sub-pixel already, so the PnP's sub-pixel step is not run again. A render that
+        keeps fewer than 30 % of the keypoints is matched as without it (``mutual_nn`` or the
+        matcher). For renders within a few pixels of the photo: tracking's fast mode
+        (``tracking.fast_patch_search``; docs/SPEED.md).
 
     Its results' ``details``: ``hypotheses`` (one summary per start tried), ``rolled_back``,
     ``refine_iterations``, ``refine_loss`` ([before, after]) and ``start_render_empty``.
@@ -88,6 +96,8 @@ class RobustConfig:
     verify_geometric: bool = False
     refine_reduced: bool = False
     mutual_nn: Optional[float] = None
+    patch_search: Optional[int] = None
+    patch_search_ncc: float = 0.8
     sh_degree: Optional[int] = None
     antialiasing: bool = False
     record_trace: bool = True
@@ -116,6 +126,8 @@ class RobustConfig:
         check_real(self.rollback_median_px, n + "rollback_median_px", 0.0)
         check_real(self.mutual_nn, n + "mutual_nn", 0.0, 1.0, lo_open=True, hi_open=True,
                    optional=True)
+        check_int(self.patch_search, n + "patch_search", 1, optional=True)
+        check_real(self.patch_search_ncc, n + "patch_search_ncc", -1.0, 1.0)
         if self.sh_degree is not None:
             check_choice(self.sh_degree, n + "sh_degree", (0, 1, 2, 3))
         for name in ("use_candidates", "antialiasing", "record_trace", "verify_geometric",
@@ -168,6 +180,10 @@ class RobustConfig:
             return (f"RobustConfig.mutual_nn matches the matcher's descriptors, but the "
                     f"{getattr(matcher, 'name', type(matcher).__name__)!r} matcher has none "
                     "(supports_features is False): set mutual_nn to null")
+        if self.patch_search is not None and not getattr(matcher, "supports_features", False):
+            return (f"RobustConfig.patch_search searches the matcher's keypoints of the query, "
+                    f"but the {getattr(matcher, 'name', type(matcher).__name__)!r} matcher has "
+                    "none (supports_features is False): set patch_search to null")
         return None
 
     def run(self, state: LocalizationState, init_w2c: Optional[np.ndarray]) -> MethodOutcome:

@@ -19,6 +19,7 @@ import torch
 
 from ..camera import Intrinsics
 from ..gaussians import GaussianModel
+from ..matchers.base import patch_search
 from ..pose.convert import invert_rigid, rotation_error_deg, translation_error
 from .types import Query, Stage, TraceRecord
 
@@ -26,6 +27,11 @@ __all__ = ["LocalizationState", "Observation", "query_features", "scaled_query"]
 
 #: Kinds of work timed separately (issue: where does a pose's time go).
 TIMED = ("render", "backward", "matcher", "pnp", "verify", "candidates")
+
+#: A patch search that keeps fewer than this share of the query's keypoints, or whose median
+#: displacement exceeds half its window, saw a render too far from the photo for that window
+#: (LocalizationState.patch_search): the render is matched by descriptors instead.
+PATCH_SEARCH_MIN_SHARE = 0.3
 
 
 def scaled_query(query: Query, scale: float, device=None, dtype=None) -> Query:
@@ -75,6 +81,12 @@ class LocalizationState:
     mutual_nn: None: the matcher matches; a cosine: renders are matched to the query by mutual
         nearest neighbours of the matcher's descriptors above it (``matchers.mutual_nn``; no
         LightGlue pass), for a method's cheap mode (``RobustConfig.mutual_nn``).
+    patch_search: None, or ``(window px, min NCC)``: renders are matched to the query by searching
+        each of the query's keypoints (the matcher's features) in the render near the same
+        position (``matchers.patch_search``): no features of the render. When it keeps fewer than
+        ``PATCH_SEARCH_MIN_SHARE`` of the query's keypoints (a render further off than the window)
+        the render is matched as without it. For a method's cheap mode
+        (``RobustConfig.patch_search``).
     gt_c2w: ground truth, used ONLY to fill the errors of trace records.
     progress: called with every trace record as it is added.
     scene: the model's rasterizer inputs (``render.prepare_scene`` at ``sh_degree``), prepared
@@ -98,6 +110,7 @@ class LocalizationState:
     backend: str = "auto"
     matcher: Any = None
     mutual_nn: Optional[float] = None
+    patch_search: Optional[Tuple[int, float]] = None
     sh_degree: Optional[int] = None
     antialiasing: bool = False
     gt_c2w: Optional[np.ndarray] = None
@@ -268,6 +281,12 @@ class LocalizationState:
         q = self.query_at(scale)
         feats = None if differentiable else self.query_features(scale)
         with self.timed("matcher"):
+            if self.patch_search is not None and feats is not None:
+                window, min_ncc = self.patch_search
+                m = patch_search(render_rgb, q.rgb, feats.kpts, window, min_ncc)
+                if len(m) >= PATCH_SEARCH_MIN_SHARE * len(feats) and float(
+                        (m.kpts0 - m.kpts1).norm(dim=-1).median()) <= 0.5 * window:
+                    return m
             if self.mutual_nn is not None and feats is not None:
                 return self.matcher.match_mutual_nn(render_rgb, feats, self.mutual_nn)
             return self.matcher.match(

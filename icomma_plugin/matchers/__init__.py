@@ -35,7 +35,8 @@ Their matches, accuracy and time per pair on lego (measured): docs/MATCHERS.md.
 """
 from __future__ import annotations
 
-from .base import Features, Matcher, Matches, check_image, mutual_nn, mutual_nn_count
+from .base import (Features, Matcher, Matches, check_image, mutual_nn, mutual_nn_count,
+                   patch_search)
 from .refine import refine_render_keypoints
 from .registry import (
     BUILTIN_MATCHERS,
@@ -49,5 +50,5 @@ from .weights import MissingWeightsError, weights_status
 __all__ = [
     "BUILTIN_MATCHERS", "Features", "Matcher", "Matches", "MissingWeightsError",
     "available_matchers", "check_image", "make_matcher", "matcher_from_config", "matcher_name",
-    "mutual_nn", "mutual_nn_count", "refine_render_keypoints", "weights_status",
+    "mutual_nn", "mutual_nn_count", "patch_search", "refine_render_keypoints", "weights_status",
 ]

@@ -48,11 +48,14 @@ class Matches:
     kpts0: [N, 2] float (x, y) pixels of image0; may carry gradients back to image0.
     kpts1: [N, 2] float (x, y) pixels of image1.
     confidence: [N] float, higher is better; in [0, 1] for every built-in matcher.
+    subpixel: kpts0 are already sub-pixel positions refined against image1 (``patch_search``):
+        a PnP's sub-pixel step leaves them as they are.
     """
 
     kpts0: torch.Tensor
     kpts1: torch.Tensor
     confidence: torch.Tensor
+    subpixel: bool = False
 
     def __post_init__(self):
         _check_keypoints(self.kpts0, "Matches.kpts0")
@@ -82,7 +85,8 @@ class Matches:
 
     def select(self, index: torch.Tensor) -> "Matches":
         """Subset by a boolean mask or an index tensor (gradients of kpts0 are kept)."""
-        return Matches(self.kpts0[index], self.kpts1[index], self.confidence[index])
+        return Matches(self.kpts0[index], self.kpts1[index], self.confidence[index],
+                       self.subpixel)
 
     def filter(self, min_confidence: float) -> "Matches":
         """The matches whose confidence is >= `min_confidence`."""
@@ -95,6 +99,7 @@ class Matches:
             self.kpts0.to(device=device, dtype=dtype),
             self.kpts1.to(device=device, dtype=dtype),
             self.confidence.to(device=device, dtype=dtype),
+            self.subpixel,
         )
 
 
@@ -151,6 +156,31 @@ def mutual_nn_count(f0: Features, f1: Features, min_cosine: float = 0.8) -> int:
     if len(f0) == 0 or len(f1) == 0:
         return 0
     return int(_mutual_nn_pairs(f0, f1, min_cosine, True)[0].sum())
+
+
+def patch_search(image0: torch.Tensor, image1: torch.Tensor, kpts1: torch.Tensor,
+                 window: int = 3, min_ncc: float = 0.8) -> Matches:
+    """Matches for the keypoints ``kpts1`` of image1 (the query), searched for in image0 (a render
+    from nearly the same pose) within ``window`` pixels of the same position.
+
+    No features of image0 and no matching step: each query patch is compared with the render's
+    around its own position by normalised cross-correlation (an integer search over
+    ``(2 window + 1)^2`` positions, then one sub-pixel step: ``refine_render_keypoints``), and
+    kept where the NCC there exceeds ``min_ncc`` (the confidence). For renders within a few pixels
+    of the photo (tracking: a render at the predicted pose); a render further off keeps few.
+    The matches' ``kpts0`` are sub-pixel already (``Matches.subpixel``). No gradients.
+    """
+    check_int(window, "window", 1)
+    check_real(min_ncc, "min_ncc", -1.0, 1.0)
+    k1 = _check_keypoints(kpts1, "kpts1")
+    if len(k1) == 0:
+        return Matches.empty(image0.device, image0.dtype)
+    with torch.no_grad():
+        k1 = k1.to(image0.device, image0.dtype)
+        k0, ncc = refine_render_keypoints(image0.detach(), image1.detach(), k1.clone(), k1,
+                                          window=window, iterations=0, return_score=True)
+        keep = ncc > min_ncc
+        return Matches(k0[keep], k1[keep], ncc[keep].clamp(0.0, 1.0), subpixel=True)
 
 
 def on_device(module: torch.nn.Module, device: torch.device) -> torch.nn.Module:

@@ -734,3 +734,97 @@ def test_mutual_nn_is_checked_and_needs_a_matcher_with_descriptors(demo):
     assert TrackingConfig().fast_method(RobustConfig(), 200, loftr_like).mutual_nn is None
     assert TrackingConfig(fast_mutual_nn=None).fast_method(
         RobustConfig(), 200, make_matcher("xfeat")).mutual_nn is None
+
+
+# ----------------------------------------------------------- the cheap mode's patch search
+def test_patch_search_finds_a_known_sub_pixel_shift_and_marks_its_matches_sub_pixel():
+    import torch.nn.functional as F
+
+    from icomma_plugin.matchers import patch_search
+
+    torch.manual_seed(0)
+    query = F.avg_pool2d(torch.rand(1, 3, 120, 120), 5, 1, 2)[0]  # smooth random texture
+    shift = torch.tensor([1.3, -0.6])  # the render shows the query moved by this
+    ys, xs = torch.meshgrid(torch.arange(120.0), torch.arange(120.0), indexing="ij")
+    grid = torch.stack([(xs - shift[0]) / 59.5 - 1, (ys - shift[1]) / 59.5 - 1], -1)
+    render = F.grid_sample(query[None], grid[None], align_corners=True,
+                           padding_mode="border")[0]
+    k1 = torch.stack(torch.meshgrid(torch.arange(20.0, 100.0, 8), torch.arange(20.0, 100.0, 8),
+                                    indexing="xy"), -1).reshape(-1, 2)
+    m = patch_search(render, query, k1, window=3, min_ncc=0.8)
+    assert m.subpixel and len(m) > 0.9 * len(k1)
+    err = (m.kpts0 - m.kpts1 - shift).norm(dim=-1)
+    assert float(err.median()) < 0.1 and float(err.max()) < 0.3, err  # integer search alone: 0.5
+    assert m.select(m.confidence > 0.9).subpixel and m.to(dtype=torch.float64).subpixel
+    assert not m.select(torch.arange(0)).kpts0.shape[0]
+    # a render further off than the window: the right displacement is out of its reach
+    far = torch.roll(render, 7, dims=2)
+    m_far = patch_search(far, query, k1, window=3, min_ncc=0.8)
+    assert len(m_far) == 0 or float((m_far.kpts0 - m_far.kpts1).norm(dim=-1).median()) > 1.5
+    for bad in ({"window": 0}, {"min_ncc": 2.0}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            patch_search(render, query, k1, **bad)
+
+
+def _cheap_mode_calls(demo, xfeat, monkeypatch, start_deg, seed):
+    """The cheap mode with the patch search from ``start_deg`` off: (result, calls made)."""
+    import icomma_plugin.matchers.refine as refine_mod
+    from icomma_plugin.app.tracking import TrackingConfig
+    from icomma_plugin.localization.robust import RobustConfig
+    from icomma_plugin.localize import localize
+
+    scene, model, q, _ = demo
+    init = perturb_pose(scene.gt_c2w, start_deg, 0.0, seed, pivot="camera")
+    calls = {"extract": 0, "mnn": 0, "pnp_subpixel": 0}
+
+    def count(name, fn):
+        def wrapped(*a, **k):
+            calls[name] += 1
+            return fn(*a, **k)
+        return wrapped
+
+    monkeypatch.setattr(xfeat, "extract", count("extract", xfeat.extract))
+    monkeypatch.setattr(xfeat, "match_mutual_nn", count("mnn", xfeat.match_mutual_nn))
+    # the PnP's sub-pixel step imports it from the module when it runs (the patch search holds
+    # its own reference): counted here are the PnP's calls alone
+    monkeypatch.setattr(refine_mod, "refine_render_keypoints",
+                        count("pnp_subpixel", refine_mod.refine_render_keypoints))
+    cheap = TrackingConfig().fast_method(RobustConfig(), 100, xfeat)
+    assert cheap.patch_search == 3
+    res = localize(model, Query(q, scene.intrinsics), matcher=xfeat, init_c2w=init,
+                   gt_c2w=scene.gt_c2w, config=cheap, cache_dir=False)
+    return res, calls
+
+
+def test_the_cheap_mode_near_the_pose_extracts_the_query_alone(demo, xfeat, monkeypatch):
+    """From a prediction a fraction of a degree off: no render features, no second sub-pixel step."""
+    res, calls = _cheap_mode_calls(demo, xfeat, monkeypatch, 0.3, 4)
+    assert res.verdict.status == "ok" and res.rot_err_deg < 0.1, (res.rot_err_deg,
+                                                                  res.verdict.reason)
+    assert calls == {"extract": 1, "mnn": 0, "pnp_subpixel": 0}, calls
+
+
+def test_the_cheap_mode_far_from_the_pose_matches_by_descriptors(demo, xfeat, monkeypatch):
+    """A render further off than the window is matched by descriptors, and no wrong pose is ok."""
+    res, calls = _cheap_mode_calls(demo, xfeat, monkeypatch, 6.0, 5)
+    assert calls["mnn"] >= 1 and calls["extract"] >= 2, calls
+    assert res.verdict.status != "ok" or res.rot_err_deg < 0.3, (res.rot_err_deg,
+                                                                   res.verdict.reason)
+
+
+def test_patch_search_is_checked_and_needs_a_matcher_with_keypoints(demo, xfeat):
+    from icomma_plugin.app.tracking import TrackingConfig
+    from icomma_plugin.localization.robust import RobustConfig
+
+    for bad in (0, -2, 1.5, "wide"):
+        with pytest.raises(ValueError, match="patch_search"):
+            RobustConfig(patch_search=bad)
+    with pytest.raises(ValueError, match="patch_search_ncc"):
+        RobustConfig(patch_search_ncc=1.5)
+    with pytest.raises(ValueError, match="fast_patch_search"):
+        TrackingConfig(fast_patch_search=0)
+    loftr_like = type("Dense", (), {"name": "dense", "supports_features": False})()
+    assert "patch_search" in RobustConfig(patch_search=3).needs(loftr_like)
+    assert TrackingConfig().fast_method(RobustConfig(), 200, loftr_like).patch_search is None
+    assert TrackingConfig(fast_patch_search=None).fast_method(
+        RobustConfig(), 200, xfeat).patch_search is None
