@@ -160,15 +160,16 @@ def mutual_nn_count(f0: Features, f1: Features, min_cosine: float = 0.8) -> int:
 
 def patch_search(image0: torch.Tensor, image1: torch.Tensor, kpts1: torch.Tensor,
                  window: int = 3, min_ncc: float = 0.8) -> Matches:
-    """Matches for the keypoints ``kpts1`` of image1 (the query), searched for in image0 (a render
-    from nearly the same pose) within ``window`` pixels of the same position.
+    """The keypoints ``kpts1`` of image1 (the query) found in image0 near the same positions.
 
-    No features of image0 and no matching step: each query patch is compared with the render's
-    around its own position by normalised cross-correlation (an integer search over
-    ``(2 window + 1)^2`` positions, then one sub-pixel step: ``refine_render_keypoints``), and
-    kept where the NCC there exceeds ``min_ncc`` (the confidence). For renders within a few pixels
-    of the photo (tracking: a render at the predicted pose); a render further off keeps few.
-    The matches' ``kpts0`` are sub-pixel already (``Matches.subpixel``). No gradients.
+    image0 is a render from nearly the same pose; each keypoint is searched for within ``window``
+    pixels of its own position. No features of image0 and no matching step: each query patch is
+    compared with the render's around its own position by normalised cross-correlation (an
+    integer search over ``(2 window + 1)^2`` positions, then one sub-pixel step:
+    ``refine_render_keypoints``), and kept where the NCC there exceeds ``min_ncc`` (the
+    confidence). For renders within a few pixels of the photo (tracking: a render at the
+    predicted pose); a render further off keeps few, or matches moved by most of the window. The
+    matches' ``kpts0`` are sub-pixel already (``Matches.subpixel``). No gradients.
     """
     check_int(window, "window", 1)
     check_real(min_ncc, "min_ncc", -1.0, 1.0)

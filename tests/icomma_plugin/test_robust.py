@@ -797,7 +797,7 @@ def _cheap_mode_calls(demo, xfeat, monkeypatch, start_deg, seed):
 
 
 def test_the_cheap_mode_near_the_pose_extracts_the_query_alone(demo, xfeat, monkeypatch):
-    """From a prediction a fraction of a degree off: no render features, no second sub-pixel step."""
+    """A prediction a fraction of a degree off: no render features, no second sub-pixel step."""
     res, calls = _cheap_mode_calls(demo, xfeat, monkeypatch, 0.3, 4)
     assert res.verdict.status == "ok" and res.rot_err_deg < 0.1, (res.rot_err_deg,
                                                                   res.verdict.reason)
