@@ -54,10 +54,15 @@ BACKENDS = ("auto", "cpu", "cuda", "reference")
 Method = Union[RobustConfig, LocalizerConfig]
 
 
-def _patch_search(cfg) -> Optional[Tuple[int, float]]:
-    """``(window, min NCC)`` of a method that matches renders by patch search, else None."""
+def _patch_search(cfg) -> Optional[Tuple[int, float, int]]:
+    """``(window, min NCC, Newton iterations)`` of a method matching renders by patch search.
+
+    None for one that does not. The iterations are the PnP's sub-pixel step's, which the patch
+    search's matches stand in for.
+    """
     window = getattr(cfg, "patch_search", None)
-    return None if window is None else (window, cfg.patch_search_ncc)
+    return None if window is None else (window, cfg.patch_search_ncc,
+                                        cfg.geometric.subpixel_iterations)
 
 
 def _camera_parts(cameras) -> Tuple[List[np.ndarray], List[str], List[Optional[Intrinsics]]]:

@@ -81,12 +81,12 @@ class LocalizationState:
     mutual_nn: None: the matcher matches; a cosine: renders are matched to the query by mutual
         nearest neighbours of the matcher's descriptors above it (``matchers.mutual_nn``; no
         LightGlue pass), for a method's cheap mode (``RobustConfig.mutual_nn``).
-    patch_search: None, or ``(window px, min NCC)``: renders are matched to the query by searching
-        each of the query's keypoints (the matcher's features) in the render near the same
-        position (``matchers.patch_search``): no features of the render. When it keeps fewer than
-        ``PATCH_SEARCH_MIN_SHARE`` of the query's keypoints (a render further off than the window)
-        the render is matched as without it. For a method's cheap mode
-        (``RobustConfig.patch_search``).
+    patch_search: None, or ``(window px, min NCC, Newton iterations)``: renders are matched to
+        the query by searching each of the query's keypoints (the matcher's features) in the
+        render near the same position (``matchers.patch_search``): no features of the render.
+        When it keeps fewer than ``PATCH_SEARCH_MIN_SHARE`` of the query's keypoints, or its
+        matches move by more than half the window (median), the render is matched as without
+        it. For a method's cheap mode (``RobustConfig.patch_search``).
     gt_c2w: ground truth, used ONLY to fill the errors of trace records.
     progress: called with every trace record as it is added.
     scene: the model's rasterizer inputs (``render.prepare_scene`` at ``sh_degree``), prepared
@@ -110,7 +110,7 @@ class LocalizationState:
     backend: str = "auto"
     matcher: Any = None
     mutual_nn: Optional[float] = None
-    patch_search: Optional[Tuple[int, float]] = None
+    patch_search: Optional[Tuple[int, float, int]] = None
     sh_degree: Optional[int] = None
     antialiasing: bool = False
     gt_c2w: Optional[np.ndarray] = None
@@ -282,8 +282,8 @@ class LocalizationState:
         feats = None if differentiable else self.query_features(scale)
         with self.timed("matcher"):
             if self.patch_search is not None and feats is not None:
-                window, min_ncc = self.patch_search
-                m = patch_search(render_rgb, q.rgb, feats.kpts, window, min_ncc)
+                window, min_ncc, iterations = self.patch_search
+                m = patch_search(render_rgb, q.rgb, feats.kpts, window, min_ncc, iterations)
                 if len(m) >= PATCH_SEARCH_MIN_SHARE * len(feats) and float(
                         (m.kpts0 - m.kpts1).norm(dim=-1).median()) <= 0.5 * window:
                     return m

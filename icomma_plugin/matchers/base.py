@@ -159,7 +159,7 @@ def mutual_nn_count(f0: Features, f1: Features, min_cosine: float = 0.8) -> int:
 
 
 def patch_search(image0: torch.Tensor, image1: torch.Tensor, kpts1: torch.Tensor,
-                 window: int = 3, min_ncc: float = 0.8) -> Matches:
+                 window: int = 3, min_ncc: float = 0.8, iterations: int = 0) -> Matches:
     """The keypoints ``kpts1`` of image1 (the query) found in image0 near the same positions.
 
     image0 is a render from nearly the same pose; each keypoint is searched for within ``window``
@@ -173,13 +173,15 @@ def patch_search(image0: torch.Tensor, image1: torch.Tensor, kpts1: torch.Tensor
     """
     check_int(window, "window", 1)
     check_real(min_ncc, "min_ncc", -1.0, 1.0)
+    check_int(iterations, "iterations", 0)
     k1 = _check_keypoints(kpts1, "kpts1")
     if len(k1) == 0:
         return Matches.empty(image0.device, image0.dtype)
     with torch.no_grad():
         k1 = k1.to(image0.device, image0.dtype)
         k0, ncc = refine_render_keypoints(image0.detach(), image1.detach(), k1.clone(), k1,
-                                          window=window, iterations=0, return_score=True)
+                                          window=window, iterations=iterations,
+                                          return_score=True)
         keep = ncc > min_ncc
         return Matches(k0[keep], k1[keep], ncc[keep].clamp(0.0, 1.0), subpixel=True)
 
