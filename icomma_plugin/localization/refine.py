@@ -332,21 +332,28 @@ def _gauss_newton(J: torch.Tensor, mask: torch.Tensor, exposure=None,
     ``exposure`` ``(gains [C], base [C, H, W])``: the Gauss-Newton matrix of the exposure-profiled
     loss (Kaufman's variable projection): each channel's Jacobian scaled by its gain and with its
     part along the fitted basis ``(base render, 1)`` removed, which the gain and offset absorb.
+    That projection is applied to the 6x6 moments, not to the Jacobian: with ``a = J W 1``,
+    ``c = J W r`` (``r`` the base render less its weighted mean, so orthogonal to 1) and
+    ``s = sum W``, the projected ``J'`` has ``J' W J'^T = J W J^T - a a^T / s - c c^T / r^T W r``
+    (one pass over the Jacobian instead of six; a 800x800 render's took 0.4 s).
     """
-    m = mask.detach().double()[0]
+    w = mask.detach().double()[0].reshape(-1)
     C = J.shape[0]
-    sw = max(float(m.sum()), 1e-12)
+    sw = max(float(w.sum()), 1e-12)
+    Jf = J.reshape(C, 6, -1)
+    Jw = Jf * w
+    H = torch.bmm(Jw, Jf.transpose(1, 2))  # [C, 6, 6]
     if exposure is not None:
         gains, base = exposure
-        w = m.view(1, 1, *m.shape)
-        r = base.detach().double().view(C, 1, *m.shape)
-        r = r - (r * w).sum((2, 3), keepdim=True) / sw
-        J = J - (J * w).sum((2, 3), keepdim=True) / sw
-        rr = (r * r * w).sum((2, 3), keepdim=True).clamp_min(1e-12)
-        J = J - (J * r * w).sum((2, 3), keepdim=True) / rr * r
-        J = J * gains.view(C, 1, 1, 1)
-    Jm = (J * m.sqrt()).reshape(C, 6, -1)
-    return 2.0 * torch.einsum("cip,cjp->ij", Jm, Jm) / (C * max(norm or sw, 1e-12))
+        r = base.detach().double().reshape(C, -1)
+        r = r - (r @ w).unsqueeze(-1) / sw
+        a = Jw.sum(-1)  # [C, 6]
+        c = torch.bmm(Jw, r.unsqueeze(-1)).squeeze(-1)  # [C, 6]
+        rr = ((r * r) @ w).clamp_min(1e-12)  # [C]
+        H = (H - a.unsqueeze(2) * a.unsqueeze(1) / sw
+             - c.unsqueeze(2) * c.unsqueeze(1) / rr.view(C, 1, 1))
+        H = H * (gains.double() ** 2).view(C, 1, 1)
+    return 2.0 * H.sum(0) / (C * max(norm or sw, 1e-12))
 
 
 @dataclass

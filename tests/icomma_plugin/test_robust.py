@@ -257,6 +257,31 @@ def test_exposure_fit_recovers_a_known_gain_and_offset_over_the_mask():
     assert torch.equal(a, torch.ones_like(a)) and torch.equal(b, torch.zeros_like(b))
 
 
+def test_the_exposure_profiled_gauss_newton_matrix_is_that_of_the_projected_jacobian():
+    """The 6x6 moments' closed form equals projecting each channel's Jacobian off (render, 1)."""
+    from icomma_plugin.localization.refine import _gauss_newton
+
+    g = torch.Generator().manual_seed(3)
+    J = torch.randn(3, 6, 12, 17, generator=g, dtype=torch.float64)
+    w = torch.rand(1, 12, 17, generator=g, dtype=torch.float64) * (
+        torch.rand(1, 12, 17, generator=g) > 0.3)
+    base = torch.rand(3, 12, 17, generator=g)
+    gains = torch.tensor([0.8, 1.0, 1.3])
+    expected = torch.zeros(6, 6, dtype=torch.float64)
+    for c in range(3):
+        Jc, wc = J[c].reshape(6, -1), w.reshape(-1)
+        basis = torch.stack([torch.ones_like(wc), base[c].double().reshape(-1)], 1)  # [P, 2]
+        coef = torch.linalg.solve(basis.T @ (basis * wc[:, None]), basis.T @ (Jc * wc).T)
+        Jp = (Jc - (basis @ coef).T) * gains[c]
+        expected += (Jp * wc) @ Jp.T
+    expected *= 2.0 / (3 * 50.0)
+    got = _gauss_newton(J, w, (gains, base), norm=50.0)
+    assert torch.allclose(got, expected, rtol=1e-10, atol=1e-12), (got - expected).abs().max()
+    plain = 2.0 * torch.einsum("cip,cjp->ij", (J * w).reshape(3, 6, -1),
+                               J.reshape(3, 6, -1)) / (3 * float(w.sum()))
+    assert torch.allclose(_gauss_newton(J, w), plain, rtol=1e-12)
+
+
 def test_a_bad_exposure_setting_is_one_error_naming_it():
     from icomma_plugin.localization.refine import RefineConfig
     from icomma_plugin.localization.robust import RobustConfig
