@@ -333,7 +333,9 @@ class Localizer:
             init_trans_err=init_trans, inliers=None if score is None else score.inliers,
             matches=None if score is None else score.matches,
             stage_seconds=state.stage_seconds(), stage_cpu_seconds=state.stage_seconds(cpu=True),
-            details={**out.details, "lod": self._lod_details(state, lod_events)},
+            details={**out.details, "lod": self._lod_details(state, lod_events),
+                     **({"patch_search": dict(state.patch_searched)}
+                        if state.patch_search is not None else {})},
             trace=state.trace,
             # What runs the same again: the working side resolved, pixel thresholds as given
             # (scaled again above the model's side, not twice).

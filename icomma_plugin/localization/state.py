@@ -126,6 +126,9 @@ class LocalizationState:
     cpu_seconds: Dict[str, float] = field(default_factory=lambda: defaultdict(float))
     _queries: Dict[float, Query] = field(default_factory=dict)
     steps: int = 0  # trace records made so far (also when the trace is not kept)
+    # renders the patch search matched, and those it left to the descriptors (too far off)
+    patch_searched: Dict[str, int] = field(
+        default_factory=lambda: {"matched": 0, "fell_back": 0})
 
     def __post_init__(self):
         # (the scan of the SH is remembered on the caller's model: a Localizer's, each frame)
@@ -286,7 +289,9 @@ class LocalizationState:
                 m = patch_search(render_rgb, q.rgb, feats.kpts, window, min_ncc, iterations)
                 if len(m) >= PATCH_SEARCH_MIN_SHARE * len(feats) and float(
                         (m.kpts0 - m.kpts1).norm(dim=-1).median()) <= 0.5 * window:
+                    self.patch_searched["matched"] += 1
                     return m
+                self.patch_searched["fell_back"] += 1
             if self.mutual_nn is not None and feats is not None:
                 return self.matcher.match_mutual_nn(render_rgb, feats, self.mutual_nn)
             return self.matcher.match(

@@ -827,12 +827,14 @@ def test_the_cheap_mode_near_the_pose_extracts_the_query_alone(demo, xfeat, monk
     assert res.verdict.status == "ok" and res.rot_err_deg < 0.1, (res.rot_err_deg,
                                                                   res.verdict.reason)
     assert calls == {"extract": 1, "mnn": 0, "pnp_subpixel": 0}, calls
+    assert res.details["patch_search"]["fell_back"] == 0 < res.details["patch_search"]["matched"]
 
 
 def test_the_cheap_mode_far_from_the_pose_matches_by_descriptors(demo, xfeat, monkeypatch):
     """A render further off than the window is matched by descriptors, and no wrong pose is ok."""
     res, calls = _cheap_mode_calls(demo, xfeat, monkeypatch, 6.0, 5)
     assert calls["mnn"] >= 1 and calls["extract"] >= 2, calls
+    assert res.details["patch_search"]["fell_back"] >= 1
     assert res.verdict.status != "ok" or res.rot_err_deg < 0.3, (res.rot_err_deg,
                                                                    res.verdict.reason)
 
