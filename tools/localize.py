@@ -39,7 +39,7 @@ import logging
 import sys
 import time
 from pathlib import Path
-from typing import Any, Dict, Optional
+from typing import Any, Dict, List, Optional
 
 if __package__:
     from . import _common as common
@@ -322,6 +322,19 @@ def _run_sequence(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, An
             "rows": rows}
 
 
+def _tracking_line(s: Dict[str, Any], rows: List[Dict[str, Any]]) -> str:
+    """How a sequence was tracked: the fast mode, relocalizations, the patch search's renders."""
+    line = (f"  tracking     fast mode settled {s.get('fast_ok', 0)} of {s.get('done_now', 0)} "
+            f"frames this run, {s.get('relocalized', 0)} relocalized")
+    searched = [(r.get("details") or {}).get("patch_search") or {} for r in rows]
+    matched = sum(p.get("matched", 0) for p in searched)
+    fell_back = sum(p.get("fell_back", 0) for p in searched)
+    if matched or fell_back:
+        line += (f"; patch search matched {matched} renders, left {fell_back} to the "
+                 "descriptors")
+    return line
+
+
 def many_summary(doc: Dict[str, Any]) -> str:
     """The console summary of a batch or a sequence (poses.json's counts, rate and errors)."""
     s = doc.get("summary", {})
@@ -350,6 +363,8 @@ def many_summary(doc: Dict[str, Any]) -> str:
             f"  rotation error (truth known, {len(errs)}): median {np.median(errs):.3f} deg, "
             f"max {np.max(errs):.3f} deg"
         )
+    if s.get("kind") == "sequence":
+        lines.append(_tracking_line(s, rows))
     for f, paths in (s.get("exports") or {}).items():
         lines.append(f"  export {f}: {', '.join(paths)}")
     lines.append(f"  outputs in {s.get('output_dir')} (poses.json, poses.csv)")

@@ -262,6 +262,11 @@ def test_tracking_a_path_from_a_folder_of_frames(path_scene, tmp_path):
         pred, gt = np.asarray(r["predicted_c2w"]), np.asarray(gts[r["name"]])
         assert rotation_error_deg(pred, gt) < 0.5
     assert (out / "trajectory.png").is_file() and not (out / "tracking.mp4").exists()
+    # the tracking mode matched the renders after the first frame by the patch search, and the
+    # console summary says so
+    assert sum(r["details"]["patch_search"]["matched"] for r in rows[1:]) >= N_FRAMES - 1
+    text = localize_tool().many_summary(doc)
+    assert "fast mode settled" in text and "patch search matched" in text, text
 
 
 def test_look_ahead_extracts_each_frame_in_the_prefetch_thread(path_scene, tmp_path, monkeypatch):
