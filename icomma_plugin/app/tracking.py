@@ -65,7 +65,9 @@ class TrackingConfig:
             search, renders matched by mutual nearest neighbours of the matcher's descriptors
             above ``fast_mutual_nn`` (None: by the matcher), or first by searching the frame's
             keypoints in the render within ``fast_patch_search`` pixels (NCC above
-            ``fast_patch_ncc``; None: not), ``fast_subpixel_iterations`` Newton
+            ``fast_patch_ncc``; None, the default: not. 0.75x the time a frame on the lego
+            path, but on goldcape's repeating pattern it called a frame 1.1 deg off ``ok``;
+            docs/SPEED.md), ``fast_subpixel_iterations`` Newton
             iterations of the PnP's sub-pixel step, and with no refinement step the
             verdict decided on the geometric stage's last render-and-match:
             ``RobustConfig.verify_geometric``); the full method only when its verdict is not
@@ -83,7 +85,7 @@ class TrackingConfig:
     fast_refine: int = 0
     fast_scale: float = 1.0
     fast_mutual_nn: Optional[float] = 0.82
-    fast_patch_search: Optional[int] = 3
+    fast_patch_search: Optional[int] = None
     fast_patch_ncc: float = 0.8
     fast_subpixel_iterations: int = 0
     prefetch: int = 4

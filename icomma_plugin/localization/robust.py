@@ -83,8 +83,9 @@ class RobustConfig:
         keypoints, or whose matches move by more than half the window, is matched as without it
         (``mutual_nn`` or the matcher). In the default method (lego 200, seed 2024, 10 starts)
         it saved a tenth of a pose and made two poses' errors larger: off by default. For renders
-        within a few pixels of the photo: tracking's fast mode (``tracking.fast_patch_search``;
-        docs/SPEED.md).
+        within a few pixels of the photo, on request: tracking's fast mode
+        (``tracking.fast_patch_search``, off by default: on a repeating pattern the search
+        agrees with a render a little off along it; docs/SPEED.md).
 
     Its results' ``details``: ``hypotheses`` (one summary per start tried), ``rolled_back``,
     ``refine_iterations``, ``refine_loss`` ([before, after]) and ``start_render_empty``.

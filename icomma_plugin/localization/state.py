@@ -287,7 +287,8 @@ class LocalizationState:
             if self.patch_search is not None and feats is not None:
                 window, min_ncc, iterations = self.patch_search
                 m = patch_search(render_rgb, q.rgb, feats.kpts, window, min_ncc, iterations)
-                if len(m) >= PATCH_SEARCH_MIN_SHARE * len(feats) and float(
+                kept = len(m)
+                if kept and kept >= PATCH_SEARCH_MIN_SHARE * len(feats) and float(
                         (m.kpts0 - m.kpts1).norm(dim=-1).median()) <= 0.5 * window:
                     self.patch_searched["matched"] += 1
                     return m

@@ -814,8 +814,8 @@ def _cheap_mode_calls(demo, xfeat, monkeypatch, start_deg, seed):
     # its own reference): counted here are the PnP's calls alone
     monkeypatch.setattr(refine_mod, "refine_render_keypoints",
                         count("pnp_subpixel", refine_mod.refine_render_keypoints))
-    cheap = TrackingConfig().fast_method(RobustConfig(), 100, xfeat)
-    assert cheap.patch_search == 3
+    cheap = TrackingConfig(fast_patch_search=2).fast_method(RobustConfig(), 100, xfeat)
+    assert cheap.patch_search == 2
     res = localize(model, Query(q, scene.intrinsics), matcher=xfeat, init_c2w=init,
                    gt_c2w=scene.gt_c2w, config=cheap, cache_dir=False)
     return res, calls
@@ -852,6 +852,9 @@ def test_patch_search_is_checked_and_needs_a_matcher_with_keypoints(demo, xfeat)
         TrackingConfig(fast_patch_search=0)
     loftr_like = type("Dense", (), {"name": "dense", "supports_features": False})()
     assert "patch_search" in RobustConfig(patch_search=3).needs(loftr_like)
-    assert TrackingConfig().fast_method(RobustConfig(), 200, loftr_like).patch_search is None
+    assert TrackingConfig(fast_patch_search=2).fast_method(
+        RobustConfig(), 200, loftr_like).patch_search is None
+    # off by default: on goldcape's repeating pattern it called a pose 1.1 deg off ok
+    assert TrackingConfig().fast_method(RobustConfig(), 200, xfeat).patch_search is None
     assert TrackingConfig(fast_patch_search=None).fast_method(
         RobustConfig(), 200, xfeat).patch_search is None

@@ -244,7 +244,8 @@ def test_tracking_a_path_from_a_folder_of_frames(path_scene, tmp_path):
     out = tmp_path / "out"
     doc = localize_tool().run(
         compose(
-            _args(path_scene, out, f"data.sequence={path_scene['frames']}", "output.video=false")
+            _args(path_scene, out, f"data.sequence={path_scene['frames']}", "output.video=false",
+                  "tracking.fast_patch_search=2")
         ),
         out,
     )
@@ -262,8 +263,8 @@ def test_tracking_a_path_from_a_folder_of_frames(path_scene, tmp_path):
         pred, gt = np.asarray(r["predicted_c2w"]), np.asarray(gts[r["name"]])
         assert rotation_error_deg(pred, gt) < 0.5
     assert (out / "trajectory.png").is_file() and not (out / "tracking.mp4").exists()
-    # the tracking mode matched the renders after the first frame by the patch search, and the
-    # console summary says so
+    # the tracking mode (with the patch search asked for) matched the renders after the first
+    # frame by the patch search, and the console summary says so
     assert sum(r["details"]["patch_search"]["matched"] for r in rows[1:]) >= N_FRAMES - 1
     text = localize_tool().many_summary(doc)
     assert "fast mode settled" in text and "patch search matched" in text, text
@@ -300,6 +301,7 @@ def test_look_ahead_extracts_each_frame_in_the_prefetch_thread(path_scene, tmp_p
         main[look_ahead] = threads.count("MainThread")
         rows = docs[look_ahead]["photos"]
         assert all(r["status"] == "ok" for r in rows), [r["reason"] for r in rows]
+        assert not any("patch_search" in r["details"] for r in rows)  # off by default
     # the main thread extracted the renders alone: the query's features came from the memo
     assert main[True] == main[False] - N_FRAMES
     a, b = docs[True]["photos"], docs[False]["photos"]
