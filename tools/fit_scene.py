@@ -294,6 +294,7 @@ def main(argv=None) -> int:
         bar.close()
     m = res.metrics
     keys = ("test_psnr", "train_psnr", "test_psnr_right_half", "test_psnr_right_half_exposure",
+            "test_psnr_neighbour_exposure",
             "train_psnr_exposure", "test_views", "iterations", "num_gaussians", "seconds_train",
             "seconds_cpu", "seconds_per_step", "seconds_total", "resolution", "backend",
             "threads")

@@ -8,6 +8,10 @@ Three figures per photo:
   colour transform fitted on the left half (least squares, `exposure.fit_affine_colour`),
   PSNR on the right half through it.
 Training photos also get ``exposure``: PSNR through their own fitted exposure (exposure.json).
+Held-out photos of a fit with exposures also get ``neighbour_exposure``: PSNR of the whole photo
+through the exposure predicted from the nearest training photos (`exposure.NeighbourExposure`),
+a render as the model would show that view without seeing its photo.
+A render through an exposure is clamped to [0, 1] again before its PSNR, as upstream's.
 """
 from __future__ import annotations
 
@@ -19,7 +23,7 @@ from typing import Callable, Dict, List, Mapping, Optional, Sequence, Union
 import numpy as np
 import torch
 
-from .exposure import apply_affine_colour, fit_affine_colour
+from .exposure import NeighbourExposure, apply_affine_colour, fit_affine_colour
 from .losses import psnr
 
 log = logging.getLogger(__name__)
@@ -39,28 +43,36 @@ def half_masks(view) -> tuple:
     return left, right
 
 
-def photo_psnrs(render: torch.Tensor, view, exposure: Optional[torch.Tensor] = None
-                ) -> Dict[str, float]:
-    """{"full", "right", "right_exposure"[, "exposure"]} PSNR (dB) of one render (module doc).
+def photo_psnrs(render: torch.Tensor, view, exposure: Optional[torch.Tensor] = None,
+                predicted: Optional[torch.Tensor] = None) -> Dict[str, float]:
+    """{"full", "right", "right_exposure"[, "exposure"][, "neighbour_exposure"]} PSNR (dB) of one
+    render (module doc).
 
     exposure: the photo's own [3, 4] transform (a training photo), or None.
+    predicted: a [3, 4] transform predicted for it from other photos, or None.
     """
     render = render.detach().clamp(0.0, 1.0)
     left, right = half_masks(view)
-    E = fit_affine_colour(render, view.image, left).to(render.dtype)
+
+    def through(E):
+        return apply_affine_colour(E.to(render.dtype), render).clamp(0.0, 1.0)
+
     out = {
         "full": psnr(render, view.image, view.valid),
         "right": psnr(render, view.image, right),
-        "right_exposure": psnr(apply_affine_colour(E, render), view.image, right),
+        "right_exposure": psnr(through(fit_affine_colour(render, view.image, left)), view.image,
+                               right),
     }
     if exposure is not None:
-        out["exposure"] = psnr(apply_affine_colour(exposure.to(render.dtype), render),
-                               view.image, view.valid)
+        out["exposure"] = psnr(through(exposure), view.image, view.valid)
+    if predicted is not None:
+        out["neighbour_exposure"] = psnr(through(predicted), view.image, view.valid)
     return out
 
 
 def evaluate_views(render_fn: RenderFn, views: Sequence, exposures: Optional[Mapping] = None,
-                   keep: int = 0) -> Dict[str, object]:
+                   keep: int = 0, predict_exposure: Optional[Callable] = None
+                   ) -> Dict[str, object]:
     """Mean PSNRs over `views` (`photo_psnrs`), per view, and the first `keep` renders.
 
     Args:
@@ -68,6 +80,8 @@ def evaluate_views(render_fn: RenderFn, views: Sequence, exposures: Optional[Map
         views: FitViews.
         exposures: {view name: [3, 4] tensor} of training photos, or None.
         keep: how many (evenly spaced) views' renders to return, for a picture grid.
+        predict_exposure: w2c [4, 4] -> predicted [3, 4] transform (`NeighbourExposure`), for
+            held-out photos; None: no ``neighbour_exposure`` figure.
 
     Returns:
         {"mean": {figure: dB}, "per_view": {name: {figure: dB}}, "renders": [(view, render)]}.
@@ -78,7 +92,8 @@ def evaluate_views(render_fn: RenderFn, views: Sequence, exposures: Optional[Map
     for k, v in enumerate(views):
         color = render_fn(v)
         E = None if exposures is None else exposures.get(v.name)
-        per_view[v.name] = photo_psnrs(color, v, E)
+        P = None if predict_exposure is None else predict_exposure(v.w2c)
+        per_view[v.name] = photo_psnrs(color, v, E, P)
         if k in shown:
             renders.append((v, color.detach().clamp(0.0, 1.0)))
     keys = sorted({f for d in per_view.values() for f in d})
@@ -122,6 +137,19 @@ def write_grid(path: PathLike, pairs: Sequence, max_side: int = 320) -> Path:
     return path
 
 
+def neighbour_exposure(train_views: Sequence, exposures: Optional[Mapping]
+                       ) -> Optional[NeighbourExposure]:
+    """`NeighbourExposure` of the training views that have an exposure; None when none has."""
+    if not exposures:
+        return None
+    have = [v for v in train_views if v.name in exposures]
+    if not have:
+        log.warning("exposure.json names none of the %d training photos: no neighbour exposure",
+                    len(train_views))
+        return None
+    return NeighbourExposure([v.w2c for v in have], [exposures[v.name] for v in have])
+
+
 def read_exposures(model_path: PathLike) -> Optional[Dict[str, torch.Tensor]]:
     """{image name: [3, 4] tensor} of a model folder's exposure.json, or None without one."""
     import json
@@ -158,8 +186,8 @@ def evaluate_model_folder(model_path: PathLike, source_path: Optional[PathLike] 
 
     Returns:
         {"train_psnr", "test_psnr" (None without test views), "train_psnr_exposure" (through
-        exposure.json; None without it), "test_psnr_right_half", "test_psnr_right_half_exposure"
-        (module doc), "train_views", "test_views", "iteration", "num_gaussians", "resolution"
+        exposure.json; None without it), "test_psnr_right_half", "test_psnr_right_half_exposure",
+        "test_psnr_neighbour_exposure" (None without exposure.json) (module doc), "train_views", "test_views", "iteration", "num_gaussians", "resolution"
         [W, H], "per_view" {name: full-image dB}, "grid" (the picture's path or None)}.
     """
     from ..io.datasets import read_dataset
@@ -185,9 +213,11 @@ def evaluate_model_folder(model_path: PathLike, source_path: Optional[PathLike] 
 
     exposures = read_exposures(model_path)
     with torch.no_grad():
-        tr = evaluate_views(render_fn, views_to_fit(scene.train, res, None, bg), exposures)
+        train_views = views_to_fit(scene.train, res, None, bg)
+        tr = evaluate_views(render_fn, train_views, exposures)
         test_views = views_to_fit(scene.test, res, None, bg)
-        te = evaluate_views(render_fn, test_views, keep=grid_views if grid else 0)
+        te = evaluate_views(render_fn, test_views, keep=grid_views if grid else 0,
+                            predict_exposure=neighbour_exposure(train_views, exposures))
     size = None
     if test_views or scene.train:
         i = (test_views[0] if test_views else views_to_fit(scene.train[:1], res, None, bg)[0])
@@ -200,6 +230,7 @@ def evaluate_model_folder(model_path: PathLike, source_path: Optional[PathLike] 
         "train_psnr_exposure": tr["mean"].get("exposure"),
         "test_psnr_right_half": te["mean"].get("right"),
         "test_psnr_right_half_exposure": te["mean"].get("right_exposure"),
+        "test_psnr_neighbour_exposure": te["mean"].get("neighbour_exposure"),
         "train_views": len(scene.train),
         "test_views": len(scene.test),
         "iteration": folder.iteration,

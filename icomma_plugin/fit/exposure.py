@@ -16,13 +16,20 @@ scene's own colours are those of the average photo, which is what a localization
 compares with.
 
 Held-out photos have no exposure of their own: `fit_affine_colour` fits one by least squares on
-a region (upstream fits it on the left half of each test image and measures on the right half).
+a region (upstream fits it on the left half of each test image and measures on the right half),
+and `NeighbourExposure` predicts one from the training photos taken nearest to it, without
+looking at the photo.
 """
 from __future__ import annotations
 
 from typing import Dict, Optional, Sequence
 
+import numpy as np
 import torch
+
+from ..checks import check_int
+from ..pose.convert import invert_rigid
+from ..pose.views import camera_nearness
 
 from .state import expon_lr
 
@@ -94,6 +101,49 @@ class ExposureState:
             raise ValueError(f"names must hold {self.num_views} image names, got {len(names)}")
         E = self.params.detach().cpu().double()
         return {str(n): E[i].tolist() for i, n in enumerate(names)}
+
+
+NEIGHBOUR_EXPOSURE_K = 3  # training photos averaged (docs/FITTING.md, "A new view's exposure")
+
+
+class NeighbourExposure:
+    """A new view's exposure, predicted from the training photos taken nearest to it.
+
+    A camera's automatic exposure and white balance follow what is in view, so photos taken from
+    nearby cameras looking the same way were exposed alike. The prediction for a camera is the
+    mean of the ``k`` nearest training photos' transforms (nearest by
+    `pose.views.camera_nearness`, the localizer's measure for its source photos), weighted by
+    inverse nearness. A mean of affine transforms needs no normalising.
+
+    Args:
+        w2cs: the training photos' world-to-camera matrices [4, 4].
+        matrices: their [3, 4] transforms, in the same order.
+        k: how many nearest photos are averaged (at most all of them).
+    """
+
+    def __init__(self, w2cs: Sequence, matrices: Sequence[torch.Tensor],
+                 k: int = NEIGHBOUR_EXPOSURE_K):
+        check_int(k, "k", 1)
+        if len(w2cs) != len(matrices) or len(w2cs) == 0:
+            raise ValueError(f"w2cs and matrices must be non-empty and of one length, got "
+                             f"{len(w2cs)} and {len(matrices)}")
+        self.c2ws = np.stack([invert_rigid(_np(m)) for m in w2cs])
+        self.matrices = torch.stack([torch.as_tensor(E).detach().cpu().double() for E in matrices])
+        if tuple(self.matrices.shape[1:]) != (3, 4):
+            raise ValueError(f"matrices must be [3, 4] each, got {list(self.matrices.shape[1:])}")
+        self.k = min(int(k), len(w2cs))
+
+    def __call__(self, w2c) -> torch.Tensor:
+        """The predicted [3, 4] transform (float64) for a camera ``w2c`` [4, 4]."""
+        score, _ = camera_nearness(self.c2ws, invert_rigid(_np(w2c)))
+        near = np.argsort(score, kind="stable")[: self.k]
+        w = 1.0 / (score[near] + 1e-9)
+        w = torch.as_tensor(w / w.sum(), dtype=torch.float64)
+        return (self.matrices[torch.as_tensor(near)] * w.view(-1, 1, 1)).sum(0)
+
+
+def _np(m) -> np.ndarray:
+    return np.asarray(torch.as_tensor(m).detach().cpu().double(), np.float64)
 
 
 def apply_affine_colour(E: torch.Tensor, image: torch.Tensor) -> torch.Tensor:

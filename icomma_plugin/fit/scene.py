@@ -31,7 +31,7 @@ import torch
 
 from ..io.atomic import write_json_atomic
 from .config import FitConfig
-from .evaluate import evaluate_views
+from .evaluate import evaluate_views, neighbour_exposure
 from .init import (InitCloud, init_scale_limits, initial_points, is_object_render,
                    model_from_points)
 from .trainer import FitResult, ProgressFn, Trainer, render_state
@@ -274,16 +274,20 @@ def _fit_metrics(trainer: Trainer, result: FitResult, train, test, cloud: InitCl
         if trainer.exposure is not None:
             exposures = {v.name: trainer.exposure.matrix(i) for i, v in enumerate(train)}
         tr = evaluate_views(render, train, exposures)["mean"]
-        te = evaluate_views(render, test)["mean"] if test else {}
+        te = evaluate_views(render, test, predict_exposure=neighbour_exposure(train, exposures)
+                            )["mean"] if test else {}
     log.info("final: train PSNR %.2f dB (%s with exposure) over %d views", tr["full"],
              f"{tr['exposure']:.2f}" if "exposure" in tr else "-", len(train))
     if te:
-        log.info("final: test PSNR %.2f dB; right halves %.2f dB, %.2f dB with the exposure of "
-                 "the left half", te["full"], te["right"], te["right_exposure"])
+        log.info("final: test PSNR %.2f dB%s; right halves %.2f dB, %.2f dB with the exposure of "
+                 "the left half", te["full"],
+                 f" ({te['neighbour_exposure']:.2f} with the nearest photos' exposure)"
+                 if "neighbour_exposure" in te else "", te["right"], te["right_exposure"])
     return {
         "test_psnr": result.test_psnr,
         "test_psnr_right_half": te.get("right"),
         "test_psnr_right_half_exposure": te.get("right_exposure"),
+        "test_psnr_neighbour_exposure": te.get("neighbour_exposure"),
         "train_psnr": tr["full"],
         "train_psnr_exposure": tr.get("exposure"),
         "train_views": len(train),

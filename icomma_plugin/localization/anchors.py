@@ -30,6 +30,7 @@ import torch
 
 from ..camera import Intrinsics
 from ..pose.convert import invert_rigid, same_pose_mask
+from ..pose.views import camera_nearness
 from .geometry import lift_keypoints
 
 logger = logging.getLogger(__name__)
@@ -139,18 +140,12 @@ class PhotoAnchors:
                 max_angle_deg: float = 60.0) -> List[int]:
         """The ``k`` photos whose cameras are nearest ``c2w`` (looking within ``max_angle_deg``).
 
-        Nearest by the angle between the optical axes plus the distance of the centres in units
-        of the median distance between photo cameras and ``c2w``.
+        Nearest by ``pose.views.camera_nearness``: the angle between the optical axes plus the
+        distance of the centres in units of their median.
         """
         if not self.photos or k <= 0:
             return []
-        z = c2w[:3, 2]
-        centres = np.stack([p.c2w[:3, 3] for p in self.photos])
-        axes = np.stack([p.c2w[:3, 2] for p in self.photos])
-        angle = np.degrees(np.arccos(np.clip(axes @ z, -1.0, 1.0)))
-        dist = np.linalg.norm(centres - c2w[:3, 3], axis=1)
-        unit = max(float(np.median(dist)), 1e-9)
-        score = angle / 30.0 + dist / unit
+        score, angle = camera_nearness(np.stack([p.c2w for p in self.photos]), c2w)
         order = [int(i) for i in np.argsort(score, kind="stable")
                  if int(i) not in exclude and angle[int(i)] <= max_angle_deg]
         return order[:k]

@@ -12,7 +12,23 @@ import numpy as np
 
 from .convert import look_at_c2w
 
-__all__ = ["sample_views", "scene_frame"]
+__all__ = ["camera_nearness", "sample_views", "scene_frame"]
+
+
+def camera_nearness(c2ws: np.ndarray, c2w: np.ndarray) -> tuple:
+    """How near each camera of ``c2ws`` [N, 4, 4] is to ``c2w`` [4, 4]: (score [N], angle [N]).
+
+    ``angle``: degrees between the optical axes (+z, OpenCV); ``score`` (lower is nearer):
+    ``angle / 30 + distance of the centres / their median distance``, so that a camera beside
+    ``c2w`` looking elsewhere is as far as one looking the same way from twice as far.
+    """
+    c2ws = np.asarray(c2ws, np.float64).reshape(-1, 4, 4)
+    c2w = np.asarray(c2w, np.float64)
+    cos = np.clip(c2ws[:, :3, 2] @ c2w[:3, 2], -1.0, 1.0)
+    angle = np.degrees(np.arccos(cos))
+    dist = np.linalg.norm(c2ws[:, :3, 3] - c2w[:3, 3], axis=1)
+    unit = max(float(np.median(dist)), 1e-9) if len(dist) else 1.0
+    return angle / 30.0 + dist / unit, angle
 
 
 def scene_frame(points: np.ndarray, cameras_c2w: Sequence[np.ndarray]):

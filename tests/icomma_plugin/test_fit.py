@@ -702,6 +702,9 @@ def test_fit_scene_on_transforms_json_capture(tmp_path):
     assert ev["train_psnr_exposure"] == pytest.approx(m["train_psnr_exposure"], abs=1e-3)
     assert ev["test_psnr_right_half_exposure"] == pytest.approx(
         m["test_psnr_right_half_exposure"], abs=1e-3)
+    assert math.isfinite(m["test_psnr_neighbour_exposure"])
+    assert ev["test_psnr_neighbour_exposure"] == pytest.approx(
+        m["test_psnr_neighbour_exposure"], abs=1e-3)
     assert ev["resolution"] == [32, 32] and set(ev["per_view"]) >= {"v0", "v8"}
 
 

@@ -25,7 +25,7 @@ from icomma_plugin.fit import (
     write_grid,
 )
 from icomma_plugin.fit.evaluate import photo_psnrs
-from icomma_plugin.fit.exposure import apply_affine_colour
+from icomma_plugin.fit.exposure import NeighbourExposure, apply_affine_colour
 from icomma_plugin.fit.init import fibonacci_sphere
 from icomma_plugin.fit.losses import photometric_loss
 from icomma_plugin.gaussians import GaussianModel, rgb_to_sh
@@ -117,6 +117,29 @@ def test_fit_affine_colour_recovers_a_transform():
     view = FitView("v", photo.float(), Intrinsics(30, 20, 30.0, 30.0), torch.eye(4))
     p = photo_psnrs(render.float(), view)
     assert p["right_exposure"] > p["right"] + 10 and p["right_exposure"] > 38
+
+
+def test_neighbour_exposure_follows_the_nearest_photos():
+    """A camera's predicted exposure is its neighbours': exactly a photo's own at its camera."""
+    w2cs = _ring_w2c(8)
+    mats = [torch.eye(3, 4, dtype=torch.float64) * (0.6 + 0.1 * k) for k in range(8)]
+    for E in mats:
+        E[:, 3] = 0.01
+    at2 = NeighbourExposure(w2cs, mats, k=1)(w2cs[2])
+    torch.testing.assert_close(at2, mats[2])
+    # a camera between photos 3 and 4 gets a gain between theirs, from them and one more
+    between = np.linalg.inv(look_at_c2w((3.0 * math.cos(2 * math.pi * 3.5 / 8),
+                                         3.0 * math.sin(2 * math.pi * 3.5 / 8), 0.4)))
+    g = float(NeighbourExposure(w2cs, mats)(between)[0, 0])
+    assert 0.85 < g < 1.05 and abs(g - 0.95) < 0.05
+    # every photo at most: the mean of all, weighted
+    assert 0.6 < float(NeighbourExposure(w2cs, mats, k=100)(between)[0, 0]) < 1.3
+    with pytest.raises(ValueError, match="k"):
+        NeighbourExposure(w2cs, mats, k=0)
+    with pytest.raises(ValueError, match="one length"):
+        NeighbourExposure(w2cs, mats[:3])
+    with pytest.raises(ValueError, match=r"\[3, 4\]"):
+        NeighbourExposure(w2cs, [torch.eye(3)] * 8)
 
 
 # ----------------------------------------------------------------------------------- far field
@@ -308,6 +331,14 @@ def test_fit_with_exposure_explains_photos_of_changing_exposure():
     init = _scene_model()
     with torch.no_grad():
         init.sh_dc.add_(0.3 * torch.randn_like(init.sh_dc))
+    # a held-out photo between photos 1 and 2, exposed between them (the mean photo's gain is
+    # 0.95, which the scene's own colours take)
+    between = np.linalg.inv(look_at_c2w((3.0 * math.cos(2 * math.pi * 1.5 / 8),
+                                         3.0 * math.sin(2 * math.pi * 1.5 / 8), 0.4)))
+    with torch.no_grad():
+        v = _view("held_out", torch.zeros(3, size, size), between, size)
+        held_out = _view(v.name, (render_state(gt, v, torch.zeros(3)).color * 0.75).clamp(0, 1),
+                         between, size)
     psnr = {}
     for exposure in (False, True):
         cfg = FitConfig.scaled_schedule(300, sh_degree=0, densify_until_iter=0)
@@ -320,6 +351,12 @@ def test_fit_with_exposure_explains_photos_of_changing_exposure():
             assert float(torch.corrcoef(torch.stack([gains, torch.arange(8.0)]))[0, 1]) > 0.95
             shown = [tr.exposure.apply(i, render_state(tr.state, v, tr.background).color)
                      for i, v in enumerate(views)]
+            # the held-out photo through its neighbours' exposures, never having seen it
+            predict = NeighbourExposure([v.w2c for v in views],
+                                        [tr.exposure.matrix(i) for i in range(len(views))])
+            p = photo_psnrs(render_state(tr.state, held_out, tr.background).color, held_out,
+                            predicted=predict(held_out.w2c))
+            assert p["neighbour_exposure"] > p["full"] + 3.0, p
         else:
             shown = [render_state(tr.state, v, tr.background).color for v in views]
         psnr[exposure] = float(np.mean([-10 * math.log10(float(((s.clamp(0, 1) - v.image) ** 2)
