@@ -26,7 +26,8 @@ from .trainer import FitResult, FitView, Trainer, render_state
 
 __all__ = [
     "ExposureState", "FitConfig", "FitResult", "FitView", "GaussianTrainState", "InitCloud",
-    "ModelFolderExistsError", "NeighbourExposure", "SceneFitResult", "Trainer", "evaluate_model_folder",
+    "ModelFolderExistsError", "NeighbourExposure", "SceneFitResult", "Trainer",
+    "evaluate_model_folder",
     "evaluate_views", "expon_lr", "far_field_points", "fit_affine_colour", "fit_scene",
     "initial_points", "mean_knn_sq_dist", "model_from_points", "photometric_loss",
     "plane_sweep_points", "psnr", "random_cube_points", "render_state", "resolution_scale",

@@ -45,8 +45,9 @@ def half_masks(view) -> tuple:
 
 def photo_psnrs(render: torch.Tensor, view, exposure: Optional[torch.Tensor] = None,
                 predicted: Optional[torch.Tensor] = None) -> Dict[str, float]:
-    """{"full", "right", "right_exposure"[, "exposure"][, "neighbour_exposure"]} PSNR (dB) of one
-    render (module doc).
+    """PSNRs (dB) of one render: "full", "right", "right_exposure" and the optional ones.
+
+    "exposure" with ``exposure``, "neighbour_exposure" with ``predicted`` (module doc).
 
     exposure: the photo's own [3, 4] transform (a training photo), or None.
     predicted: a [3, 4] transform predicted for it from other photos, or None.
@@ -187,8 +188,9 @@ def evaluate_model_folder(model_path: PathLike, source_path: Optional[PathLike] 
     Returns:
         {"train_psnr", "test_psnr" (None without test views), "train_psnr_exposure" (through
         exposure.json; None without it), "test_psnr_right_half", "test_psnr_right_half_exposure",
-        "test_psnr_neighbour_exposure" (None without exposure.json) (module doc), "train_views", "test_views", "iteration", "num_gaussians", "resolution"
-        [W, H], "per_view" {name: full-image dB}, "grid" (the picture's path or None)}.
+        "test_psnr_neighbour_exposure" (None without exposure.json) (module doc), "train_views",
+        "test_views", "iteration", "num_gaussians", "resolution" [W, H], "per_view" {name:
+        full-image dB}, "grid" (the picture's path or None)}.
     """
     from ..io.datasets import read_dataset
     from ..io.model_folder import load_model_folder
