@@ -65,10 +65,11 @@ class TrackingConfig:
             search, renders matched by mutual nearest neighbours of the matcher's descriptors
             above ``fast_mutual_nn`` (None: by the matcher), or first by searching the frame's
             keypoints in the render within ``fast_patch_search`` pixels (NCC above
-            ``fast_patch_ncc``; None, the default: not. 0.75x the time a frame on the lego
-            path, but on goldcape's repeating pattern it called a frame 1.1 deg off ``ok``;
-            docs/SPEED.md), ``fast_subpixel_iterations`` Newton
-            iterations of the PnP's sub-pixel step, and with no refinement step the
+            ``fast_patch_ncc``, peak margin above ``fast_patch_margin``; None, the default:
+            not. 0.8-0.95x the time a frame on the lego paths, but slower on photo collections
+            and soft models, where it falls back; docs/SPEED.md),
+            ``fast_subpixel_iterations`` Newton iterations of the PnP's sub-pixel step, and
+            with no refinement step the
             verdict decided on the geometric stage's last render-and-match:
             ``RobustConfig.verify_geometric``); the full method only when its verdict is not
             ``ok``.
@@ -87,6 +88,7 @@ class TrackingConfig:
     fast_mutual_nn: Optional[float] = 0.82
     fast_patch_search: Optional[int] = None
     fast_patch_ncc: float = 0.8
+    fast_patch_margin: Optional[float] = 0.1
     fast_subpixel_iterations: int = 0
     prefetch: int = 4
     look_ahead: bool = True
@@ -104,6 +106,7 @@ class TrackingConfig:
                    hi_open=True, optional=True)
         check_int(self.fast_patch_search, "tracking.fast_patch_search", 1, optional=True)
         check_real(self.fast_patch_ncc, "tracking.fast_patch_ncc", -1.0, 1.0)
+        check_real(self.fast_patch_margin, "tracking.fast_patch_margin", 0.0, optional=True)
         check_int(self.fast_subpixel_iterations, "tracking.fast_subpixel_iterations", 0)
         check_int(self.prefetch, "tracking.prefetch", 0)
 
@@ -126,6 +129,7 @@ class TrackingConfig:
             mutual_nn=self.fast_mutual_nn if features else None,
             patch_search=self.fast_patch_search if features else None,
             patch_search_ncc=self.fast_patch_ncc,
+            patch_search_margin=self.fast_patch_margin,
             geometric=dataclasses.replace(method.geometric, max_rounds=self.fast_rounds,
                                           subpixel_iterations=self.fast_subpixel_iterations,
                                           stop_rot_deg=self.fast_stop_deg,

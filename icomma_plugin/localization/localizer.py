@@ -54,15 +54,16 @@ BACKENDS = ("auto", "cpu", "cuda", "reference")
 Method = Union[RobustConfig, LocalizerConfig]
 
 
-def _patch_search(cfg) -> Optional[Tuple[int, float, int]]:
-    """``(window, min NCC, Newton iterations)`` of a method matching renders by patch search.
+def _patch_search(cfg) -> Optional[Tuple[int, float, int, Optional[float]]]:
+    """``(window, min NCC, Newton iterations, min margin)`` of a patch-searching method.
 
     None for one that does not. The iterations are the PnP's sub-pixel step's, which the patch
     search's matches stand in for.
     """
     window = getattr(cfg, "patch_search", None)
     return None if window is None else (window, cfg.patch_search_ncc,
-                                        cfg.geometric.subpixel_iterations)
+                                        cfg.geometric.subpixel_iterations,
+                                        cfg.patch_search_margin)
 
 
 def _camera_parts(cameras) -> Tuple[List[np.ndarray], List[str], List[Optional[Intrinsics]]]:

@@ -84,8 +84,15 @@ class RobustConfig:
         (``mutual_nn`` or the matcher). In the default method (lego 200, seed 2024, 10 starts)
         it saved a tenth of a pose and made two poses' errors larger: off by default. For renders
         within a few pixels of the photo, on request: tracking's fast mode
-        (``tracking.fast_patch_search``, off by default: on a repeating pattern the search
-        agrees with a render a little off along it; docs/SPEED.md).
+        (``tracking.fast_patch_search``, off by default: on photo collections and soft models
+        it falls back more often than it serves, and costs time; docs/SPEED.md).
+    patch_search_margin: keep only the patch search's matches whose NCC peak stands this much
+        above the best score 2 or more pixels from it (``matchers.patch_search``'s
+        ``min_margin``; None: no such test): a flat NCC surface (a soft render, texture-less or
+        repeating patches) does not say where a keypoint is, and its matches stay where they
+        were. Without it, goldcape tracked as a sequence had a frame called ``ok`` 1.1 deg off;
+        with 0.1 none, and the fast mode settled as many frames as with descriptors
+        (docs/SPEED.md).
 
     Its results' ``details``: ``hypotheses`` (one summary per start tried), ``rolled_back``,
     ``refine_iterations``, ``refine_loss`` ([before, after]) and ``start_render_empty``.
@@ -102,6 +109,7 @@ class RobustConfig:
     mutual_nn: Optional[float] = None
     patch_search: Optional[int] = None
     patch_search_ncc: float = 0.8
+    patch_search_margin: Optional[float] = 0.1
     sh_degree: Optional[int] = None
     antialiasing: bool = False
     record_trace: bool = True
@@ -132,6 +140,7 @@ class RobustConfig:
                    optional=True)
         check_int(self.patch_search, n + "patch_search", 1, optional=True)
         check_real(self.patch_search_ncc, n + "patch_search_ncc", -1.0, 1.0)
+        check_real(self.patch_search_margin, n + "patch_search_margin", 0.0, optional=True)
         if self.sh_degree is not None:
             check_choice(self.sh_degree, n + "sh_degree", (0, 1, 2, 3))
         for name in ("use_candidates", "antialiasing", "record_trace", "verify_geometric",

@@ -159,7 +159,8 @@ def mutual_nn_count(f0: Features, f1: Features, min_cosine: float = 0.8) -> int:
 
 
 def patch_search(image0: torch.Tensor, image1: torch.Tensor, kpts1: torch.Tensor,
-                 window: int = 3, min_ncc: float = 0.8, iterations: int = 0) -> Matches:
+                 window: int = 3, min_ncc: float = 0.8, iterations: int = 0,
+                 min_margin: Optional[float] = None) -> Matches:
     """The keypoints ``kpts1`` of image1 (the query) found in image0 near the same positions.
 
     image0 is a render from nearly the same pose; each keypoint is searched for within ``window``
@@ -170,19 +171,27 @@ def patch_search(image0: torch.Tensor, image1: torch.Tensor, kpts1: torch.Tensor
     confidence). For renders within a few pixels of the photo (tracking: a render at the
     predicted pose); a render further off keeps few, or matches moved by most of the window. The
     matches' ``kpts0`` are sub-pixel already (``Matches.subpixel``). No gradients.
+
+    ``min_margin``: also drop the keypoints whose NCC peak stands less than this above the best
+    score 2 or more pixels from it (`refine.peak_margin`): on a flat surface (a soft render, a
+    texture-less or repeating patch) the peak's place says nothing, and such matches stay where
+    they were, agreeing with whatever pose the render was made at. None: no such test.
     """
     check_int(window, "window", 1)
     check_real(min_ncc, "min_ncc", -1.0, 1.0)
     check_int(iterations, "iterations", 0)
+    check_real(min_margin, "min_margin", 0.0, optional=True)
     k1 = _check_keypoints(kpts1, "kpts1")
     if len(k1) == 0:
         return Matches.empty(image0.device, image0.dtype)
     with torch.no_grad():
         k1 = k1.to(image0.device, image0.dtype)
-        k0, ncc = refine_render_keypoints(image0.detach(), image1.detach(), k1.clone(), k1,
-                                          window=window, iterations=iterations,
-                                          return_score=True)
+        k0, ncc, margin = refine_render_keypoints(image0.detach(), image1.detach(), k1.clone(),
+                                                  k1, window=window, iterations=iterations,
+                                                  return_score=True, return_margin=True)
         keep = ncc > min_ncc
+        if min_margin is not None:
+            keep &= margin > min_margin
         return Matches(k0[keep], k1[keep], ncc[keep].clamp(0.0, 1.0), subpixel=True)
 
 

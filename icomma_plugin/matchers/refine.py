@@ -28,7 +28,7 @@ Pixel convention: (x, y), integer pixel centres (3DGS), see docs/CONTRACTS.md.
 from __future__ import annotations
 
 import math
-from typing import Tuple, Union
+from typing import Optional, Tuple, Union
 
 import torch
 import torch.nn.functional as F
@@ -172,11 +172,13 @@ def _ncc_scores(render_g, query_g, centre, kpts_query, disp, offs, weights, eps,
     return s, ds_dc
 
 
-def _integer_search(render_g, query_g, centre, kpts_query, window, patch, offs, weights, eps):
+def _integer_search(render_g, query_g, centre, kpts_query, window, patch, offs, weights, eps,
+                    margins: Optional[list] = None):
     """Best integer displacement by NCC: the new centres [N, 2].
 
     Render patches at round(centre) + d + o are compared with the query patch at
-    kpts_query + o, for d in [-window, window]^2.
+    kpts_query + o, for d in [-window, window]^2. ``margins``: a list to which the peak's margin
+    [N] is appended (`peak_margin`).
     """
     n = centre.shape[0]
     h, w = render_g.shape[-2:]
@@ -202,8 +204,23 @@ def _integer_search(render_g, query_g, centre, kpts_query, window, patch, offs, 
     disp = _offset_grid(window, centre.device, centre.dtype)
     # ties (flat, texture-less windows) go to the smallest displacement
     ncc = ncc - 1e-6 * (disp * disp).sum(-1)
-    d = disp[ncc.argmax(dim=-1)]
+    best = ncc.argmax(dim=-1)
+    d = disp[best]
+    if margins is not None:
+        margins.append(peak_margin(ncc, disp, best))
     return centre + d
+
+
+def peak_margin(ncc: torch.Tensor, disp: torch.Tensor, best: torch.Tensor) -> torch.Tensor:
+    """How far each NCC peak stands above the rest of its window: [N].
+
+    The best score less the best one at least 2 pixels (Chebyshev) from the peak; +inf where the
+    window has no such position. Near 0 where the surface is flat (a soft, texture-less or
+    repeating patch: the peak's position is not determined by the image).
+    """
+    far = (disp.view(1, -1, 2) - disp[best].view(-1, 1, 2)).abs().amax(-1) >= 2  # [N, D]
+    rival = torch.where(far, ncc, torch.full_like(ncc, -math.inf)).amax(-1)
+    return ncc.gather(1, best.view(-1, 1)).view(-1) - rival
 
 
 def _soft_step(render_g, query_g, centre, kpts_query, disp, offs, weights, eps, temperature,
@@ -290,7 +307,8 @@ def refine_render_keypoints(
     blur: float = 1.0,
     return_score: bool = False,
     chunk: int = 512,
-) -> Union[torch.Tensor, Tuple[torch.Tensor, torch.Tensor]]:
+    return_margin: bool = False,
+) -> Union[torch.Tensor, Tuple[torch.Tensor, ...]]:
     """Sub-pixel positions in `render` of the query keypoints, differentiable w.r.t. `render`.
 
     Args:
@@ -312,9 +330,12 @@ def refine_render_keypoints(
         return_score: also return the NCC at the refined position [N] (detached), a quality
             measure (near 1 for a good match, near 0 on texture-less patches).
         chunk: matches processed at once by the integer search (memory bound).
+        return_margin: also return the integer search's `peak_margin` [N] (detached; +inf
+            without a search), after the score when that is returned too.
 
     Returns:
-        kpts_render_refined [N, 2] in the render's dtype (and the score [N] if `return_score`).
+        kpts_render_refined [N, 2] in the render's dtype (then the score [N] if `return_score`,
+        then the margin [N] if `return_margin`).
     """
     _check_tensor(render, "render", "[C, H, W]")
     _check_tensor(query, "query", "[C, H, W]")
@@ -345,7 +366,8 @@ def refine_render_keypoints(
     n = kpts_render.shape[0]
     if n == 0:
         out = kpts_render.detach().to(device, dtype).clone()
-        return (out, out.new_zeros((0,))) if return_score else out
+        extra = (out.new_zeros((0,)),) * (int(return_score) + int(return_margin))
+        return (out, *extra) if extra else out
 
     render_g = _to_gray(render.to(dtype), blur)
     query_g = _to_gray(query.detach().to(device, dtype), blur)
@@ -361,11 +383,12 @@ def refine_render_keypoints(
     with torch.no_grad():
         rg = render_g.detach()
         # 1. integer search (render window at integer pixels, NCC by grouped convolutions)
+        margins: list = []
         if window > 0:
             for s in range(0, n, chunk):
                 sl = slice(s, min(n, s + chunk))
                 centre[sl] = _integer_search(rg, query_g, centre[sl], kq[sl], window, patch, offs,
-                                             weights, eps)
+                                             weights, eps, margins)
         # 2. fixed-point iterations of the soft-argmax step (Newton steps where well conditioned)
         for _ in range(iterations):
             delta, _ = _step(rg, query_g, centre, kq, soft_disp, offs, weights, eps, temperature,
@@ -378,6 +401,10 @@ def refine_render_keypoints(
     refined = centre + delta
     if not (render.requires_grad and torch.is_grad_enabled()):
         refined = refined.detach()
+    out = (refined,)
     if return_score:
-        return refined, score.detach()
-    return refined
+        out += (score.detach(),)
+    if return_margin:
+        out += (torch.cat(margins) if margins else torch.full((n,), math.inf, dtype=dtype,
+                                                               device=device),)
+    return out if len(out) > 1 else refined

@@ -791,6 +791,42 @@ def test_patch_search_finds_a_known_sub_pixel_shift_and_marks_its_matches_sub_pi
             patch_search(render, query, k1, **bad)
 
 
+def test_patch_search_margin_drops_keypoints_on_a_flat_surface():
+    """Flat patches stay put and "agree" with any render: the margin drops them.
+
+    On the textured half the NCC peak stands out and its keypoints are kept.
+    """
+    import torch.nn.functional as F
+
+    from icomma_plugin.matchers import patch_search
+    from icomma_plugin.matchers.refine import peak_margin, refine_render_keypoints
+
+    torch.manual_seed(1)
+    query = F.avg_pool2d(torch.rand(1, 3, 120, 120), 5, 1, 2)[0]
+    ramp = torch.linspace(0.2, 0.8, 120).view(1, 1, 120)
+    query[:, :, 60:] = ramp[..., 60:] + 0.002 * query[:, :, 60:]  # right half: a soft ramp
+    render = torch.roll(query, 1, dims=2)  # the render shows it moved by 1 px
+    k1 = torch.stack(torch.meshgrid(torch.arange(15.0, 106.0, 10),
+                                    torch.arange(15.0, 106.0, 10), indexing="xy"), -1
+                     ).reshape(-1, 2)
+    textured, flat = k1[:, 0] < 50, k1[:, 0] > 70  # (patches of the columns between see both)
+    _, _, margin = refine_render_keypoints(render, query, k1.clone(), k1, window=2,
+                                           iterations=0, return_score=True, return_margin=True)
+    assert float(margin[textured].min()) > 0.07 and float(margin[flat].max()) < 0.01, margin
+    kept = patch_search(render, query, k1, window=2, min_ncc=0.5, min_margin=0.05)
+    x = kept.kpts1[:, 0]
+    assert int((x < 50).sum()) == int(textured.sum()) and not bool((x > 70).any())
+    assert float((kept.kpts0 - kept.kpts1 - torch.tensor([1.0, 0.0])).norm(dim=-1).max()) < 0.2
+    assert len(patch_search(render, query, k1, window=2, min_ncc=0.5)) > len(kept)
+    # the margin itself: the best score less the best one 2 px or more away
+    disp = torch.tensor([[-2.0, 0.0], [-1.0, 0.0], [0.0, 0.0], [1.0, 0.0], [2.0, 0.0]])
+    ncc = torch.tensor([[0.1, 0.6, 0.9, 0.5, 0.3], [0.85, 0.2, 0.9, 0.89, 0.1]])
+    torch.testing.assert_close(peak_margin(ncc, disp, ncc.argmax(-1)),
+                               torch.tensor([0.6, 0.05]))
+    with pytest.raises(ValueError, match="min_margin"):
+        patch_search(render, query, k1, min_margin=-0.1)
+
+
 def _cheap_mode_calls(demo, xfeat, monkeypatch, start_deg, seed):
     """The cheap mode with the patch search from ``start_deg`` off: (result, calls made)."""
     import icomma_plugin.matchers.refine as refine_mod
@@ -850,11 +886,17 @@ def test_patch_search_is_checked_and_needs_a_matcher_with_keypoints(demo, xfeat)
         RobustConfig(patch_search_ncc=1.5)
     with pytest.raises(ValueError, match="fast_patch_search"):
         TrackingConfig(fast_patch_search=0)
+    with pytest.raises(ValueError, match="patch_search_margin"):
+        RobustConfig(patch_search_margin=-0.5)
+    with pytest.raises(ValueError, match="fast_patch_margin"):
+        TrackingConfig(fast_patch_margin="sharp")
+    assert TrackingConfig(fast_patch_search=2, fast_patch_margin=0.1).fast_method(
+        RobustConfig(), 200, xfeat).patch_search_margin == 0.1
     loftr_like = type("Dense", (), {"name": "dense", "supports_features": False})()
     assert "patch_search" in RobustConfig(patch_search=3).needs(loftr_like)
     assert TrackingConfig(fast_patch_search=2).fast_method(
         RobustConfig(), 200, loftr_like).patch_search is None
-    # off by default: on goldcape's repeating pattern it called a pose 1.1 deg off ok
+    # off by default: on photo collections and soft models it falls back more than it serves
     assert TrackingConfig().fast_method(RobustConfig(), 200, xfeat).patch_search is None
     assert TrackingConfig(fast_patch_search=None).fast_method(
         RobustConfig(), 200, xfeat).patch_search is None
