@@ -90,10 +90,39 @@ def scene_centre_of(model) -> np.ndarray:
     return model.means.detach().double().median(0).values.cpu().numpy()
 
 
+_ROTATION_WARNED: set = set()  # folders whose photos were said to carry an EXIF rotation
+
+
+def warn_if_rotated(path) -> None:
+    """Log once per folder that a photo carries an EXIF rotation, which is not applied.
+
+    A phone stores a portrait photo sideways and tags it for viewers; COLMAP and upstream 3DGS
+    read the stored pixels, and so does this reader, so the model's own photos and a query agree
+    when both come from the camera as they are. When the model was fitted on upright copies, the
+    query must be made upright the same way, or it is localized on its side.
+    """
+    from ..io.datasets import exif_orientation
+
+    path = Path(str(path)).expanduser()
+    folder = str(path.parent.resolve())
+    if folder in _ROTATION_WARNED:
+        return
+    code = exif_orientation(path)
+    if code != 1:
+        _ROTATION_WARNED.add(folder)
+        logger.warning(
+            "%s carries EXIF orientation %d (viewers show it %s); its pixels are used as stored, "
+            "as COLMAP and upstream 3DGS read them (said once for %s). If the model was fitted "
+            "on upright copies of its photos, make the queries upright the same way",
+            path.name, code, "rotated" if code in (5, 6, 7, 8) else "flipped or turned over",
+            folder)
+
+
 def read_query_image(path, bg: torch.Tensor):
     """(rgb [3, H, W], alpha [1, H, W] or None) of a photo file; RGBA composited over ``bg``."""
     from ..io.datasets import read_image_file
 
+    warn_if_rotated(path)
     img = read_image_file(Path(str(path)).expanduser())
     t = torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1))).float()
     rgb, alpha = t[:3], (t[3:4] if t.shape[0] == 4 else None)

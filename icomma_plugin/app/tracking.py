@@ -33,6 +33,7 @@ from ..pose.se3 import se3_exp, se3_log
 from .batch import BatchWorker, PhotoTask, failure_row, result_row
 from .inputs import ProblemError, list_photos, start_poses
 from .ledger import PosesLedger
+from .problem import warn_if_rotated
 
 logger = logging.getLogger(__name__)
 
@@ -227,6 +228,7 @@ class FrameSource:
         if self.limit:
             idx = idx[: self.limit]
         for i in idx:
+            warn_if_rotated(self.paths[i])
             img = read_image_file(self.paths[i])
             yield i, self.names[i], (np.clip(img[:, :, :3], 0, 1) * 255 + 0.5).astype(np.uint8)
 

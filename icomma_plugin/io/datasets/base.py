@@ -91,6 +91,22 @@ def image_size(path: Path) -> Tuple[int, int]:
         return int(arr.shape[1]), int(arr.shape[0])
 
 
+def exif_orientation(path: PathLike) -> int:
+    """The EXIF orientation tag of an image file (1, as stored, when it has none or no EXIF).
+
+    Pixels are always read as stored (`read_image_file`), as COLMAP and upstream 3DGS read them;
+    2-8 means a viewer shows the photo rotated or mirrored.
+    """
+    try:
+        from PIL import Image
+
+        with Image.open(path) as im:
+            value = im.getexif().get(0x0112, 1)
+        return int(value) if int(value) in range(1, 9) else 1
+    except Exception:  # noqa: BLE001 - no header to read (EXR, unknown): nothing to say
+        return 1
+
+
 def read_image_file(path: PathLike) -> np.ndarray:
     """Decode an image to float32 [H, W, C] in [0, 1], C = 3 (RGB) or 4 (RGBA)."""
     import cv2

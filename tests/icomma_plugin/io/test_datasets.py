@@ -677,3 +677,28 @@ def test_llff_reads_points_of_a_complete_sparse_model(tmp_path):
     shutil.rmtree(tmp_path / "sparse")
     s = read_llff(tmp_path)
     assert s.points is None and s.init_box is not None  # no cloud: the fit makes its own
+
+
+def test_a_photo_with_an_exif_rotation_is_read_as_stored_and_said_once(tmp_path, caplog):
+    """A phone's sideways-stored portrait: pixels as stored (COLMAP's, upstream's), one warning."""
+    from PIL import Image
+
+    from icomma_plugin.app.problem import read_query_image
+    from icomma_plugin.io.datasets import exif_orientation
+
+    arr = np.zeros((20, 30, 3), np.uint8)
+    arr[:, :10] = 255  # a white left third: which way it is read shows
+    exif = Image.Exif()
+    exif[0x0112] = 6  # "rotate 90 deg clockwise to display"
+    for k in range(2):
+        Image.fromarray(arr).save(tmp_path / f"p{k}.jpg", exif=exif, quality=95)
+    Image.fromarray(arr).save(tmp_path / "plain.png")
+    assert exif_orientation(tmp_path / "p0.jpg") == 6
+    assert exif_orientation(tmp_path / "plain.png") == 1
+    assert exif_orientation(tmp_path / "absent.jpg") == 1
+    with caplog.at_level("WARNING"):
+        for name in ("p0.jpg", "p1.jpg"):
+            rgb, _ = read_query_image(tmp_path / name, torch.zeros(3))
+            assert tuple(rgb.shape) == (3, 20, 30) and float(rgb[:, :, :10].mean()) > 0.9
+    said = [r.getMessage() for r in caplog.records if "EXIF orientation 6" in r.getMessage()]
+    assert len(said) == 1 and "p0.jpg" in said[0] and "as stored" in said[0], said
