@@ -30,7 +30,6 @@ import torch
 from ..checks import check_int
 from ..pose.convert import invert_rigid
 from ..pose.views import camera_nearness
-
 from .state import expon_lr
 
 

@@ -93,9 +93,9 @@ class LocalizationState:
         nearest neighbours of the matcher's descriptors above it (``matchers.mutual_nn``; no
         LightGlue pass), for a method's cheap mode (``RobustConfig.mutual_nn``).
     patch_search: None, or ``(window px, min NCC, Newton iterations, min peak margin or None)``:
-        renders are matched to
-        the query by searching each of the query's keypoints (the matcher's features) in the
-        render near the same position (``matchers.patch_search``): no features of the render.
+        renders are matched to the query by searching each of the query's keypoints (the
+        matcher's features) in the render near the same position (``matchers.patch_search``):
+        no features of the render.
         When it keeps fewer than ``PATCH_SEARCH_MIN_SHARE`` of the query's keypoints, or its
         matches move by more than half the window (median), the render is matched as without
         it; a probe of ``PATCH_SEARCH_PROBE`` keypoints decides that first when there are many.
