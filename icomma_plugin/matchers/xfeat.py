@@ -9,6 +9,7 @@ keypoints are pixel centres of the input image (the 3DGS convention).
 from __future__ import annotations
 
 import logging
+import threading
 import warnings
 from typing import Optional
 
@@ -26,6 +27,11 @@ from .weights import resolve
 from ..checks import check_bool, check_int
 
 logger = logging.getLogger(__name__)
+
+#: Serialises the making of the optimised copies: a tracked video's look-ahead thread and the
+#: main thread both make their first call at once. (Module-level: a lock in the module would not
+#: pickle or deep-copy.)
+_COPY_LOCK = threading.Lock()
 
 
 class _CpuInferenceNet(torch.nn.Module):
@@ -51,20 +57,25 @@ class _CpuInferenceNet(torch.nn.Module):
         return self.eager.fine_matcher
 
     def _copy(self, x: torch.Tensor):
-        if "net" not in self._frozen:
-            try:
-                # torch.jit says it is deprecated, and the tracer warns of the input-size checks it
-                # freezes (instance norm's "more than one pixel"): neither is the user's to act on
-                with torch.no_grad(), warnings.catch_warnings():
-                    warnings.simplefilter("ignore")
-                    traced = torch.jit.trace(self.eager.eval(), torch.zeros_like(x[:1]),
-                                             check_trace=False)
-                    self._frozen["net"] = torch.jit.optimize_for_inference(
-                        torch.jit.freeze(traced))
-            except Exception as exc:  # noqa: BLE001 - any failure falls back to eager
-                logger.warning("XFeat: no optimised CPU backbone (%s); the eager one runs", exc)
-                self._frozen["net"] = None
+        if "net" in self._frozen:
+            return self._frozen["net"]
+        with _COPY_LOCK:  # one copy, made once, whichever thread calls first
+            if "net" not in self._frozen:
+                self._make_copy(x)
         return self._frozen["net"]
+
+    def _make_copy(self, x: torch.Tensor) -> None:
+        try:
+            # torch.jit says it is deprecated, and the tracer warns of the input-size checks it
+            # freezes (instance norm's "more than one pixel"): neither is the user's to act on
+            with torch.no_grad(), warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                traced = torch.jit.trace(self.eager.eval(), torch.zeros_like(x[:1]),
+                                         check_trace=False)
+                self._frozen["net"] = torch.jit.optimize_for_inference(torch.jit.freeze(traced))
+        except Exception as exc:  # noqa: BLE001 - any failure falls back to eager
+            logger.warning("XFeat: no optimised CPU backbone (%s); the eager one runs", exc)
+            self._frozen["net"] = None
 
     def forward(self, x: torch.Tensor):
         """The backbone's (feats, keypoint logits, heatmap) of ``x`` [B, C, H, W]."""

@@ -271,6 +271,38 @@ def test_xfeat_fast_cpu_backbone_finds_the_same_features(lego_pair, no_kornia_do
         make_matcher("xfeat", fast_cpu="yes")
 
 
+def test_xfeat_makes_one_optimised_copy_when_two_threads_call_first(monkeypatch,
+                                                                     no_kornia_download):
+    """A tracked video's look-ahead thread and the main thread both call the backbone first."""
+    import threading
+    import time
+
+    traced = []
+    trace = torch.jit.trace
+
+    def slow_trace(*args, **kwargs):  # widens the window in which a second thread could enter
+        traced.append(threading.current_thread().name)
+        time.sleep(0.3)
+        return trace(*args, **kwargs)
+
+    monkeypatch.setattr(torch.jit, "trace", slow_trace)
+    net = make_matcher("xfeat").model.net
+    x = torch.rand(1, 1, 64, 64)
+    outs = {}
+
+    def call(name):
+        with torch.no_grad():
+            outs[name] = net(x)[2]
+
+    threads = [threading.Thread(target=call, args=(f"t{k}",), name=f"t{k}") for k in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(traced) == 1 and net._frozen["net"] is not None, traced
+    torch.testing.assert_close(outs["t0"], outs["t1"], rtol=0, atol=0)
+
+
 def test_xfeat_without_an_optimised_backbone_runs_eager(monkeypatch, lego_pair, caplog,
                                                         no_kornia_download):
     im0, _, _ = lego_pair
