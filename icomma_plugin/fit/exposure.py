@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from ..checks import check_int
-from ..pose.convert import invert_rigid
+from ..pose.convert import as_rigid, invert_rigid
 from ..pose.views import camera_nearness
 from .state import expon_lr
 
@@ -126,7 +126,7 @@ class NeighbourExposure:
         if len(w2cs) != len(matrices) or len(w2cs) == 0:
             raise ValueError(f"w2cs and matrices must be non-empty and of one length, got "
                              f"{len(w2cs)} and {len(matrices)}")
-        self.c2ws = np.stack([invert_rigid(_np(m)) for m in w2cs])
+        self.c2ws = np.stack([invert_rigid(as_rigid(m, f"w2cs[{i}]")) for i, m in enumerate(w2cs)])
         self.matrices = torch.stack([torch.as_tensor(E).detach().cpu().double() for E in matrices])
         if tuple(self.matrices.shape[1:]) != (3, 4):
             raise ValueError(f"matrices must be [3, 4] each, got {list(self.matrices.shape[1:])}")
@@ -134,15 +134,11 @@ class NeighbourExposure:
 
     def __call__(self, w2c) -> torch.Tensor:
         """The predicted [3, 4] transform (float64) for a camera ``w2c`` [4, 4]."""
-        score, _ = camera_nearness(self.c2ws, invert_rigid(_np(w2c)))
+        score, _ = camera_nearness(self.c2ws, invert_rigid(as_rigid(w2c, "w2c")))
         near = np.argsort(score, kind="stable")[: self.k]
         w = 1.0 / (score[near] + 1e-9)
         w = torch.as_tensor(w / w.sum(), dtype=torch.float64)
         return (self.matrices[torch.as_tensor(near)] * w.view(-1, 1, 1)).sum(0)
-
-
-def _np(m) -> np.ndarray:
-    return np.asarray(torch.as_tensor(m).detach().cpu().double(), np.float64)
 
 
 def apply_affine_colour(E: torch.Tensor, image: torch.Tensor) -> torch.Tensor:

@@ -140,6 +140,8 @@ def test_neighbour_exposure_follows_the_nearest_photos():
         NeighbourExposure(w2cs, mats[:3])
     with pytest.raises(ValueError, match=r"\[3, 4\]"):
         NeighbourExposure(w2cs, [torch.eye(3)] * 8)
+    with pytest.raises(ValueError, match=r"w2cs\[0\].*rigid"):
+        NeighbourExposure([2.0 * np.eye(4)] + w2cs[1:], mats)
 
 
 # ----------------------------------------------------------------------------------- far field
