@@ -65,7 +65,9 @@ class BenchScene:
     """A model, its queries and what the methods may use besides.
 
     That is the candidate views (``cameras_c2w``: the model's cameras, never a camera of the
-    queries' split) and the scene centre (the ``scene_center`` pivot).
+    queries' split; ``cameras``: the same cameras as the model folder's ``CameraEntry``s, with
+    their names and intrinsics, which the Localizer gets when they are known) and the scene
+    centre (the ``scene_center`` pivot).
     """
 
     model: GaussianModel
@@ -76,6 +78,7 @@ class BenchScene:
     scene_radius: float
     info: Dict[str, Any] = field(default_factory=dict)
     cameras_c2w: List[np.ndarray] = field(default_factory=list)
+    cameras: Optional[List[Any]] = None
     scene_centre: Optional[np.ndarray] = None
     no_start_queries: List[BenchQuery] = field(default_factory=list)  # views for no-start runs
     model_side: Optional[int] = None  # longer side of the images the model was fitted on
@@ -93,7 +96,9 @@ class BenchScene:
         key = (method.name, id(method), id(matcher), backend, repr(lod))
         if key not in self._localizers:
             self._localizers[key] = Localizer(
-                self.model, matcher, method, cameras=self.cameras_c2w, backend=backend,
+                self.model, matcher, method,
+                cameras=self.cameras if self.cameras is not None else self.cameras_c2w,
+                backend=backend,
                 background=self.bg, model_side=self.model_side, cache_dir=cache_dir,
                 photos=self.photos, lod=lod)
         return self._localizers[key]
@@ -158,6 +163,11 @@ def training_scale(cfg: Dict[str, Any], cameras, width: int) -> float:
     from ..io.model_folder import training_scale as scale_of
 
     return scale_of(cfg, width)
+
+
+def _c2w_of(camera) -> np.ndarray:
+    """The c2w of a ``CameraEntry`` or of a ``[4, 4]`` array."""
+    return np.asarray(getattr(camera, "c2w", camera), np.float64)
 
 
 def load_model_folder_scene(
@@ -243,19 +253,25 @@ def load_model_folder_scene(
     # Candidate views: the model's cameras, never one at a pose of the queries' split (upstream's
     # cameras.json lists the test cameras too; a query must not find its own pose there).
     split_c2ws = [np.asarray(v.c2w, np.float64) for v in views]
-    cams = [np.asarray(e.c2w, np.float64) for e in (mf.cameras or [])]
-    if not cams:
-        cams = [
+    # The model's camera entries when it lists them: the Localizer then gets their names and
+    # intrinsics as a user's does (one candidate index for COLMAP's per-image cameras; a camera
+    # with a source photo described by that photo), not bare poses.
+    entries = list(mf.cameras or [])
+    if not entries:
+        entries = [
             np.asarray(v.c2w, np.float64)
             for v in (sd.train if split_of_views == "test" else sd.test)
         ]
-    cams = [c for c, seen in zip(cams, same_as_any_mask(cams, split_c2ws)) if not seen]
+    cams = [_c2w_of(e) for e in entries]
+    keep = ~np.asarray(same_as_any_mask(cams, split_c2ws), bool)
     if split_of_views != "train" and sd.train:
         # Keep the cameras the model was fitted from (upstream's cameras.json lists the other
         # held-out views too, e.g. lego's 200 test cameras when the queries are its val views).
         train_c2ws = [np.asarray(v.c2w, np.float64) for v in sd.train]
-        fitted = [c for c, fit in zip(cams, same_as_any_mask(cams, train_c2ws)) if fit]
-        cams = fitted or cams
+        fitted = keep & np.asarray(same_as_any_mask(cams, train_c2ws), bool)
+        keep = fitted if fitted.any() else keep
+    entries = [e for e, k in zip(entries, keep) if k]
+    cams = [_c2w_of(e) for e in entries]
     centre, _, _ = scene_frame(mf.model.means.numpy(), cams)
     return BenchScene(
         model=mf.model,
@@ -265,6 +281,7 @@ def load_model_folder_scene(
         translation_unit=translation_unit,
         scene_radius=radius,
         cameras_c2w=cams,
+        cameras=entries,
         scene_centre=centre,
         no_start_queries=extra,
         model_side=mf.training_side(),

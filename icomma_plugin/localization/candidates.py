@@ -19,7 +19,7 @@ import torch
 
 from ..camera import Intrinsics
 from ..checks import check_bool, check_int, check_real
-from ..matchers.base import Features, mutual_nn_count
+from ..matchers.base import DescriptorStack, Features
 from ..pose.convert import invert_rigid, same_pose
 from ..pose.views import sample_views, scene_frame
 from .anchors import name_stem
@@ -117,6 +117,8 @@ class CandidateIndex:
     features: List = field(default_factory=list)
     num_cameras: int = 0
     kinds: List[str] = field(default_factory=list)
+    _stack: Optional[DescriptorStack] = field(default=None, init=False, repr=False,
+                                              compare=False)  # the features, for `rank`
 
     @classmethod
     def build(
@@ -208,13 +210,14 @@ class CandidateIndex:
         skip = set(exclude)
         best: List[Tuple[int, int]] = [(-1, 0)] * len(self.features)
         with state.timed("candidates"):
+            if self._stack is None or self._stack.size != len(self.features):
+                self._stack = DescriptorStack(self.features)
             for k in turns:
-                fq = state.query_features(scale, k)
-                for i, f in enumerate(self.features):
-                    if f is not None and i not in skip:
-                        n = mutual_nn_count(f, fq, cfg.min_cosine)
-                        if n > best[i][0]:
-                            best[i] = (n, k)
+                counts = self._stack.mutual_nn_counts(state.query_features(scale, k),
+                                                      cfg.min_cosine)
+                for i, n in enumerate(counts):
+                    if i not in skip and n > best[i][0]:
+                        best[i] = (n, k)
         order = [i for i in sorted(range(len(best)), key=lambda i: -best[i][0]) if i not in skip]
         self.last_counts = [b[0] for b in best]
         return [(i, best[i][1]) for i in order]

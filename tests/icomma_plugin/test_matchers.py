@@ -649,3 +649,33 @@ def test_bad_constructor_arguments():
         make_matcher("sift", ratio=1.5)
     with pytest.raises(ValueError, match="model"):
         make_matcher("aliked_lightglue", model="aliked-t16")
+
+
+def test_descriptor_stack_counts_what_mutual_nn_count_counts():
+    """The candidate ranking's batched counts equal the pairwise ones, image for image.
+
+    Images of different sizes (padding), one without features, one with none detected, a
+    negative threshold (a padding row must not count even then), small chunks.
+    """
+    from icomma_plugin.matchers.base import DescriptorStack, Features, mutual_nn_count
+
+    g = torch.Generator().manual_seed(3)
+
+    def feats(n, base=None):
+        desc = torch.randn(n, 16, generator=g)
+        if base is not None:  # near copies of some of another image's descriptors
+            k = min(n, len(base)) // 2
+            desc[:k] = base[:k] + 0.05 * desc[:k]
+        return Features(torch.zeros(n, 2), desc * 3.0, (32, 32))
+
+    query = feats(40)
+    images = [feats(n, query.desc if n % 2 else None) for n in (5, 50, 23, 64, 1)]
+    images = images[:2] + [None, feats(0)] + images[2:]
+    stack = DescriptorStack(images)
+    for min_cos in (0.8, 0.3, -0.5):
+        want = [-1 if f is None else mutual_nn_count(f, query, min_cos) for f in images]
+        assert stack.mutual_nn_counts(query, min_cos) == want
+        assert stack.mutual_nn_counts(query, min_cos, chunk_bytes=1) == want  # one image a chunk
+    assert max(stack.mutual_nn_counts(query, 0.8)) >= 10  # the near copies are found
+    assert stack.mutual_nn_counts(feats(0)) == [0, 0, -1, 0, 0, 0, 0]
+    assert DescriptorStack([None]).mutual_nn_counts(query) == [-1]
