@@ -165,11 +165,6 @@ def training_scale(cfg: Dict[str, Any], cameras, width: int) -> float:
     return scale_of(cfg, width)
 
 
-def _c2w_of(camera) -> np.ndarray:
-    """The c2w of a ``CameraEntry`` or of a ``[4, 4]`` array."""
-    return np.asarray(getattr(camera, "c2w", camera), np.float64)
-
-
 def load_model_folder_scene(
     model_path, dataset=None, num_queries: int = 5, split: str = "test",
     query_indices: Optional[Sequence[int]] = None, image_scale: Optional[float] = None,
@@ -257,12 +252,10 @@ def load_model_folder_scene(
     # intrinsics as a user's does (one candidate index for COLMAP's per-image cameras; a camera
     # with a source photo described by that photo), not bare poses.
     entries = list(mf.cameras or [])
-    if not entries:
-        entries = [
-            np.asarray(v.c2w, np.float64)
-            for v in (sd.train if split_of_views == "test" else sd.test)
-        ]
-    cams = [_c2w_of(e) for e in entries]
+    cams = [np.asarray(e.c2w, np.float64) for e in entries] or [
+        np.asarray(v.c2w, np.float64)
+        for v in (sd.train if split_of_views == "test" else sd.test)
+    ]
     keep = ~np.asarray(same_as_any_mask(cams, split_c2ws), bool)
     if split_of_views != "train" and sd.train:
         # Keep the cameras the model was fitted from (upstream's cameras.json lists the other
@@ -270,8 +263,8 @@ def load_model_folder_scene(
         train_c2ws = [np.asarray(v.c2w, np.float64) for v in sd.train]
         fitted = keep & np.asarray(same_as_any_mask(cams, train_c2ws), bool)
         keep = fitted if fitted.any() else keep
-    entries = [e for e, k in zip(entries, keep) if k]
-    cams = [_c2w_of(e) for e in entries]
+    cams = [c for c, k in zip(cams, keep) if k]
+    entries = [e for e, k in zip(entries, keep) if k] if entries else None
     centre, _, _ = scene_frame(mf.model.means.numpy(), cams)
     return BenchScene(
         model=mf.model,

@@ -168,11 +168,10 @@ class DescriptorStack:
     """
 
     def __init__(self, features: Sequence[Optional[Features]]):
-        present = [f for f in features if f is not None and len(f) > 0]
-        k = max((len(f) for f in present), default=0)
-        d = present[0].desc.shape[1] if present else 0
         self.size = len(features)
         self.rows = [i for i, f in enumerate(features) if f is not None and len(f) > 0]
+        k = max((len(features[i]) for i in self.rows), default=0)
+        d = features[self.rows[0]].desc.shape[1] if self.rows else 0
         self.empty = [i for i, f in enumerate(features) if f is not None and len(f) == 0]
         # one more column: 0 in real rows, -2 in padding rows, against a 1 appended to the other
         # image's descriptors: a padding row's cosine is -2 and a real one's is unchanged
