@@ -9,12 +9,13 @@ r"""Estimate the camera pose of a query image in a trained 3DGS model.
     python tools/localize.py optimizer=icomma                  # the paper's method, as published
     python tools/localize.py -m optimizer=icomma optimizer.lambda_match=0.2,0.5,0.8
 
-Outputs go to Hydra's output folder (``hydra.run.dir``): result.json (pose, verdict, errors when
-the truth is known), trace.json / trace.csv, overlay_initial.png, overlay_final.png,
-matches_initial.png, convergence.png (optimisation.gif with ``output.gif=true``). ``main`` returns
-the final rotation error in degrees, so sweepers can minimise it; without a ground truth, the mean
-displacement [px] of the matches that agree with the pose (the verdict's ``mean_px``), infinity
-for a failed pose.
+Outputs go to ``output.dir``, else Hydra's output folder (``hydra.run.dir``): result.json (pose,
+verdict, errors when the truth is known), trace.json / trace.csv, overlay_initial.png,
+overlay_final.png, matches_initial.png, convergence.png (optimisation.gif with
+``output.gif=true``). An ``output.dir`` that already holds a result.json is refused. ``main``
+returns the final rotation error in degrees, so sweepers can minimise it; without a ground truth,
+the mean displacement [px] of the matches that agree with the pose (the verdict's ``mean_px``),
+infinity for a failed pose.
 
 Many photos, or a video, against one model (docs/BATCHES.md):
 
@@ -71,14 +72,22 @@ def run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
     Returns:
         The content of result.json (a batch or a sequence: of poses.json).
     """
+    out = chosen_output_dir(cfg, output_dir)
     if is_many(cfg):
-        out = Path(cfg.output.get("dir") or output_dir)
         with common.torch_threads(
             cfg.get("threads") or (1 if (cfg.get("workers") or 1) > 1 else None)
         ):
             return _run_many(cfg, out)
+    if cfg.output.get("dir") and (out / "result.json").exists():
+        raise ValueError(f"output.dir: {out} already holds the result.json of an earlier run; "
+                         "give another folder or remove it (nothing was overwritten)")
     with common.torch_threads(cfg.get("threads")):
-        return _run(cfg, Path(output_dir))
+        return _run(cfg, out)
+
+
+def chosen_output_dir(cfg: DictConfig, output_dir: Path) -> Path:
+    """``output.dir`` when given, else Hydra's ``output_dir``."""
+    return Path(cfg.output.get("dir") or output_dir)
 
 
 def _cache_dir(cfg: DictConfig):
@@ -424,7 +433,7 @@ def main(cfg: DictConfig) -> float:
         print(many_summary(doc))
         return float(doc["counts"].get("failed", 0)) / max(1, int(doc.get("done") or 0))
     res = common.run_or_exit(lambda: run(cfg, output_dir), multirun, log)
-    print(summary(res, output_dir))
+    print(summary(res, chosen_output_dir(cfg, output_dir)))
     if res["rot_err_deg"] is not None:
         return float(res["rot_err_deg"])
     mean_px = (res.get("signals") or {}).get("mean_px")

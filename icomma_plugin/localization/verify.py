@@ -236,8 +236,9 @@ def decide(score: Optional[PoseScore], cfg: VerdictConfig, converged: Optional[b
         return Verdict("uncertain", "check this pose: " + "; ".join(problems), signals)
     return Verdict(
         "ok",
-        f"{score.inliers} of {score.matches} matches agree within "
-        f"{score.median_px:.2f} px (median), render covers {100 * score.coverage:.0f}% of "
+        # the mean first: with a detector's integer pixels the median of a good pose is 0
+        f"{score.inliers} of {score.matches} matches agree, {score.mean_px:.2f} px apart on "
+        f"average (median {score.median_px:.2f}), render covers {100 * score.coverage:.0f}% of "
         "the photo",
         signals,
     )

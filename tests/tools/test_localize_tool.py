@@ -134,6 +134,24 @@ def test_cli_single_run_and_multirun(small_demo, tmp_path):
     assert lrs == [0.02, 0.05]
 
 
+def test_cli_single_photo_writes_to_output_dir_and_keeps_an_earlier_result(small_demo, tmp_path):
+    """``output.dir`` holds one photo's outputs; a second run there is refused, the first kept."""
+    out = tmp_path / "mine"
+    args = _demo_overrides(small_demo) + ["optimizer=icomma", "optimizer.max_iterations=1",
+                                          "output.progress=false", "output.overlays=false",
+                                          "output.match_lines=false", f"output.dir={out}",
+                                          f"hydra.run.dir={tmp_path / 'hydra'}"]
+    p = _cli(args)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert (out / "result.json").is_file() and (out / "convergence.png").is_file()
+    assert not (tmp_path / "hydra" / "result.json").exists()
+    assert f"outputs in {out}" in p.stdout
+    first = (out / "result.json").read_bytes()
+    p = _cli(args)
+    _assert_one_line_error(p, "output.dir", "result.json")
+    assert (out / "result.json").read_bytes() == first
+
+
 def _assert_one_line_error(p, *needles):
     assert p.returncode == 2, (p.returncode, p.stderr[-2000:])
     lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
