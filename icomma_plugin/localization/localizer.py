@@ -192,7 +192,8 @@ class Localizer:
         if bg.numel() != 3 or not bool(torch.isfinite(bg).all()):
             raise ValueError(f"background must be 3 finite values (RGB), got {background!r}")
         self.background = bg.reshape(3).to(self.model.device, self.model.dtype)
-        self.cameras_c2w, self.camera_names, self._camera_intrinsics = _camera_parts(cameras)
+        # per camera: its pose, name, and intrinsics (None where a bare c2w gave none)
+        self.cameras_c2w, self.camera_names, self.camera_intrinsics = _camera_parts(cameras)
         self.photos = None if not photos else PhotoAnchors(
             [p if isinstance(p, SourcePhoto) else SourcePhoto.of_view(p) for p in photos],
             self.background)
@@ -424,7 +425,7 @@ class Localizer:
             raise ValueError("candidate views need a matcher that extracts features, got "
                              f"{self.matcher!r}")
         cfg = cfg or CandidateConfig()
-        cams = [c for c in self._camera_intrinsics if c is not None]
+        cams = [c for c in self.camera_intrinsics if c is not None]
         intr = candidate_intrinsics(intrinsics, cams, cfg.rank_side)
         memo = (intr, cfg.num_sampled, cfg.rank_side, sh_degree, antialiasing)
         if memo not in self._indices:

@@ -32,7 +32,7 @@ def test_val_split_queries_and_candidates_from_the_fitted_cameras(lego_root, tmp
     from icomma_plugin.localize import LocalizerConfig
     loc = scene.localizer(None, LocalizerConfig())
     assert loc.camera_names == [v.name for v in sd.train]
-    assert all(i is not None and i.width == 400 for i in loc._camera_intrinsics)
+    assert all(i is not None and i.width == 400 for i in loc.camera_intrinsics)
     test_scene = load_model_folder_scene(folder, num_queries=3, split="test")
     assert len(test_scene.cameras_c2w) == 100 and test_scene.model_side == 50
     with pytest.raises(ValueError, match="split must be"):
