@@ -33,14 +33,20 @@ def _gauss_1d(size: int, sigma: float, dtype: torch.dtype, device: torch.device)
 
 
 def _filter(x: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
-    """Separable Gaussian filter of x [N, C, H, W] with zero padding (same size)."""
+    """Separable Gaussian filter of x [N, C, H, W] with zero padding (same size, contiguous).
+
+    The depthwise convolutions run on a channels-last copy: on CPU oneDNN has fast depthwise
+    kernels for that layout only (15 channels of 272x480, 1 thread: 39 -> 9 ms), with the same
+    bits as the default layout's.
+    """
     C = x.shape[1]
     k = g.numel()
     pad = k // 2
     wx = g.view(1, 1, 1, k).expand(C, 1, 1, k)
     wy = g.view(1, 1, k, 1).expand(C, 1, k, 1)
+    x = x.contiguous(memory_format=torch.channels_last)
     x = F.conv2d(x, wx, padding=(0, pad), groups=C)
-    return F.conv2d(x, wy, padding=(pad, 0), groups=C)
+    return F.conv2d(x, wy, padding=(pad, 0), groups=C).contiguous()
 
 
 def _check_mask(mask: Optional[torch.Tensor], img: torch.Tensor, what: str) -> None:
