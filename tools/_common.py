@@ -93,6 +93,11 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+def output_dir_of(cfg, default: Path) -> Path:
+    """A tool's output folder: ``output.dir`` when given, else ``default`` (Hydra's)."""
+    return Path(cfg.output.get("dir") or default)
+
+
 def run_or_exit(job: Callable[[], T], multirun: bool, log: logging.Logger) -> T:
     """Run a tool's job; bad input (ValueError / FileNotFoundError) becomes one ``error:`` line.
 

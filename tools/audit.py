@@ -145,7 +145,7 @@ def _thumbnail_writer(out: Path, localizer, side: int, backend: str):
 def run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
     """The body of the tool: audit, pictures, calibration; returns audit.json's content."""
     with common.torch_threads(cfg.get("threads")):
-        return _run(cfg, Path(cfg.output.get("dir") or output_dir))
+        return _run(cfg, common.output_dir_of(cfg, output_dir))
 
 
 def _run(cfg: DictConfig, out: Path) -> Dict[str, Any]:

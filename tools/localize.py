@@ -72,7 +72,7 @@ def run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
     Returns:
         The content of result.json (a batch or a sequence: of poses.json).
     """
-    out = chosen_output_dir(cfg, output_dir)
+    out = common.output_dir_of(cfg, output_dir)
     if is_many(cfg):
         with common.torch_threads(
             cfg.get("threads") or (1 if (cfg.get("workers") or 1) > 1 else None)
@@ -83,11 +83,6 @@ def run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
                          "give another folder or remove it (nothing was overwritten)")
     with common.torch_threads(cfg.get("threads")):
         return _run(cfg, out)
-
-
-def chosen_output_dir(cfg: DictConfig, output_dir: Path) -> Path:
-    """``output.dir`` when given, else Hydra's ``output_dir``."""
-    return Path(cfg.output.get("dir") or output_dir)
 
 
 def _cache_dir(cfg: DictConfig):
@@ -432,8 +427,9 @@ def main(cfg: DictConfig) -> float:
         doc = common.run_or_exit(lambda: run(cfg, output_dir), multirun, log)
         print(many_summary(doc))
         return float(doc["counts"].get("failed", 0)) / max(1, int(doc.get("done") or 0))
+    output_dir = common.output_dir_of(cfg, output_dir)
     res = common.run_or_exit(lambda: run(cfg, output_dir), multirun, log)
-    print(summary(res, chosen_output_dir(cfg, output_dir)))
+    print(summary(res, output_dir))
     if res["rot_err_deg"] is not None:
         return float(res["rot_err_deg"])
     mean_px = (res.get("signals") or {}).get("mean_px")
