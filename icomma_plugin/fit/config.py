@@ -211,21 +211,29 @@ CAPTURE_RECIPE = {"init_max_pixels": 3.0, "coarse_to_fine": (0.1, 0.3), "random_
 # auto_iterations: steps per training view, and the bounds of the count
 STEPS_PER_VIEW = 100
 MIN_ITERATIONS, MAX_ITERATIONS = 3000, 10_000
-# ... and the pixel-steps a run may take (width x height x iterations): a CPU time budget. Lego
-# at 200x200 took 0.083 s a step on one idle thread (docs/FITTING.md), ~2 us a pixel-step:
-# 400e6 is about 8 minutes on two threads.
-PIXEL_STEPS = 400e6
+# ... and the time a run's steps may take, in seconds on two threads of the 2-core development
+# machine, quiet (docs/FITTING.md, "The run's length as a time budget"). A step costs a fixed
+# part (per-Gaussian work: ~100k Gaussians on a real capture) plus a part per pixel, fitted to
+# the captures' whole fits with the channels-last SSIM filter: goldcape 228x228 0.063 s a step,
+# fox 270x480 0.084, bird 272x480 0.087 (lego 200x200's 0.040 is overestimated, on the safe side).
+FIT_SECONDS = 480.0
+STEP_SECONDS_FIXED, STEP_SECONDS_PER_PIXEL = 0.045, 3.2e-7
+
+
+def step_seconds(pixels: int) -> float:
+    """The expected seconds of one step at `pixels` pixels a training image (two threads)."""
+    return STEP_SECONDS_FIXED + STEP_SECONDS_PER_PIXEL * pixels
 
 
 def auto_iterations(num_views: int, pixels: int) -> int:
     """Iterations for `num_views` training images of `pixels` pixels each.
 
-    `STEPS_PER_VIEW` passes over every view, no more than `PIXEL_STEPS / pixels` (the time a
-    step takes grows with the image), within [`MIN_ITERATIONS`, `MAX_ITERATIONS`], rounded to
-    a multiple of 500.
+    `STEPS_PER_VIEW` passes over every view (rounded to a multiple of 500), but no more steps
+    than fit in `FIT_SECONDS` at `step_seconds(pixels)` each (rounded down to a multiple of
+    500: a budget), within [`MIN_ITERATIONS`, `MAX_ITERATIONS`].
     """
     if num_views < 1 or pixels < 1:
         raise ValueError(f"num_views and pixels must be >= 1, got {num_views!r}, {pixels!r}")
-    n = min(STEPS_PER_VIEW * num_views, PIXEL_STEPS / pixels)
-    n = min(max(n, MIN_ITERATIONS), MAX_ITERATIONS)
-    return int(round(n / 500.0) * 500)
+    by_views = round(STEPS_PER_VIEW * num_views / 500.0) * 500
+    by_time = int(FIT_SECONDS / step_seconds(pixels) // 500) * 500
+    return int(min(max(min(by_views, by_time), MIN_ITERATIONS), MAX_ITERATIONS))

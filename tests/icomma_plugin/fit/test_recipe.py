@@ -8,9 +8,12 @@ from icomma_plugin.fit.config import (
     CAPTURE_RECIPE,
     MAX_ITERATIONS,
     MIN_ITERATIONS,
-    PIXEL_STEPS,
+    FIT_SECONDS,
+    STEP_SECONDS_FIXED,
+    STEP_SECONDS_PER_PIXEL,
     STEPS_PER_VIEW,
     auto_iterations,
+    step_seconds,
 )
 from icomma_plugin.fit.scene import CaptureInfo
 
@@ -20,11 +23,14 @@ def test_auto_iterations():
     assert auto_iterations(10_000, 100) == MAX_ITERATIONS
     n = (MIN_ITERATIONS + MAX_ITERATIONS) // 2 // STEPS_PER_VIEW  # between the bounds
     assert auto_iterations(n, 1) == round(STEPS_PER_VIEW * n / 500) * 500
-    # large images: the pixel-step budget decides
-    big = int(PIXEL_STEPS / 6000)
-    assert auto_iterations(10_000, big) == 6000
-    for v in (auto_iterations(43, 270 * 480), auto_iterations(161, 272 * 480)):
-        assert v % 500 == 0 and MIN_ITERATIONS <= v <= MAX_ITERATIONS
+    # large images: the time budget decides, rounded down (a budget is not exceeded)
+    pixels = int((FIT_SECONDS / 6200 - STEP_SECONDS_FIXED) / STEP_SECONDS_PER_PIXEL)
+    assert auto_iterations(10_000, pixels) == 6000
+    assert 6000 * step_seconds(pixels) <= FIT_SECONDS
+    # the lengths docs/FITTING.md measured: fox and goldcape by their photo count, bird by time
+    assert auto_iterations(43, 270 * 480) == 4500
+    assert auto_iterations(161, 272 * 480) == 5500
+    assert auto_iterations(104, 228 * 228) == 7500
     with pytest.raises(ValueError, match="num_views"):
         auto_iterations(0, 100)
 
