@@ -68,9 +68,16 @@ class RefineConfig:
         stage the pose is within ~0.2 deg, and on a fitted scene the optimum of a blurred or
         downscaled comparison lies elsewhere (lego: a sigma-4 level moved 0.10 deg poses to 0.27
         deg), so coarse levels cost time and accuracy there (docs/BENCHMARK.md).
-    iterations: LM iterations at most, per level (same length as ``scales``). 3: from the
-        geometric stage's pose the error stops falling after the third step on lego (6 took 30 %
-        more time for the same median error; docs/SPEED.md).
+    iterations: LM iterations per level (same length as ``scales``). 3: from the geometric
+        stage's pose the error stops falling after the third step on most lego starts (6 for
+        all took 30 % more time for the same median error; docs/SPEED.md).
+    extra_iterations, extra_min_gain: after a level's ``iterations``, up to ``extra_iterations``
+        more steps while the last one lowered the loss by more than ``extra_min_gain`` (a share
+        of the loss): a pose still converging. From 0.2-0.4 deg off, the Gauss-Newton steps of
+        a fitted scene fall short (its loss is shallower than ``J^T J`` says) and three steps
+        leave it 0.1-0.2 deg off (docs/LOCALIZATION.md, "Steps while the loss falls"). Not with
+        a level of detail (a large model): each step renders the full model (0.4-0.7 s at 800 px
+        for 300k-1M Gaussians).
     lambda_init: initial LM damping (relative to the Hessian's diagonal).
     hessian: ``"finite_difference"``: Gauss-Newton from the exact Jacobian of the render by
         forward differences (6 extra forward renders); ``"motion_field"``: the cheap model of the
@@ -129,6 +136,8 @@ class RefineConfig:
     scales: Tuple[float, ...] = (1.0,)
     blur: Tuple[float, ...] = (0.0,)
     iterations: Tuple[int, ...] = (3,)
+    extra_iterations: int = 3
+    extra_min_gain: float = 1e-3
     lambda_init: float = 1e-4
     hessian: str = "finite_difference"
     fd_step: float = 1e-3
@@ -169,6 +178,8 @@ class RefineConfig:
                              f"got {self.exposure_gain}")
         if any(i < 0 for i in self.iterations):
             raise ValueError(f"RefineConfig.iterations must be >= 0, got {self.iterations}")
+        check_int(self.extra_iterations, "RefineConfig.extra_iterations", 0)
+        check_real(self.extra_min_gain, "RefineConfig.extra_min_gain", 0.0, 1.0)
         check_real(self.lambda_init, "RefineConfig.lambda_init", 0.0, lo_open=True)
         check_real(self.fd_step, "RefineConfig.fd_step", 0.0, 0.1, lo_open=True)
         check_real(self.hessian_scale, "RefineConfig.hessian_scale", 0.0, 1.0, lo_open=True)
@@ -526,13 +537,18 @@ def _lm_level(state: LocalizationState, cfg: RefineConfig, w2c: np.ndarray, scal
         translation, or None).
     """
     intr, blur, query, mask, n_it, robust = level
+    # steps past the level's own only without a level of detail (each renders the full model)
+    n_max = n_it + (cfg.extra_iterations if state.reduced is None else 0)
     loss, grad, out = start
     hess, jac = _hessian_and_jacobian(state, cfg, w2c, scale, out, mask, intr, blur, query,
                                       robust)
     gain = cfg.fitted_gain_range
     lam, nu = cfg.lambda_init, 2.0
     last_rot = last_trans = None
-    for it in range(n_it):
+    drop = 1.0  # the share of the loss the last step took off
+    for it in range(n_max):
+        if it >= n_it and drop <= cfg.extra_min_gain:
+            break  # past the level's steps, only while the loss still falls
         counts["total"] += 1
         damp = torch.diag(torch.diag(hess)).clamp_min(0) + 1e-12 * torch.eye(
             6, dtype=torch.float64
@@ -542,7 +558,7 @@ def _lm_level(state: LocalizationState, cfg: RefineConfig, w2c: np.ndarray, scal
             break
         predicted = -float(grad @ step + 0.5 * step @ hess @ step)
         w2c_try = (se3_exp(step) @ torch.as_tensor(w2c)).numpy()
-        last = it == n_it - 1  # the last step's gradient would serve no further step
+        last = it == n_max - 1  # the last step's gradient would serve no further step
         loss_try, grad_try, out_try, _ = _evaluate(state, w2c_try, scale, mask, loss, blur, query,
                                                    want_grad=not last, exposure_gain=gain,
                                                    robust=robust)
@@ -550,6 +566,7 @@ def _lm_level(state: LocalizationState, cfg: RefineConfig, w2c: np.ndarray, scal
         state.record(state.new_record(Stage.REFINE, w2c_try, loss=loss_try, loss_compare=loss_try,
                                       accepted=ok, hypothesis=hypothesis, scale=scale, lr=lam))
         if not ok:
+            drop = 0.0
             lam *= nu
             nu *= 2.0
             if lam > 1e6:
@@ -561,6 +578,7 @@ def _lm_level(state: LocalizationState, cfg: RefineConfig, w2c: np.ndarray, scal
         lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
         lam, nu = max(lam, 1e-9), 2.0
         counts["accepted"] += 1
+        drop = (loss - loss_try) / loss if loss > 0 else 0.0
         grad_prev = grad
         w2c, loss, grad, out = w2c_try, loss_try, grad_try, out_try
         if last:

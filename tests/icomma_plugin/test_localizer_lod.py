@@ -160,3 +160,27 @@ def test_the_hessian_from_the_reduced_model_keeps_the_full_model_precision(demo,
             errors[reduced].append(res.rot_err_deg)
             assert ("hessian" in res.details["lod"]["stages"]) == reduced
     assert max(errors[True]) < 0.1 and max(errors[False]) < 0.1, errors
+
+
+def test_extra_refinement_steps_only_without_a_level_of_detail(demo, xfeat, capped):
+    """``RefineConfig.extra_iterations`` are taken only where no reduced model serves."""
+    import dataclasses
+
+    from icomma_plugin.localization.refine import RefineConfig
+
+    scene, model, cams = demo
+    # every step taking anything off the loss goes on; none is small enough to end the level
+    refine = RefineConfig(iterations=(2,), extra_iterations=2, extra_min_gain=0.0,
+                          stop_rot_deg=0.0, stop_trans_rel=0.0)
+    method = dataclasses.replace(SMALL, refine=refine)
+    steps = {}
+    for name, lod in (("lod", capped), ("full", None)):
+        loc = Localizer(model, xfeat, method, cameras=cams, cache_dir=False, lod=lod)
+        res = loc.localize(_query(scene), init_c2w=_start(scene), gt_c2w=scene.gt_c2w)
+        steps[name] = [r["accepted"] for r in res.trace if r["stage_name"] == "refine"]
+    assert len(steps["lod"]) == 2, steps
+    # past its own 2 steps, the level goes on only while a step is accepted (lowers the loss)
+    full = steps["full"]
+    assert len(full) == 4 or (len(full) in (2, 3) and not full[-1]), steps
+    with pytest.raises(ValueError, match="RefineConfig.extra_iterations"):
+        RefineConfig(extra_iterations=-1)
