@@ -335,9 +335,14 @@ def _hessian_and_jacobian(state, cfg, w2c, scale, out, mask, intr, blur, query, 
     return jac.matrix(robust, cfg.fitted_gain_range), jac
 
 
+#: Pixels a block of ``_gauss_newton``: each block's moments are summed in the Jacobian's dtype
+#: and the blocks in float64, so a float32 Jacobian's matrix stays within ~1e-6 of float64's.
+_GN_BLOCK = 1 << 16
+
+
 def _gauss_newton(J: torch.Tensor, mask: torch.Tensor, exposure=None,
                   norm: Optional[float] = None) -> torch.Tensor:
-    """``2 J^T W J / (C N)`` of a ``[C, 6, H, W]`` Jacobian of the render, ``W`` = ``mask``.
+    """``2 J^T W J / (C N)`` (float64) of a ``[C, 6, H, W]`` Jacobian of the render, ``W`` = ``mask``.
 
     ``N`` is ``norm``, or the mask's sum (a robust loss's weights are not its normaliser).
     ``exposure`` ``(gains [C], base [C, H, W])``: the Gauss-Newton matrix of the exposure-profiled
@@ -346,24 +351,37 @@ def _gauss_newton(J: torch.Tensor, mask: torch.Tensor, exposure=None,
     That projection is applied to the 6x6 moments, not to the Jacobian: with ``a = J W 1``,
     ``c = J W r`` (``r`` the base render less its weighted mean, so orthogonal to 1) and
     ``s = sum W``, the projected ``J'`` has ``J' W J'^T = J W J^T - a a^T / s - c c^T / r^T W r``
-    (one pass over the Jacobian instead of six; a 800x800 render's took 0.4 s).
+    (one pass over the Jacobian instead of six; a 800x800 render's took 0.4 s). The moments are
+    taken in ``J``'s dtype over blocks of ``_GN_BLOCK`` pixels (a float32 Jacobian: half the
+    memory traffic of float64) and summed in float64.
     """
-    w = mask.detach().double()[0].reshape(-1)
     C = J.shape[0]
-    sw = max(float(w.sum()), 1e-12)
     Jf = J.reshape(C, 6, -1)
-    Jw = Jf * w
-    H = torch.bmm(Jw, Jf.transpose(1, 2))  # [C, 6, 6]
+    w = mask.detach()[0].reshape(-1).to(J.dtype)
+    sw = max(float(w.double().sum()), 1e-12)
+    f64 = dict(dtype=torch.float64, device=J.device)
+    H, a, c = torch.zeros(C, 6, 6, **f64), torch.zeros(C, 6, **f64), torch.zeros(C, 6, **f64)
+    b = None if exposure is None else exposure[1].detach().reshape(C, -1).to(J.dtype)
+    sb, sbb = torch.zeros(C, **f64), torch.zeros(C, **f64)  # sum W b, sum W b^2 per channel
+    for s in range(0, Jf.shape[-1], _GN_BLOCK):
+        Jb, wb = Jf[..., s:s + _GN_BLOCK], w[s:s + _GN_BLOCK]
+        Jw = Jb * wb
+        H += torch.bmm(Jw, Jb.transpose(1, 2)).double()  # [C, 6, 6]
+        if b is not None:
+            bb = b[:, s:s + _GN_BLOCK]
+            a += Jw.sum(-1).double()  # [C, 6]
+            c += (Jw * bb.unsqueeze(1)).sum(-1).double()  # J W b, centred below (a matrix-
+            # vector bmm took 7x the time of this product on a CPU)
+            bw = bb * wb
+            sb += bw.sum(-1).double()
+            sbb += (bw * bb).sum(-1).double()
     if exposure is not None:
-        gains, base = exposure
-        r = base.detach().double().reshape(C, -1)
-        r = r - (r @ w).unsqueeze(-1) / sw
-        a = Jw.sum(-1)  # [C, 6]
-        c = torch.bmm(Jw, r.unsqueeze(-1)).squeeze(-1)  # [C, 6]
-        rr = ((r * r) @ w).clamp_min(1e-12)  # [C]
+        mean = sb / sw  # r = b - mean: J W r = J W b - a mean, r^T W r = sum W b^2 - sb mean
+        c = c - a * mean.unsqueeze(1)
+        rr = (sbb - sb * mean).clamp_min(1e-12)
         H = (H - a.unsqueeze(2) * a.unsqueeze(1) / sw
              - c.unsqueeze(2) * c.unsqueeze(1) / rr.view(C, 1, 1))
-        H = H * (gains.double() ** 2).view(C, 1, 1)
+        H = H * (exposure[0].double() ** 2).view(C, 1, 1)
     return 2.0 * H.sum(0) / (C * max(norm or sw, 1e-12))
 
 
@@ -375,7 +393,7 @@ class _Jacobian:
     ``exposure`` ``(gains, base)`` or None; ``blur`` the level's blur at its resolution.
     """
 
-    J: torch.Tensor  # [C, 6, H, W]
+    J: torch.Tensor  # [C, 6, H, W], float32
     mask: torch.Tensor  # [1, H, W] float64
     base: torch.Tensor
     query: torch.Tensor
@@ -414,20 +432,22 @@ def _fd_jacobian(state, cfg, w2c, scale, out, mask, blur, gains, query,
         with torch.no_grad():
             out = state.render(torch.as_tensor(w2c, dtype=torch.float64), scale)
         mask = coverage_mask(Observation(w2c, scale, out.color, out.depth, out.alpha), state)
-    # finite differences of the render: J[:, k] = (I(exp(h e_k) w2c) - I(w2c)) / h
-    base = gaussian_blur(out.color.detach().double(), blur)
-    cols = []
+    # finite differences of the render: J[:, k] = (I(exp(h e_k) w2c) - I(w2c)) / h, in the
+    # renders' float32 (the difference of two float32 renders is exact to their last bit; float64
+    # doubled the Jacobian's memory traffic for nothing)
+    base = gaussian_blur(out.color.detach().float(), blur)
+    J = torch.empty((base.shape[0], 6) + tuple(base.shape[1:]), dtype=base.dtype,
+                    device=base.device)
     w2c_t = torch.as_tensor(w2c, dtype=torch.float64)
     with torch.no_grad():
         for k in range(6):
             e = torch.zeros(6, dtype=torch.float64)
             e[k] = cfg.fd_step
-            img = gaussian_blur(
-                state.render((se3_exp(e) @ w2c_t).numpy(), scale).color.double(), blur
-            )
-            cols.append((img - base) / cfg.fd_step)
+            img = gaussian_blur(state.render((se3_exp(e) @ w2c_t).numpy(), scale).color.float(),
+                                blur)
+            torch.sub(img, base, out=J[:, k]).div_(cfg.fd_step)
     exposure = None if gains is None else (gains, base)
-    return _Jacobian(torch.stack(cols, 1), mask.detach().double(), base, query, exposure, blur)
+    return _Jacobian(J, mask.detach().double(), base, query, exposure, blur)
 
 
 def _bfgs_update(hess: torch.Tensor, s: torch.Tensor, y: torch.Tensor) -> torch.Tensor:

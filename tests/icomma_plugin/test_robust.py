@@ -112,6 +112,25 @@ def test_median_depth_of_the_shown_pixels():
     assert median_depth(depth, torch.zeros_like(alpha)) == 1.0  # nothing shown
 
 
+@pytest.mark.parametrize("shape", [(1, 1), (2, 9), (7, 5), (40, 33)])
+def test_depth_edges_are_those_of_a_3x3_max_and_min_pool(shape):
+    """The separable shifted min and max: the same pixels as max_pool2d, borders included."""
+    import torch.nn.functional as F
+
+    from icomma_plugin.localization.geometry import depth_edges
+
+    g = torch.Generator().manual_seed(5)
+    depth = 2.0 + 0.05 * torch.rand((1,) + shape, generator=g, dtype=torch.float64)
+    depth[..., : shape[0] // 2, : shape[1] // 3] = 0.0  # empty pixels: edges around them
+    hi = F.max_pool2d(depth[None], 3, stride=1, padding=1)[0]
+    lo = -F.max_pool2d(-depth[None], 3, stride=1, padding=1)[0]
+    expected = (hi - lo) > 0.05 * depth.clamp_min(1e-12)
+    got = depth_edges(depth, 0.05)
+    assert got.shape == depth.shape and torch.equal(got, expected)
+    if min(shape) > 4:
+        assert got.any() and not got.all()
+
+
 def test_lift_keypoints_inverts_the_projection(demo):
     scene, model, _, _ = demo
     st = _state(demo)
@@ -310,6 +329,29 @@ def test_the_exposure_profiled_gauss_newton_matrix_is_that_of_the_projected_jaco
     plain = 2.0 * torch.einsum("cip,cjp->ij", (J * w).reshape(3, 6, -1),
                                J.reshape(3, 6, -1)) / (3 * float(w.sum()))
     assert torch.allclose(_gauss_newton(J, w), plain, rtol=1e-12)
+
+
+@pytest.mark.parametrize("block", [50, 1 << 16])
+def test_the_gauss_newton_matrix_of_a_float32_jacobian_in_blocks_is_the_float64_one(
+        block, monkeypatch):
+    """Moments summed over pixel blocks, from a float32 Jacobian: the float64 matrix to ~1e-6."""
+    from icomma_plugin.localization import refine
+
+    g = torch.Generator().manual_seed(4)
+    J = torch.randn(3, 6, 40, 30, generator=g, dtype=torch.float64)
+    w = (torch.rand(1, 40, 30, generator=g) > 0.2).double()
+    base = 0.4 + 0.3 * torch.rand(3, 40, 30, generator=g)
+    gains = torch.tensor([0.9, 1.0, 1.2], dtype=torch.float64)
+    whole = {ex: refine._gauss_newton(J, w, (gains, base) if ex else None, 7.0)
+             for ex in (False, True)}
+    monkeypatch.setattr(refine, "_GN_BLOCK", block)  # 24 blocks of 50 pixels, or one
+    for ex in (False, True):
+        exposure = (gains, base) if ex else None
+        in_blocks = refine._gauss_newton(J, w, exposure, 7.0)
+        assert torch.allclose(in_blocks, whole[ex], rtol=1e-12, atol=1e-14)
+        f32 = refine._gauss_newton(J.float(), w, exposure, 7.0)
+        assert f32.dtype == torch.float64
+        assert (f32 - whole[ex]).abs().max() < 1e-5 * whole[ex].abs().max()
 
 
 def test_a_bad_exposure_setting_is_one_error_naming_it():
