@@ -342,7 +342,7 @@ _GN_BLOCK = 1 << 16
 
 def _gauss_newton(J: torch.Tensor, mask: torch.Tensor, exposure=None,
                   norm: Optional[float] = None) -> torch.Tensor:
-    """``2 J^T W J / (C N)`` (float64) of a ``[C, 6, H, W]`` Jacobian of the render, ``W`` = ``mask``.
+    """``2 J^T W J / (C N)``, float64, of a ``[C, 6, H, W]`` render Jacobian, ``W`` = ``mask``.
 
     ``N`` is ``norm``, or the mask's sum (a robust loss's weights are not its normaliser).
     ``exposure`` ``(gains [C], base [C, H, W])``: the Gauss-Newton matrix of the exposure-profiled
