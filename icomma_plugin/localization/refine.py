@@ -433,8 +433,9 @@ def _fd_jacobian(state, cfg, w2c, scale, out, mask, blur, gains, query,
             out = state.render(torch.as_tensor(w2c, dtype=torch.float64), scale)
         mask = coverage_mask(Observation(w2c, scale, out.color, out.depth, out.alpha), state)
     # finite differences of the render: J[:, k] = (I(exp(h e_k) w2c) - I(w2c)) / h, in the
-    # renders' float32 (the difference of two float32 renders is exact to their last bit; float64
-    # doubled the Jacobian's memory traffic for nothing)
+    # renders' float32: the difference of two float32 renders is exact to their last bit (float64
+    # doubled the memory traffic of a [3, 6, 800, 800] Jacobian, and its Gauss-Newton matrix
+    # sums in float64 anyway)
     base = gaussian_blur(out.color.detach().float(), blur)
     J = torch.empty((base.shape[0], 6) + tuple(base.shape[1:]), dtype=base.dtype,
                     device=base.device)

@@ -394,8 +394,8 @@ void render_tile(const RasterArgs& in, int64_t tile, const float* geom, const in
 // kOpacitySlot / kColourSlot = false: slot 5 (opacity) / slots 6..8 (colour) are written as 0
 // without being accumulated (for a caller that never reads them). The other slots come from the
 // same statements in the same order in every variant (independent accumulators, explicit vector
-// types: nothing for the vectoriser to regroup); tests/gaussian_renderer_pose/test_pose_only_backward.py checks
-// that the camera gradient is the same bits in each.
+// types: nothing for the vectoriser to regroup); tests/gaussian_renderer_pose/
+// test_pose_only_backward.py checks that the camera gradient is the same bits in each.
 // ------------------------------------------------------------------------------------------------
 // Backward pixel state of one vector of a tile row (upstream renderCUDA backward, features = r,
 // g, b, 1/z, z): T: transmittance, recovered back to front; lastA: alpha of the Gaussian behind;
