@@ -945,6 +945,12 @@ def _run(args, result: Dict[str, Any], matcher, save) -> None:
                 work = q0.intrinsics if side is None else q0.intrinsics.scaled(
                     q0.intrinsics.scale_to_side(side))
                 loc.reduced.model_at(work)
+                # and the rungs of the refinement's levels (at the model's side, when the working
+                # side is larger: RobustConfig.refine_model_side)
+                eff = configs["robust"].at_model_side(q0.intrinsics, loc.model_side)
+                for level in eff.refine.scales:
+                    loc.reduced.model_at(q0.intrinsics.scaled(eff.work_scale(q0.intrinsics)
+                                                              * level))
                 result["blocks"][f"{scene_name}/lod_build_s"] = time.perf_counter() - tc
                 result["blocks"][f"{scene_name}/lod_models"] = [dict(e) for e in
                                                                 loc.reduced.events]
