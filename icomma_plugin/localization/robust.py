@@ -75,7 +75,7 @@ class RobustConfig:
         the verdict still judges, at the working side. A model has no detail finer than the
         photos it was fitted on, and compared above it the pose drifted: lego's 200-px model at
         400 px, median 0.094 -> 0.036 deg; its 300k and 1M splits at 800 px, 0.191 -> 0.076 and
-        0.122 -> 0.048 deg, in 0.73x and 0.66x the time (docs/SPEED.md). At or below the
+        0.122 -> 0.048 deg, in 0.71x and 0.64x the time (docs/SPEED.md). At or below the
         model's side (the default working side, every real capture here) nothing changes.
     mutual_nn: None: renders are matched to the query by the matcher (LightGlue, ...); a cosine
         in (0, 1): by mutual nearest neighbours of the matcher's descriptors above it
