@@ -939,18 +939,14 @@ def _run(args, result: Dict[str, Any], matcher, save) -> None:
                                   lod=lod_arg(args))
             loc.candidate_index(q0.intrinsics, configs["robust"].candidates)
             result["blocks"][f"{scene_name}/candidate_index_s"] = time.perf_counter() - tc
-            if loc.reduced is not None:  # the working resolution's reduced model, not timed
+            if loc.reduced is not None:
+                # the reduced models of the working resolution and of the refinement's levels (at
+                # the model's side when the working side is larger: refine_model_side), not timed
                 tc = time.perf_counter()
-                side = configs["robust"].work_side or loc.model_side
-                work = q0.intrinsics if side is None else q0.intrinsics.scaled(
-                    q0.intrinsics.scale_to_side(side))
-                loc.reduced.model_at(work)
-                # and the rungs of the refinement's levels (at the model's side, when the working
-                # side is larger: RobustConfig.refine_model_side)
                 eff = configs["robust"].at_model_side(q0.intrinsics, loc.model_side)
-                for level in eff.refine.scales:
-                    loc.reduced.model_at(q0.intrinsics.scaled(eff.work_scale(q0.intrinsics)
-                                                              * level))
+                scale = eff.work_scale(q0.intrinsics)
+                for level in (1.0,) + eff.refine.scales:
+                    loc.reduced.model_at(q0.intrinsics.scaled(scale * level))
                 result["blocks"][f"{scene_name}/lod_build_s"] = time.perf_counter() - tc
                 result["blocks"][f"{scene_name}/lod_models"] = [dict(e) for e in
                                                                 loc.reduced.events]
