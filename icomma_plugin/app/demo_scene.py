@@ -626,9 +626,11 @@ def _build_into(
                        input_points=(model.means.numpy(), info["rgb"]))
 
     w2c = torch.as_tensor(invert_rigid(gt_c2w), dtype=torch.float32)
+    dev = torch.device("cuda" if backend == "cuda" else "cpu")  # the CUDA kernel takes GPU inputs
     with torch.no_grad():
-        out = render(model, intr, w2c, torch.zeros(3), backend=backend)
-    Image.fromarray(_to_uint8(out.color)).save(folder / "query.png")
+        out = render(model.to(dev), intr, w2c.to(dev), torch.zeros(3, device=dev),
+                     backend=backend)
+    Image.fromarray(_to_uint8(out.color.cpu())).save(folder / "query.png")
     write_json_atomic(
         folder / "query_gt.json",
         {

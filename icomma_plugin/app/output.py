@@ -131,7 +131,7 @@ def _render_rgb(problem: Problem, c2w: np.ndarray, backend: str, intr=None) -> t
     with torch.no_grad():
         return render(
             problem.model, intr, w2c, problem.bg.to(problem.model.dtype), backend=backend
-        ).color.clamp(0, 1)
+        ).color.clamp(0, 1).cpu()  # pictures are drawn on the CPU, beside the CPU query
 
 
 def write_outputs(

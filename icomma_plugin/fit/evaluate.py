@@ -35,7 +35,7 @@ RenderFn = Callable[[object], torch.Tensor]  # FitView -> colour [3, H, W]
 def half_masks(view) -> tuple:
     """([1, H, W] left-half mask, right-half mask), each times the view's valid mask."""
     i = view.intrinsics
-    left = torch.zeros(1, i.height, i.width, dtype=view.image.dtype)
+    left = torch.zeros(1, i.height, i.width, dtype=view.image.dtype, device=view.image.device)
     left[..., : i.width // 2] = 1.0
     right = 1.0 - left
     if view.valid is not None:
@@ -52,11 +52,11 @@ def photo_psnrs(render: torch.Tensor, view, exposure: Optional[torch.Tensor] = N
     exposure: the photo's own [3, 4] transform (a training photo), or None.
     predicted: a [3, 4] transform predicted for it from other photos, or None.
     """
-    render = render.detach().clamp(0.0, 1.0)
+    render = render.detach().to(view.image.device).clamp(0.0, 1.0)  # a GPU fit's render
     left, right = half_masks(view)
 
     def through(E):
-        return apply_affine_colour(E.to(render.dtype), render).clamp(0.0, 1.0)
+        return apply_affine_colour(E.to(render.device, render.dtype), render).clamp(0.0, 1.0)
 
     out = {
         "full": psnr(render, view.image, view.valid),
@@ -91,7 +91,7 @@ def evaluate_views(render_fn: RenderFn, views: Sequence, exposures: Optional[Map
     shown = set(np.linspace(0, len(views) - 1, keep).round().astype(int).tolist()) if keep else ()
     renders = []
     for k, v in enumerate(views):
-        color = render_fn(v)
+        color = render_fn(v).detach().to(v.image.device)  # the photos' device (a GPU fit: CPU)
         E = None if exposures is None else exposures.get(v.name)
         P = None if predict_exposure is None else predict_exposure(v.w2c)
         per_view[v.name] = photo_psnrs(color, v, E, P)
@@ -210,8 +210,10 @@ def evaluate_model_folder(model_path: PathLike, source_path: Optional[PathLike] 
     bg = (1.0, 1.0, 1.0) if white else (0.0, 0.0, 0.0)
     bg_t = torch.tensor(bg)
 
+    model = folder.model.to("cuda") if backend == "cuda" else folder.model
+
     def render_fn(fv):
-        return render(folder.model, fv.intrinsics, fv.w2c, bg_t, backend=backend).color
+        return render(model, fv.intrinsics, fv.w2c, bg_t, backend=backend).color
 
     exposures = read_exposures(model_path)
     with torch.no_grad():

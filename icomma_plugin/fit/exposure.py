@@ -167,12 +167,13 @@ def fit_affine_colour(render: torch.Tensor, photo: torch.Tensor,
     if mask is not None:
         keep = mask.reshape(-1) > 0.5
         X, Y = X[:, keep], Y[:, keep]
+    f64 = dict(dtype=torch.float64, device=X.device)
     if X.shape[1] < 16:
-        return torch.eye(3, 4, dtype=torch.float64)
+        return torch.eye(3, 4, **f64)
     Xh = torch.cat([X, torch.ones_like(X[:1])], dim=0)  # [4, N]
     # ridge towards the identity keeps a flat region from giving a degenerate matrix
     lam = 1e-4 * X.shape[1]
-    eye = torch.eye(3, 4, dtype=torch.float64)
-    lhs = Xh @ Xh.T + lam * torch.eye(4, dtype=torch.float64)
+    eye = torch.eye(3, 4, **f64)
+    lhs = Xh @ Xh.T + lam * torch.eye(4, **f64)
     rhs = Xh @ Y.T + lam * eye.T
     return torch.linalg.solve(lhs, rhs).T

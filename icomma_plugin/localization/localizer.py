@@ -187,6 +187,8 @@ class Localizer:
         self.backend = check_choice(backend, "backend", BACKENDS)
         self.model_side = check_int(model_side, "model_side", 1, optional=True)
         self.matcher = matcher
+        if self.backend == "cuda" and model.means.device.type != "cuda":
+            model = model.to("cuda")  # the CUDA kernel renders a model on the GPU
         self.model = model.without_zero_sh().detach()
         bg = torch.zeros(3) if background is None else torch.as_tensor(background)
         if bg.numel() != 3 or not bool(torch.isfinite(bg).all()):

@@ -325,7 +325,7 @@ def _hessian_and_jacobian(state, cfg, w2c, scale, out, mask, intr, blur, query, 
             weights = robust.weights(_sq_residual(img, query, mask, cfg.fitted_gain_range), mask)
         return gauss_newton_hessian(img, out.depth, out.alpha, weights, intr,
                                     None if gains is None else (gains, img),
-                                    norm=float(mask.sum())), None
+                                    norm=float(mask.sum())).cpu(), None
     args = (state, cfg, w2c, scale, out, mask, blur, gains, query)
     if not (cfg.hessian_reduced and state.reduced is not None):
         jac = _fd_jacobian(*args, own_render=False)
@@ -412,7 +412,8 @@ class _Jacobian:
             img = self.base if color is None else gaussian_blur(color.detach().double(), self.blur)
             weights = robust.weights(_sq_residual(img, self.query, self.mask, gain_range),
                                      self.mask)
-        return _gauss_newton(self.J, weights, self.exposure, float(self.mask.sum()))
+        # on the CPU, with the twist and its gradient (the Jacobian may be on the GPU)
+        return _gauss_newton(self.J, weights, self.exposure, float(self.mask.sum())).cpu()
 
 
 def _fd_jacobian(state, cfg, w2c, scale, out, mask, blur, gains, query,
