@@ -11,6 +11,7 @@
 #   test    tests/gaussian_renderer_pose/test_cuda.py (CUDA vs native CPU vs float64 reference,
 #           every gradient, determinism) and the localizer's end-to-end CUDA tests
 #   demo    tools/localize.py on the built-in demo scene with renderer=cuda, then renderer=cpu
+#   speed   tools/bench_localize.py --scenes demo --methods robust (10 starts), this backend
 #   raster  tools/bench_rasterizer.py --backends cuda,cpu (300k and 1M Gaussians, 200 and 800 px)
 #   fit     tools/fit_scene.py --backend cuda on the captures of GPU_CHECK_FITS ("capture:r:its",
 #           its 0 = the recipe's count; default fox:4:0) under $GPU_CHECK_DATA, each then --evaluate
@@ -97,6 +98,15 @@ for r, res in rows.items():
 EOF
 }
 
+step_speed() {  # seconds a pose of the default method on the demo scene: this backend, then cpu
+  local b
+  for b in $(echo "$BACKEND cpu" | tr ' ' '\n' | awk '!seen[$0]++'); do
+    $PY tools/bench_localize.py --scenes demo --methods robust --backend "$b" \
+      --threads "$THREADS" --starts ${GPU_CHECK_STARTS:-10} --out "$WORK/bench_localize_$b" \
+      | grep -A 12 "^| scene"
+  done
+}
+
 step_raster() {
   $PY tools/bench_rasterizer.py --backends cuda,cpu --sizes 300000,1000000 --resolutions 200,800 \
     --threads "$THREADS" --repeats 5 --json "$OUT/raster.json"
@@ -129,20 +139,21 @@ step_bench() {  # GPU_CHECK_BENCH: the fit (name as in step_fit) whose held-out 
 }
 
 export OUT PY DATA WORK THREADS LOG BACKEND
-export -f has_cuda_build step_env step_build step_test step_demo step_raster step_fit step_bench
+export -f has_cuda_build step_env step_build step_test step_demo step_speed step_raster step_fit step_bench
 
 if [ -d .whl ] && ls .whl/*.whl >/dev/null 2>&1; then
   $PY -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
     --target /tmp/site .whl/*.whl >>"$LOG" 2>&1 && export PYTHONPATH=/tmp/site${PYTHONPATH:+:$PYTHONPATH}
 fi
 
-STEPS=${*:-env build test demo raster fit bench longfit}
+STEPS=${*:-env build test demo speed raster fit bench longfit}
 for s in $STEPS; do
   case $s in
     env) run_step env 60 step_env ;;
     build) run_step build 300 step_build ;;
     test) run_step test 150 step_test ;;
     demo) run_step demo 120 step_demo ;;
+    speed) run_step speed 120 step_speed ;;
     raster) run_step raster 150 step_raster ;;
     fit) run_step fit 360 step_fit ;;
     bench) run_step bench 150 step_bench ;;
