@@ -17,6 +17,7 @@ import pytest
 import torch
 
 from tests.helpers.fake_cuda import fake_cuda, report
+from tests.tools.test_audit import audit_tool, capture  # noqa: F401 - capture is a fixture
 
 pytestmark = [pytest.mark.usefixtures("native_backend"),
               pytest.mark.filterwarnings("ignore::UserWarning")]
@@ -137,33 +138,44 @@ def test_the_localize_tool_with_renderer_cuda(small_demo, monkeypatch, tmp_path)
         assert (tmp_path / name / "overlay_final.png").is_file()
 
 
-def test_tracking_a_sequence_with_renderer_cuda(monkeypatch, tmp_path):
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory):
+    """(model folder, a folder of 3 photos along a path around it, their true poses' JSON)."""
     from PIL import Image
 
     from icomma_plugin.pose.convert import look_at_c2w
     from tests.helpers.demo import demo_model, photo
-    from tests.helpers.tools import compose, localize_tool
 
-    s, model = demo_model(tmp_path / "model", 80)
-    frames = tmp_path / "frames"
-    frames.mkdir()
+    root = tmp_path_factory.mktemp("frames")
+    s, model = demo_model(root / "model", 80)
+    folder = root / "frames"
+    folder.mkdir()
     gts = {}
     for i in range(3):
         az = 0.4 + 0.05 * i
         c2w = look_at_c2w(np.array([3.8 * np.cos(az), 3.8 * np.sin(az), 2.0]),
                           np.array([0.0, 0.0, 0.4]))
-        Image.fromarray(photo(model, s.intrinsics, c2w)).save(frames / f"frame{i}.png")
+        Image.fromarray(photo(model, s.intrinsics, c2w)).save(folder / f"frame{i}.png")
         gts[f"frame{i}.png"] = c2w.tolist()
-    (tmp_path / "gt.json").write_text(json.dumps(gts))
+    (root / "gt.json").write_text(json.dumps(gts))
+    return s.path, folder, root / "gt.json"
+
+
+@pytest.mark.parametrize("kind", ["sequence", "queries"])
+def test_tracking_and_batches_with_renderer_cuda(frames, monkeypatch, tmp_path, kind):
+    from tests.helpers.tools import compose, localize_tool
+
+    model, folder, gt = frames
     out = tmp_path / "out"
+    extra = (["output.video=false"] if kind == "sequence" else
+             ["output.photo_folders=true", "output.export=[cameras_json,colmap,nerfstudio]"])
     with fake_cuda(monkeypatch) as mode:
         doc = localize_tool().run(compose([
-            "data=model_folder", f"data.model_path={s.path}", "data.intrinsics.camera=ring_000",
-            f"data.gt.poses_file={tmp_path / 'gt.json'}", f"data.sequence={frames}",
-            "data.init=none", f"output.dir={out}", "output.progress=false", "renderer=cuda",
-            "output.video=false"]), out)
+            "data=model_folder", f"data.model_path={model}", "data.intrinsics.camera=ring_000",
+            f"data.gt.poses_file={gt}", f"data.{kind}={folder}", "data.init=none",
+            f"output.dir={out}", "output.progress=false", "renderer=cuda", *extra]), out)
     assert not mode.violations, report(mode)
-    assert all(r["status"] != "failed" for r in doc["photos"]), doc["photos"]
+    assert doc["done"] == 3 and all(r["status"] != "failed" for r in doc["photos"]), doc["photos"]
 
 
 def test_a_benchmark_protocol_with_backend_cuda(monkeypatch):
@@ -205,3 +217,16 @@ def test_photo_anchors_with_a_gpu_model(demo, xfeat, monkeypatch, start):
         res = loc.localize(_query(scene), init, scene.gt_c2w)
     assert not mode.violations, report(mode)
     assert res.rot_err_deg < 0.1 and res.verdict.status == "ok", res.verdict.reason
+
+
+def test_an_audit_with_renderer_cuda(capture, monkeypatch, tmp_path):  # noqa: F811
+    from tests.helpers.tools import compose
+
+    out = tmp_path / "audit"
+    cfg = compose([f"model_path={capture['model']}", "sample=3", "starts=1", "threads=1",
+                   f"output.dir={out}", "output.progress=false", f"cache.dir={tmp_path}",
+                   "renderer=cuda"], name="audit")
+    with fake_cuda(monkeypatch) as mode:
+        doc = audit_tool().run(cfg, out)
+    assert not mode.violations, report(mode)
+    assert (out / "audit.json").is_file() and doc
