@@ -104,6 +104,22 @@ def check_choice(value: Any, name: str, choices: Iterable[Any]) -> Any:
     return value
 
 
+def check_backend_here(backend: str, name: str = "backend") -> str:
+    """``backend`` when this machine can run it; ValueError naming ``name`` and why otherwise.
+
+    ``auto`` and ``reference`` run everywhere; ``cpu`` and ``cuda`` need their native kernel built
+    (and, for ``cuda``, a visible GPU). Checked where a job starts, so that a machine without a GPU
+    refuses ``cuda`` at once with the reason, not at its first render.
+    """
+    from gaussian_renderer_pose import available_backends
+
+    backend = check_choice(backend, name, ("auto", "reference", "cpu", "cuda"))
+    why = available_backends().get(backend)
+    if why is not None:
+        raise ValueError(f"{name}={backend!r} cannot run here: {why} (use auto, or cpu)")
+    return backend
+
+
 def check_pair(value: Any, name: str, lo: Optional[float] = None, hi: Optional[float] = None,
                ordered: bool = True) -> Tuple[float, float]:
     """A pair of finite numbers within the bounds (``ordered``: first <= second)."""

@@ -79,11 +79,12 @@ def torch_threads(requested: Optional[int] = None) -> Iterator[int]:
 
 def check_backend(backend: str) -> str:
     """``backend`` (the renderer group's), when this machine can run it; UserError otherwise."""
-    if backend == "cuda" and not torch.cuda.is_available():
-        raise UserError(
-            "renderer=cuda: no CUDA device is available here (use renderer=auto or cpu)"
-        )
-    return backend
+    from icomma_plugin.checks import check_backend_here
+
+    try:
+        return check_backend_here(backend, "renderer")
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
 
 
 def seed_everything(seed: int) -> None:

@@ -192,11 +192,13 @@ def evaluate_model_folder(model_path: PathLike, source_path: Optional[PathLike] 
         "test_views", "iteration", "num_gaussians", "resolution" [W, H], "per_view" {name:
         full-image dB}, "grid" (the picture's path or None)}.
     """
+    from ..checks import check_backend_here
     from ..io.datasets import read_dataset
     from ..io.model_folder import load_model_folder
     from ..render import render
     from .views import tiny_resolution_message, views_to_fit
 
+    check_backend_here(backend, "backend")
     folder = load_model_folder(model_path, iteration)
     src = source_path if source_path is not None else folder.cfg.get("source_path")
     if not src:

@@ -173,10 +173,14 @@ def fit_scene(
     black otherwise. The initial points are `init.initial_points`'; per-photo exposures are
     fitted when `config.exposure` says so (None: for photographed captures).
     """
+    from ..checks import check_backend_here
     from ..io.model_folder import write_model_folder
 
     t_total = time.perf_counter()
     config = config or FitConfig()
+    check_backend_here(config.backend, "FitConfig.backend")
+    if torch.device(device if device is not None else "cpu").type == "cuda":
+        check_backend_here("cuda", "device")
     src, final = _check_paths(source_path, model_path, overwrite)
     scene = _read_scene(src, white_background, dataset_kwargs)
     bg = (1.0, 1.0, 1.0) if scene.white_background else (0.0, 0.0, 0.0)

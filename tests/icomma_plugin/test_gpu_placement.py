@@ -230,3 +230,21 @@ def test_an_audit_with_renderer_cuda(capture, monkeypatch, tmp_path):  # noqa: F
         doc = audit_tool().run(cfg, out)
     assert not mode.violations, report(mode)
     assert (out / "audit.json").is_file() and doc
+
+
+def test_cuda_where_it_cannot_run_is_refused_at_once_naming_the_argument(demo, xfeat, tmp_path):
+    from gaussian_renderer_pose import available_backends
+    from icomma_plugin.fit import FitConfig, evaluate_model_folder, fit_scene
+    from icomma_plugin.localization.localizer import Localizer
+
+    if available_backends()["cuda"] is None:
+        pytest.skip("the CUDA backend runs here")
+    scene, model, cams = demo
+    with pytest.raises(ValueError, match=r"backend='cuda' cannot run here: .*use auto, or cpu"):
+        Localizer(model, xfeat, cameras=cams, backend="cuda")
+    with pytest.raises(ValueError, match=r"FitConfig.backend='cuda' cannot run here"):
+        fit_scene(tmp_path / "nowhere", tmp_path / "m", FitConfig(iterations=1, backend="cuda"))
+    with pytest.raises(ValueError, match=r"device='cuda' cannot run here"):
+        fit_scene(tmp_path / "nowhere", tmp_path / "m", FitConfig(iterations=1), device="cuda")
+    with pytest.raises(ValueError, match=r"backend='cuda' cannot run here"):
+        evaluate_model_folder(scene.path, backend="cuda")
