@@ -311,6 +311,33 @@ def run_start(scene, st: Start, method: str, cfg, matcher, args) -> Dict[str, An
     }
 
 
+def profile_start(scene, st: Start, cfg, matcher, args, path: Path, rows: int = 40) -> None:
+    """Localize from ``st`` under ``torch.profiler``; write its operator tables to ``path``.
+
+    Sorted by self CPU time, and by self device time when the model is on a GPU (there a
+    matcher of many small operations is bound by their launches: docs/GPU.md).
+    """
+    from torch.profiler import ProfilerActivity, profile
+
+    localizer = scene.localizer(matcher, cfg, args.backend, cache_dir=False, lod=lod_arg(args))
+    gpu = localizer.model.means.device.type == "cuda"
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if gpu else [])
+    q = st.query
+    with profile(activities=activities) as prof:
+        res = localizer.localize(q.query.fresh(), st.init_c2w, q.gt_c2w)
+    averages = prof.key_averages()
+    ops = sum(e.count for e in averages if e.key.startswith("aten::"))
+    text = [f"start {st.index}: {res.rot_err_deg:.4f} deg, {res.verdict.status}, "
+            f"stages {json.dumps({k: round(v, 3) for k, v in res.stage_seconds.items()})}",
+            f"aten operator calls: {ops}", "", "by self CPU time:",
+            averages.table(sort_by="self_cpu_time_total", row_limit=rows)]
+    if gpu:
+        text += ["", "by self device time:",
+                 averages.table(sort_by="self_device_time_total", row_limit=rows)]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(text) + "\n")
+
+
 def trace_stages(trace) -> Dict[str, int]:
     """How many trace records each stage made (geometric rounds, refinement steps, ...)."""
     return dict(collections.Counter(r["stage_name"] for r in trace or []))
@@ -496,7 +523,7 @@ def ratios(records: List[Dict[str, Any]], rows: List[Dict[str, Any]]) -> List[Di
 # ----------------------------------------------------------------------------------------------
 #: Options a reference run does not take: its own output, no nested reference, --quick (already
 #: folded into --starts), per-render timings (not compared), and --set (the config under test).
-_NOT_FORWARDED = ("help", "out", "compare_with", "quick", "render_repeats", "set")
+_NOT_FORWARDED = ("help", "out", "compare_with", "quick", "render_repeats", "set", "profile")
 #: Options always passed; the others only when they differ from their default, so that a
 #: reference checkout older than an option still runs when the option is not used.
 _ALWAYS_FORWARDED = ("scenes", "methods", "starts", "paper_starts", "seed", "queries", "model",
@@ -856,6 +883,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="output folder for results.json / results.md (default outputs/bench_localize/<time>)",
     )
+    ap.add_argument(
+        "--profile",
+        action="store_true",
+        help="after the timed starts of each scene and method, localize the first start once more "
+        "under torch.profiler (CUDA activities too when the model is on a GPU) and write the "
+        "operator table, profile_<scene>_<method>.txt, into --out (not part of the timings)",
+    )
     return ap
 
 
@@ -883,6 +917,7 @@ def _main(args) -> int:
     out_dir = args.out or Path("outputs") / "bench_localize" / datetime.datetime.now().strftime(
         "%Y-%m-%d_%H-%M-%S"
     )
+    args.out = out_dir  # where --profile writes too
     matcher = make_matcher(args.matcher)
     result: Dict[str, Any] = {
         "machine": machine_info(),
@@ -972,6 +1007,10 @@ def _run(args, result: Dict[str, Any], matcher, save) -> None:
                 )
                 block["load_after"] = load_average()
                 save()
+            if args.profile and starts[:n]:
+                path = args.out / f"profile_{scene_name}_{method}.txt"
+                profile_start(scene, starts[0], configs[method], matcher, args, path)
+                log(f"[{scene_name}] {method}: profile of start {starts[0].index} in {path}")
 
 
 if __name__ == "__main__":

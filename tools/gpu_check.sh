@@ -11,7 +11,8 @@
 #   test    tests/gaussian_renderer_pose/test_cuda.py (CUDA vs native CPU vs float64 reference,
 #           every gradient, determinism) and the localizer's end-to-end CUDA tests
 #   demo    tools/localize.py on the built-in demo scene with renderer=cuda, then renderer=cpu
-#   speed   tools/bench_localize.py --scenes demo --methods robust (10 starts), this backend
+#   speed   tools/bench_localize.py --scenes demo --methods robust (10 starts, then one under
+#           torch.profiler: $OUT/profile_<backend>.txt), this backend, then cpu
 #   raster  tools/bench_rasterizer.py --backends cuda,cpu (300k and 1M Gaussians, 200 and 800 px)
 #   fit     tools/fit_scene.py --backend cuda on the captures of GPU_CHECK_FITS ("capture:r:its",
 #           its 0 = the recipe's count; default fox:4:0) under $GPU_CHECK_DATA, each then --evaluate
@@ -103,7 +104,8 @@ step_speed() {  # seconds a pose of the default method on the demo scene: this b
   for b in $(echo "$BACKEND cpu" | tr ' ' '\n' | awk '!seen[$0]++'); do
     $PY tools/bench_localize.py --scenes demo --methods robust --backend "$b" \
       --threads "$THREADS" --starts ${GPU_CHECK_STARTS:-10} --out "$WORK/bench_localize_$b" \
-      | grep -A 12 "^| scene"
+      --profile | grep -A 12 "^| scene"
+    cp "$WORK/bench_localize_$b/profile_demo_robust.txt" "$OUT/profile_$b.txt"
   done
 }
 

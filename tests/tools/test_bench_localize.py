@@ -171,7 +171,7 @@ def test_the_reference_run_gets_every_option_that_shapes_the_runs(tmp_path):
     from tools.bench_localize import _NOT_FORWARDED, build_parser, reference_command
 
     assert set(_NOT_FORWARDED) == {"help", "out", "compare_with", "quick", "render_repeats",
-                                   "set"}
+                                   "set", "profile"}  # the reference's profile: not asked for
     parser = build_parser()
     argv = ["--scenes", "lego400", "--methods", "robust", "--starts", "4", "--paper-starts", "2",
             "--rot", "40,60", "--trans", "0,0.1", "--seed", "7", "--queries", "3",
@@ -209,3 +209,16 @@ def test_set_overrides_the_default_method_and_names_a_bad_key():
                        ("refine.scales=[2, 9]", "scales")):
         with pytest.raises(ValueError, match=words):
             method_config("robust", parser.parse_args(["--set", bad]))
+
+
+def test_profile_writes_the_operator_table_and_is_not_timed(small_demo, tmp_path):
+    from tools.bench_localize import main
+
+    out = tmp_path / "bench"
+    assert main(["--scenes", "demo", "--demo-path", str(small_demo), "--demo-size", "64",
+                 "--methods", "robust", "--starts", "1", "--threads", "1", "--profile",
+                 "--out", str(out)]) == 0
+    assert len(json.loads((out / "results.json").read_text())["records"]) == 1
+    text = (out / "profile_demo_robust.txt").read_text()
+    calls = int(text.split("aten operator calls: ")[1].split()[0])
+    assert calls > 100 and "grp::rasterize_forward" in text and "by self CPU time" in text
