@@ -112,8 +112,9 @@ def check_backend_here(backend: str, name: str = "backend") -> str:
     refuses ``cuda`` at once with the reason, not at its first render.
     """
     from gaussian_renderer_pose import available_backends
+    from gaussian_renderer_pose._dispatch import BACKENDS
 
-    backend = check_choice(backend, name, ("auto", "reference", "cpu", "cuda"))
+    backend = check_choice(backend, name, BACKENDS)
     why = available_backends().get(backend)
     if why is not None:
         raise ValueError(f"{name}={backend!r} cannot run here: {why} (use auto, or cpu)")

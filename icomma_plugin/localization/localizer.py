@@ -170,7 +170,7 @@ class Localizer:
         verdict="auto",
         lod="auto",
     ):
-        from ..checks import check_backend_here, check_choice, check_int
+        from ..checks import check_backend_here, check_int
 
         if not isinstance(model, GaussianModel):
             raise ValueError(f"model must be a GaussianModel, got {type(model).__name__}")
@@ -184,7 +184,7 @@ class Localizer:
         problem = self.method.needs(matcher)
         if problem:
             raise ValueError(problem)
-        self.backend = check_backend_here(check_choice(backend, "backend", BACKENDS))
+        self.backend = check_backend_here(backend, "backend")
         self.model_side = check_int(model_side, "model_side", 1, optional=True)
         self.matcher = matcher
         if self.backend == "cuda" and model.means.device.type != "cuda":
