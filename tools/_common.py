@@ -79,12 +79,19 @@ def torch_threads(requested: Optional[int] = None) -> Iterator[int]:
 
 def check_backend(backend: str) -> str:
     """``backend`` (the renderer group's), when this machine can run it; UserError otherwise."""
+    from gaussian_renderer_pose import available_backends
     from icomma_plugin.checks import check_backend_here
 
     try:
-        return check_backend_here(backend, "renderer")
+        backend = check_backend_here(backend, "renderer")
     except ValueError as exc:
         raise UserError(str(exc)) from None
+    if backend == "auto" and available_backends()["cuda"] is None:
+        # auto renders where the model is, and models load on the CPU
+        logging.getLogger("icomma").info(
+            "a CUDA GPU and the CUDA kernel are here: renderer=cuda runs on the GPU "
+            "(renderer=auto keeps the model on the CPU)")
+    return backend
 
 
 def seed_everything(seed: int) -> None:

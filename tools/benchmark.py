@@ -166,7 +166,7 @@ def run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
 def _run(cfg: DictConfig, output_dir: Path) -> Dict[str, Any]:
     seed = int(cfg.seed)
     common.seed_everything(seed)
-    backend = str(cfg.renderer.backend)
+    backend = common.check_backend(str(cfg.renderer.backend))
     spec = ProtocolSpec.from_dict(common.container(cfg.benchmark_protocol), quick=bool(cfg.quick))
     base = common.build_optimizer(cfg.optimizer)
     if not isinstance(base, LocalizerConfig):

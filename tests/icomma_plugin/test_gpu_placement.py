@@ -248,3 +248,18 @@ def test_cuda_where_it_cannot_run_is_refused_at_once_naming_the_argument(demo, x
         fit_scene(tmp_path / "nowhere", tmp_path / "m", FitConfig(iterations=1), device="cuda")
     with pytest.raises(ValueError, match=r"backend='cuda' cannot run here"):
         evaluate_model_folder(scene.path, backend="cuda")
+
+
+def test_the_tools_say_when_a_gpu_they_do_not_use_is_here(monkeypatch, caplog):
+    import logging
+
+    import gaussian_renderer_pose
+    from tools import _common
+
+    monkeypatch.setattr(gaussian_renderer_pose, "available_backends",
+                        lambda: {"reference": None, "cpu": None, "cuda": None})
+    with caplog.at_level(logging.INFO, logger="icomma"):
+        assert _common.check_backend("auto") == "auto"
+        assert _common.check_backend("cpu") == "cpu"
+    hints = [r for r in caplog.records if "renderer=cuda runs on the GPU" in r.getMessage()]
+    assert len(hints) == 1
