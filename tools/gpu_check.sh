@@ -7,7 +7,8 @@
 # from the start, default 540; a failed step does not stop the next):
 #   env     the GPU, torch, nvcc
 #   build   the CUDA extension in place (TORCH_CUDA_ARCH_LIST, default 9.0; skipped when a _C*.so
-#           that has WITH_CUDA is already there, e.g. carried from an earlier run); copies it to $OUT
+#           that has WITH_CUDA is already there, e.g. carried from an earlier run); a copy without
+#           debug sections goes to $OUT
 #   test    tests/gaussian_renderer_pose/test_cuda.py (CUDA vs native CPU vs float64 reference,
 #           every gradient, determinism) and the localizer's end-to-end CUDA tests
 #   demo    tools/localize.py on the built-in demo scene with renderer=cuda, then renderer=cpu
@@ -72,7 +73,12 @@ step_build() {
     $PY setup.py build_ext --inplace || return 1
   fi
   $PY -c "from gaussian_renderer_pose import available_backends; print('backends', available_backends())"
-  cp gaussian_renderer_pose/_C*.so "$OUT"/
+  # without its debug sections the build fits the 16 MB a returned file may have; carried back in
+  # (gaussian_renderer_pose/_C*.so) it spares the next call's build
+  local so
+  for so in gaussian_renderer_pose/_C*.so; do
+    strip --strip-debug -o "$OUT/$(basename "$so")" "$so" 2>/dev/null || cp "$so" "$OUT"/
+  done
 }
 
 step_test() {
