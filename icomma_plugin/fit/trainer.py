@@ -126,10 +126,12 @@ class FitResult:
 
 
 def render_state(state: GaussianTrainState, view: FitView, bg: torch.Tensor, backend: str = "auto",
-                 means2D: Optional[torch.Tensor] = None, sh_degree: Optional[int] = None):
+                 means2D: Optional[torch.Tensor] = None, sh_degree: Optional[int] = None,
+                 validate: bool = True):
     """Render the trainable Gaussians into `view`.
 
-    Differentiable; ``means2D`` gets the screen-space gradients.
+    Differentiable; ``means2D`` gets the screen-space gradients. ``validate``: the rasterizer's
+    NaN/Inf scans of every per-Gaussian tensor (a host sync each).
     """
     means = state.get("means")
     m = view.matrices(means.dtype, means.device)
@@ -142,8 +144,12 @@ def render_state(state: GaussianTrainState, view: FitView, bg: torch.Tensor, bac
     )
     return rasterize_gaussians(
         means, state.opacities(), settings, means2D=means2D, shs=state.shs(),
-        scales=state.scales(), rotations=state.rotations(),
+        scales=state.scales(), rotations=state.rotations(), validate=validate,
     )
+
+
+#: Steps between the rasterizer's NaN/Inf scans of the Gaussians (the first step is scanned).
+_SCAN_EVERY = 100
 
 
 class Trainer:
@@ -320,7 +326,10 @@ class Trainer:
         means2D = torch.zeros(
             (st.num_gaussians, 3), dtype=self.dtype, device=self.device, requires_grad=True
         )
-        out = render_state(st, view, bg, c.backend, means2D=means2D)
+        # the rasterizer's NaN scans (a host sync per tensor) every _SCAN_EVERY steps, not every
+        # step: a bad parameter is named within that many steps (a non-finite loss at once, below)
+        out = render_state(st, view, bg, c.backend, means2D=means2D,
+                           validate=it % _SCAN_EVERY == 1)
         t1 = time.perf_counter()
         gt = view.image
         if c.random_background and view.alpha is not None:
@@ -331,6 +340,10 @@ class Trainer:
         out.color.backward(dloss)
         t3 = time.perf_counter()
         info = {"loss": float(loss.item())}
+        if not math.isfinite(info["loss"]):
+            render_state(st, view, bg, c.backend)  # names the non-finite tensor, if one is
+            raise FloatingPointError(f"the fit diverged at step {it}: its loss is {info['loss']} "
+                                     "(the Gaussians are finite; lower the learning rates)")
         with torch.no_grad():
             if it < c.densify_until_iter:
                 st.add_densification_stats(means2D.grad, out.radii)

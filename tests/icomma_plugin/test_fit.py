@@ -326,6 +326,39 @@ def test_tiny_end_to_end_fit():
     assert set(res.timings) >= {"render", "backward", "adam", "densify"}
 
 
+def test_steps_scan_for_nan_now_and_then_and_a_bad_parameter_is_named(monkeypatch):
+    """The rasterizer's NaN scans (a host sync per tensor) run every ``_SCAN_EVERY`` steps.
+
+    A parameter that goes bad between them is named at the next scan.
+    """
+    from gaussian_renderer_pose._validate import RasterizerInputError
+    from icomma_plugin.fit import trainer as trainer_mod
+
+    monkeypatch.setattr(trainer_mod, "_SCAN_EVERY", 5)
+    rendered = _render_views(_gt_model(), _ring_poses(4), size=24)
+    xyz, rgb = random_cube_points(100, 0.8, seed=0)
+    cfg = FitConfig.scaled_schedule(40, sh_degree=1, num_random_points=100)
+    trainer = Trainer(model_from_points(xyz, rgb, sh_degree=1), _fit_views(rendered), 3.3, cfg,
+                      background=(0, 0, 0))
+    scans = []
+    real = trainer_mod.rasterize_gaussians
+
+    def counting(*a, validate=True, **k):
+        scans.append(validate)
+        return real(*a, validate=validate, **k)
+
+    monkeypatch.setattr(trainer_mod, "rasterize_gaussians", counting)
+    for _ in range(7):
+        trainer.train_step()
+    assert scans == [True, False, False, False, False, True, False]
+    with torch.no_grad():
+        trainer.state.get("opacity_logit")[5] = float("nan")
+    with pytest.raises(RasterizerInputError, match="opacit"):
+        for _ in range(5):
+            trainer.train_step()
+    assert trainer.iteration <= 11
+
+
 def test_random_background_draws_a_colour_each_step_and_recomposites_only_alpha_views():
     """Random background: a photo is its own target, a view with alpha is re-composited.
 
