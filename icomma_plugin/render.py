@@ -25,7 +25,7 @@ import gaussian_renderer_pose as grp
 from .camera import Intrinsics
 from .gaussians import SH_C0, GaussianModel, GaussianTensors, num_sh_coeffs
 
-__all__ = ["PreparedScene", "prepare_scene", "render"]
+__all__ = ["PreparedScene", "model_for_backend", "prepare_scene", "render"]
 
 
 @dataclass(frozen=True)
@@ -107,6 +107,18 @@ def prepare_scene(model: GaussianModel, sh_degree: Optional[int] = None) -> Prep
             colors = None
     return PreparedScene(*(None if t is None else t.detach()
                            for t in (means, opacities, scales, rotations, shs, colors)), degree)
+
+
+def model_for_backend(model: GaussianModel, backend: str) -> GaussianModel:
+    """``model`` where ``backend`` renders it: moved to the GPU for ``"cuda"``, else as it is.
+
+    The rasterizer renders the tensors where they are and refuses a backend of another device;
+    callers that take a backend name (the Localizer, the fitter's evaluation, the demo scene)
+    move a CPU model here, once.
+    """
+    if backend == "cuda" and model.means.device.type != "cuda":
+        return model.to("cuda")
+    return model
 
 
 def render(

@@ -585,7 +585,7 @@ def _build_into(
 
     from ..io.atomic import write_json_atomic, write_text_atomic
     from ..io.model_folder import write_model_folder
-    from ..render import render
+    from ..render import model_for_backend, render
 
     seed = params["seed"]
     W, H = params["width"], params["height"]
@@ -626,9 +626,8 @@ def _build_into(
                        input_points=(model.means.numpy(), info["rgb"]))
 
     w2c = torch.as_tensor(invert_rigid(gt_c2w), dtype=torch.float32)
-    dev = torch.device("cuda" if backend == "cuda" else "cpu")  # the CUDA kernel takes GPU inputs
-    with torch.no_grad():
-        out = render(model.to(dev), intr, w2c.to(dev), torch.zeros(3, device=dev),
+    with torch.no_grad():  # render() takes the pose and background to the model's device
+        out = render(model_for_backend(model, backend), intr, w2c, torch.zeros(3),
                      backend=backend)
     Image.fromarray(_to_uint8(out.color.cpu())).save(folder / "query.png")
     write_json_atomic(

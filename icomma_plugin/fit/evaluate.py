@@ -195,7 +195,7 @@ def evaluate_model_folder(model_path: PathLike, source_path: Optional[PathLike] 
     from ..checks import check_backend_here
     from ..io.datasets import read_dataset
     from ..io.model_folder import load_model_folder
-    from ..render import render
+    from ..render import model_for_backend, render
     from .views import tiny_resolution_message, views_to_fit
 
     check_backend_here(backend, "backend")
@@ -212,7 +212,7 @@ def evaluate_model_folder(model_path: PathLike, source_path: Optional[PathLike] 
     bg = (1.0, 1.0, 1.0) if white else (0.0, 0.0, 0.0)
     bg_t = torch.tensor(bg)
 
-    model = folder.model.to("cuda") if backend == "cuda" else folder.model
+    model = model_for_backend(folder.model, backend)
 
     def render_fn(fv):
         return render(model, fv.intrinsics, fv.w2c, bg_t, backend=backend).color

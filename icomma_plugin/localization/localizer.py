@@ -29,7 +29,7 @@ import torch
 from ..camera import Intrinsics
 from ..gaussians import GaussianModel
 from ..pose.convert import as_rigid, invert_rigid
-from ..render import prepare_scene
+from ..render import model_for_backend, prepare_scene
 from .candidate_cache import CandidateCache, index_fields, model_fingerprint
 from ..pose.convert import same_pose
 from .anchors import PhotoAnchors, SourcePhoto, name_stem
@@ -187,9 +187,7 @@ class Localizer:
         self.backend = check_backend_here(backend, "backend")
         self.model_side = check_int(model_side, "model_side", 1, optional=True)
         self.matcher = matcher
-        if self.backend == "cuda" and model.means.device.type != "cuda":
-            model = model.to("cuda")  # the CUDA kernel renders a model on the GPU
-        self.model = model.without_zero_sh().detach()
+        self.model = model_for_backend(model, self.backend).without_zero_sh().detach()
         bg = torch.zeros(3) if background is None else torch.as_tensor(background)
         if bg.numel() != 3 or not bool(torch.isfinite(bg).all()):
             raise ValueError(f"background must be 3 finite values (RGB), got {background!r}")
@@ -253,12 +251,11 @@ class Localizer:
         mf = folder if isinstance(folder, ModelFolder) else load_model_folder(
             Path(str(folder)).expanduser(), iteration=iteration)
         white = mf.white_background if white_background is None else bool(white_background)
-        model = mf.model.to("cuda") if backend == "cuda" else mf.model
         if isinstance(photos, str):
             if photos != "auto":
                 raise ValueError(f"photos must be 'auto', None or a list, got {photos!r}")
             photos = source_photos(mf, white)
-        return cls(model, matcher, method, cameras=mf.cameras, backend=backend,
+        return cls(mf.model, matcher, method, cameras=mf.cameras, backend=backend,
                    background=torch.ones(3) if white else torch.zeros(3),
                    model_side=mf.training_side(), cache_dir=cache_dir, photos=photos,
                    verdict=verdict, lod=lod)

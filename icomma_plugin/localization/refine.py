@@ -342,7 +342,7 @@ _GN_BLOCK = 1 << 16
 
 def _gauss_newton(J: torch.Tensor, mask: torch.Tensor, exposure=None,
                   norm: Optional[float] = None) -> torch.Tensor:
-    """``2 J^T W J / (C N)``, float64, of a ``[C, 6, H, W]`` render Jacobian, ``W`` = ``mask``.
+    """``2 J^T W J / (C N)`` (float64, on the CPU) of a ``[C, 6, H, W]`` Jacobian, ``W`` = mask.
 
     ``N`` is ``norm``, or the mask's sum (a robust loss's weights are not its normaliser).
     ``exposure`` ``(gains [C], base [C, H, W])``: the Gauss-Newton matrix of the exposure-profiled
@@ -382,7 +382,8 @@ def _gauss_newton(J: torch.Tensor, mask: torch.Tensor, exposure=None,
         H = (H - a.unsqueeze(2) * a.unsqueeze(1) / sw
              - c.unsqueeze(2) * c.unsqueeze(1) / rr.view(C, 1, 1))
         H = H * (exposure[0].double() ** 2).view(C, 1, 1)
-    return 2.0 * H.sum(0) / (C * max(norm or sw, 1e-12))
+    # on the CPU, with the twist and its gradient (the Jacobian may be on the GPU)
+    return (2.0 * H.sum(0) / (C * max(norm or sw, 1e-12))).cpu()
 
 
 @dataclass
@@ -412,8 +413,7 @@ class _Jacobian:
             img = self.base if color is None else gaussian_blur(color.detach().double(), self.blur)
             weights = robust.weights(_sq_residual(img, self.query, self.mask, gain_range),
                                      self.mask)
-        # on the CPU, with the twist and its gradient (the Jacobian may be on the GPU)
-        return _gauss_newton(self.J, weights, self.exposure, float(self.mask.sum())).cpu()
+        return _gauss_newton(self.J, weights, self.exposure, float(self.mask.sum()))
 
 
 def _fd_jacobian(state, cfg, w2c, scale, out, mask, blur, gains, query,
