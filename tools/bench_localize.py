@@ -67,9 +67,9 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 if __package__:
-    from ._common import apply_overrides, torch_threads  # noqa: E402
+    from ._common import apply_overrides, parse_overrides, torch_threads  # noqa: E402
 else:  # run as a script from a checkout
-    from tools._common import apply_overrides, torch_threads  # noqa: E402
+    from tools._common import apply_overrides, parse_overrides, torch_threads  # noqa: E402
 
 SCENES = ("lego200", "lego400", "demo")
 METHODS = ("robust", "icomma")
@@ -523,7 +523,8 @@ def ratios(records: List[Dict[str, Any]], rows: List[Dict[str, Any]]) -> List[Di
 # ----------------------------------------------------------------------------------------------
 #: Options a reference run does not take: its own output, no nested reference, --quick (already
 #: folded into --starts), per-render timings (not compared), and --set (the config under test).
-_NOT_FORWARDED = ("help", "out", "compare_with", "quick", "render_repeats", "set", "profile")
+_NOT_FORWARDED = ("help", "out", "compare_with", "quick", "render_repeats", "set", "matcher_set",
+                  "profile")
 #: Options always passed; the others only when they differ from their default, so that a
 #: reference checkout older than an option still runs when the option is not used.
 _ALWAYS_FORWARDED = ("scenes", "methods", "starts", "paper_starts", "seed", "queries", "model",
@@ -864,6 +865,13 @@ def build_parser() -> argparse.ArgumentParser:
         "override against the defaults on the same starts",
     )
     ap.add_argument(
+        "--matcher-set",
+        action="append",
+        metavar="KEY=VALUE",
+        help="a keyword argument of the matcher, e.g. --matcher-set max_keypoints=512 "
+        "(repeatable; YAML values). Not passed to --compare-with, as --set",
+    )
+    ap.add_argument(
         "--query-scale",
         type=float,
         default=None,
@@ -918,7 +926,12 @@ def _main(args) -> int:
         "%Y-%m-%d_%H-%M-%S"
     )
     args.out = out_dir  # where --profile writes too
-    matcher = make_matcher(args.matcher)
+    try:
+        matcher = make_matcher(args.matcher, **dict(parse_overrides(args.matcher_set or [],
+                                                                     "--matcher-set")))
+    except (ValueError, TypeError) as e:  # an unknown or malformed argument: one line
+        print(f"error: --matcher-set: {e}", file=sys.stderr)
+        return 2
     result: Dict[str, Any] = {
         "machine": machine_info(),
         "load_before": load_average(),

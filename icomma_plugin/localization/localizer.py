@@ -25,6 +25,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import torch
+from gaussian_renderer_pose._dispatch import BACKENDS as _RASTER_BACKENDS
 
 from ..camera import Intrinsics
 from ..gaussians import GaussianModel
@@ -45,8 +46,8 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["BACKENDS", "Localizer", "Method", "source_photos"]
 
-#: The rasterizer backends a Localizer renders with.
-BACKENDS = ("auto", "cpu", "cuda", "reference")
+#: The rasterizer backends a Localizer renders with (the rasterizer's own list).
+BACKENDS = _RASTER_BACKENDS
 
 #: A method's config: the default (``RobustConfig``) or the paper's (``LocalizerConfig``). A
 #: method has ``name``, ``needs_start``, ``needs(matcher)``, ``at_model_side(...)`` and

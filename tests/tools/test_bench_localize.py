@@ -108,6 +108,10 @@ def test_bad_input_is_one_line(tmp_path, capsys):
     assert "error: --model: model folder not found" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["--scenes", "mars"])
+    assert main(["--matcher-set", "max_keypoint=5", "--quick"]) == 2
+    assert "error: --matcher-set:" in capsys.readouterr().err
+    assert main(["--matcher-set", "max_keypoints", "--quick"]) == 2
+    assert "expected key=value" in capsys.readouterr().err
 
 
 def test_cpu_stages_add_up_and_a_raising_run_is_recorded(small_demo, tmp_path, monkeypatch):
@@ -171,7 +175,7 @@ def test_the_reference_run_gets_every_option_that_shapes_the_runs(tmp_path):
     from tools.bench_localize import _NOT_FORWARDED, build_parser, reference_command
 
     assert set(_NOT_FORWARDED) == {"help", "out", "compare_with", "quick", "render_repeats",
-                                   "set", "profile"}  # the reference's profile: not asked for
+                                   "set", "matcher_set", "profile"}  # its profile: not asked
     parser = build_parser()
     argv = ["--scenes", "lego400", "--methods", "robust", "--starts", "4", "--paper-starts", "2",
             "--rot", "40,60", "--trans", "0,0.1", "--seed", "7", "--queries", "3",
@@ -179,7 +183,7 @@ def test_the_reference_run_gets_every_option_that_shapes_the_runs(tmp_path):
             "--matcher", "sift", "--backend", "torch", "--paper-max-iterations", "9",
             "--threads", "1", "--lod", "off", "--work-side", "800", "--query-scale", "2",
             "--render-repeats", "3", "--compare-with", "/ref", "--out", "/o",
-            "--set", "refine.hessian_reduced=false"]
+            "--set", "refine.hessian_reduced=false", "--matcher-set", "max_keypoints=256"]
     args = parser.parse_args(argv)
     cmd = reference_command(args, Path("/ref/tools/bench_localize.py"), tmp_path)
     assert cmd[2:4] == ["--out", str(tmp_path)]
@@ -188,7 +192,7 @@ def test_the_reference_run_gets_every_option_that_shapes_the_runs(tmp_path):
         if name not in _NOT_FORWARDED:
             assert getattr(ref, name) == value, name
     assert ref.compare_with is None and ref.render_repeats == 0
-    assert ref.set is None  # the config under test: the reference runs its own defaults
+    assert ref.set is None and ref.matcher_set is None  # the reference runs its own defaults
     # options left at their defaults are not passed (an older checkout may not know them)
     plain = reference_command(parser.parse_args(["--starts", "2"]), Path("s"), tmp_path)
     for option in ("--lod", "--work-side", "--query-scale", "--dataset", "--demo-size"):
