@@ -35,8 +35,10 @@ __all__ = [
     "container",
     "git_describe",
     "parse_overrides",
+    "passive_wait_note",
     "run_or_exit",
     "seed_everything",
+    "thread_env",
     "torch_threads",
 ]
 
@@ -66,11 +68,42 @@ def choose_threads(requested: Optional[int] = None) -> int:
     return max(1, min(cores, int(cores - load + 0.5)))
 
 
+#: Environment variables that set how the OpenMP / MKL threads behave (recorded by benchmarks).
+THREAD_ENV = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OMP_WAIT_POLICY", "GOMP_SPINCOUNT",
+              "KMP_BLOCKTIME", "OMP_PROC_BIND")
+
+
+def thread_env() -> Dict[str, str]:
+    """The ``THREAD_ENV`` variables that are set, and their values."""
+    return {k: os.environ[k] for k in THREAD_ENV if k in os.environ}
+
+
+def passive_wait_note(threads: int) -> Optional[str]:
+    """What ``OMP_WAIT_POLICY=PASSIVE`` costs at ``threads`` threads (None: nothing).
+
+    Passive OpenMP threads sleep between parallel regions, and each of the matcher's thousands
+    of small operations a pose waits for them to wake: on the 2-core development machine a lego
+    pose took 0.81 s with it and 0.53-0.61 s without, LighterGlue 81 against 29 ms a call
+    (docs/SPEED.md, "The OpenMP wait policy").
+    """
+    if threads < 2 or os.environ.get("OMP_WAIT_POLICY", "").strip().upper() != "PASSIVE":
+        return None
+    return (f"OMP_WAIT_POLICY=PASSIVE is set: with {threads} threads the matcher's small "
+            "operations wait for sleeping threads (a lego pose 1.4x slower on 2 cores); unset it "
+            "unless other busy processes share these cores (docs/SPEED.md)")
+
+
 @contextlib.contextmanager
 def torch_threads(requested: Optional[int] = None) -> Iterator[int]:
-    """Use ``choose_threads(requested)`` threads inside the block; restore torch's count after."""
+    """Use ``choose_threads(requested)`` threads inside the block; restore torch's count after.
+
+    Logs `passive_wait_note` when it applies.
+    """
     before = torch.get_num_threads()
     torch.set_num_threads(choose_threads(requested))
+    note = passive_wait_note(torch.get_num_threads())
+    if note:
+        logging.getLogger("icomma").info(note)
     try:
         yield torch.get_num_threads()
     finally:

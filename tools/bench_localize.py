@@ -67,9 +67,9 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 if __package__:
-    from ._common import apply_overrides, parse_overrides, torch_threads  # noqa: E402
+    from ._common import apply_overrides, parse_overrides, thread_env, torch_threads  # noqa: E402
 else:  # run as a script from a checkout
-    from tools._common import apply_overrides, parse_overrides, torch_threads  # noqa: E402
+    from tools._common import apply_overrides, parse_overrides, thread_env, torch_threads  # noqa: E402
 
 SCENES = ("lego200", "lego400", "demo")
 METHODS = ("robust", "icomma")
@@ -149,6 +149,7 @@ def machine_info() -> Dict[str, Any]:
         "cpu": cpu,
         "cores": cores,
         "torch_threads": torch.get_num_threads(),
+        "thread_env": thread_env(),  # OMP_WAIT_POLICY=PASSIVE: ~1.4x a lego pose
         "torch": torch.__version__,
         "python": platform.python_version(),
         "commit": commit,
@@ -638,8 +639,9 @@ def markdown(result: Dict[str, Any]) -> str:
     ]
     lines = [
         f"threads: {m['torch_threads']} (cores: {m['cores']}, {m['cpu']}), torch {m['torch']}, "
-        f"commit "
-        f"{m['commit']}; load average (1, 5, 15 min) before: {result['load_before']}, after: "
+        f"commit {m['commit']}"
+        + "".join(f", {k}={v}" for k, v in (m.get("thread_env") or {}).items())
+        + f"; load average (1, 5, 15 min) before: {result['load_before']}, after: "
         f"{result['load_after']}",
         f"starts: rotation {a['rot']} deg about the origin, translation +-{a['trans']} per axis, "
         f"seed {a['seed']}; medians over n starts; success = < {SUCCESS[0]:g} deg and "

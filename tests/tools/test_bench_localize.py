@@ -166,6 +166,14 @@ def test_markdown_rows_match_the_header():
     assert (got["n"], got["errors"], got["wall s"], got["CPU s"]) == ("4", "1", "2.50", "1.50")
     assert (got["success"], got["verdict ok"], got["iterations"]) == ("75 %", "50 %", "7")
     assert (got["final rot deg"], got["final trans"]) == ("0.010", "0.0010")
+    assert "OMP_WAIT_POLICY" not in lines[0]
+    # the thread environment the timings depend on is in the header line
+    md = markdown({"machine": {"torch_threads": 2, "cores": 2, "cpu": "x", "torch": "t",
+                               "commit": None, "thread_env": {"OMP_WAIT_POLICY": "PASSIVE"}},
+                   "args": {"rot": [20, 40], "trans": [0, 0.2], "seed": 1}, "load_before": None,
+                   "load_after": None, "rows": [row], "blocks": {}, "ratios": [],
+                   "render_timings": {}})
+    assert ", OMP_WAIT_POLICY=PASSIVE;" in md.splitlines()[0]
 
 
 def test_the_reference_run_gets_every_option_that_shapes_the_runs(tmp_path):

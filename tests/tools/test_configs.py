@@ -262,3 +262,30 @@ def test_every_tools_set_reads_values_one_way():
                        ("=1", "expected key=value"), ("x", "expected key=value")):
         with pytest.raises(ValueError, match=words):
             apply_overrides(cfg, [bad], "the config")
+
+
+def test_a_passive_openmp_wait_is_named_where_it_costs(monkeypatch, caplog):
+    """torch_threads says when OMP_WAIT_POLICY=PASSIVE slows the matcher (2+ threads only)."""
+    import logging
+
+    common = _tools_common()
+    passive_wait_note, thread_env = common.passive_wait_note, common.thread_env
+    torch_threads = common.torch_threads
+    monkeypatch.delenv("OMP_WAIT_POLICY", raising=False)
+    assert passive_wait_note(2) is None and "OMP_WAIT_POLICY" not in thread_env()
+    monkeypatch.setenv("OMP_WAIT_POLICY", "passive")
+    assert passive_wait_note(1) is None  # one thread has nobody to wait for
+    assert "OMP_WAIT_POLICY=PASSIVE" in passive_wait_note(2)
+    assert thread_env()["OMP_WAIT_POLICY"] == "passive"
+    before = torch.get_num_threads()
+    with caplog.at_level(logging.INFO, logger="icomma"):
+        with torch_threads(2) as n:
+            assert n == 2
+    assert any("OMP_WAIT_POLICY=PASSIVE" in r.getMessage() for r in caplog.records)
+    assert torch.get_num_threads() == before
+    caplog.clear()
+    monkeypatch.setenv("OMP_WAIT_POLICY", "ACTIVE")
+    with caplog.at_level(logging.INFO, logger="icomma"):
+        with torch_threads(2):
+            pass
+    assert not any("OMP_WAIT_POLICY" in r.getMessage() for r in caplog.records)
