@@ -16,6 +16,7 @@ import os
 import random
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple, TypeVar
 
@@ -30,6 +31,7 @@ __all__ = [
     "apply_overrides",
     "build_matcher",
     "build_optimizer",
+    "busy_cores_now",
     "check_backend",
     "choose_threads",
     "container",
@@ -47,13 +49,43 @@ class UserError(ValueError):
     """Bad input from the command line or the config: reported as one line, no traceback."""
 
 
+def _cpu_times(stat: str = "/proc/stat") -> Tuple[int, int]:
+    """(all, idle) jiffies of the machine's CPUs so far (the ``cpu`` line of ``stat``)."""
+    with open(stat) as f:
+        fields = f.readline().split()
+    if not fields or fields[0] != "cpu" or len(fields) < 5:
+        raise ValueError(f"{stat}: no aggregate cpu line")
+    ticks = [int(v) for v in fields[1:9]]  # user nice system idle iowait irq softirq steal
+    return sum(ticks), ticks[3] + (ticks[4] if len(ticks) > 4 else 0)
+
+
+def busy_cores_now(seconds: float = 0.2, stat: str = "/proc/stat") -> Optional[float]:
+    """How many cores other work keeps busy now: the machine's non-idle share over ``seconds``.
+
+    This process sleeps meanwhile, so its own past work does not count. None where ``stat``
+    cannot be read (not Linux).
+    """
+    try:
+        all0, idle0 = _cpu_times(stat)
+        time.sleep(seconds)
+        all1, idle1 = _cpu_times(stat)
+    except (OSError, ValueError):
+        return None
+    if all1 <= all0:
+        return None
+    return (1.0 - (idle1 - idle0) / (all1 - all0)) * (os.cpu_count() or 1)
+
+
 def choose_threads(requested: Optional[int] = None) -> int:
     """Torch intra-op thread count: ``requested`` when positive, else automatic.
 
-    Automatic means the cores left free by other work: round(cores - 1-minute load average),
-    at least 1. Intra-op threads that share a core with another busy process stall at every
-    OpenMP barrier: on a 2-core machine with one other busy process, 2 threads ran the demo ~15x
-    slower than 1 thread (243 s vs 15 s).
+    Automatic means the cores left free by other work: round(cores - busy), at least 1, with
+    busy the 1-minute load average, or the cores busy now (`busy_cores_now`) when that is fewer:
+    the load average still counts a run that has just ended (after a 2-thread benchmark it read
+    1.3-1.5 on the idle 2-core machine, and the next tool took 1 thread). Intra-op threads that
+    share a core with another busy process stall at every OpenMP barrier: on a 2-core machine
+    with one other busy process, 2 threads ran the demo ~15x slower than 1 thread (243 s vs
+    15 s).
     """
     if requested is not None and int(requested) > 0:
         return int(requested)
@@ -65,6 +97,10 @@ def choose_threads(requested: Optional[int] = None) -> int:
         load = os.getloadavg()[0]
     except OSError:
         load = 0.0
+    if load > 0.5:  # busy, or busy a moment ago: look at now
+        now = busy_cores_now()
+        if now is not None:
+            load = min(load, now)
     return max(1, min(cores, int(cores - load + 0.5)))
 
 

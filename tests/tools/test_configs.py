@@ -289,3 +289,43 @@ def test_a_passive_openmp_wait_is_named_where_it_costs(monkeypatch, caplog):
         with torch_threads(2):
             pass
     assert not any("OMP_WAIT_POLICY" in r.getMessage() for r in caplog.records)
+
+
+def test_automatic_threads_follow_the_cores_busy_now_not_a_stale_load(monkeypatch, tmp_path):
+    """A load average left by a run that has ended does not cost the next tool its threads.
+
+    The cores busy now come from two readings of /proc/stat; a busy process still counts.
+    """
+    import itertools
+    import os
+
+    common = _tools_common()
+    stat = tmp_path / "stat"
+
+    def readings(*pairs):  # successive (all, idle) jiffies of the aggregate cpu line
+        lines = itertools.cycle(f"cpu  {a - i} 0 0 {i} 0 0 0 0 0 0\n" for a, i in pairs)
+        real_open = open
+
+        def fake_open(path, *args, **kw):
+            if str(path) == "/proc/stat":
+                stat.write_text(next(lines))
+                return real_open(stat, *args, **kw)
+            return real_open(path, *args, **kw)
+
+        monkeypatch.setattr("builtins.open", fake_open)
+
+    monkeypatch.setattr(common.time, "sleep", lambda s: None)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(os, "getloadavg", lambda: (1.4, 1.0, 0.9))
+    readings((1000, 500), (1200, 700))  # the last 200 jiffies all idle
+    assert common.busy_cores_now() == 0.0
+    assert common.choose_threads() == 2  # the load average alone gave 1
+    readings((1000, 500), (1200, 600))  # one of two cores busy now
+    assert common.busy_cores_now() == pytest.approx(1.0)
+    assert common.choose_threads() == 1
+    assert common.choose_threads(3) == 3  # asked for: as asked
+    monkeypatch.setattr(common, "_cpu_times", lambda stat="": (_ for _ in ()).throw(OSError()))
+    assert common.busy_cores_now() is None and common.choose_threads() == 1  # the load average
+    monkeypatch.setattr(os, "getloadavg", lambda: (0.2, 0.2, 0.2))
+    assert common.choose_threads() == 2
