@@ -125,8 +125,8 @@ def passive_wait_note(threads: int) -> Optional[str]:
     if threads < 2 or os.environ.get("OMP_WAIT_POLICY", "").strip().upper() != "PASSIVE":
         return None
     return (f"OMP_WAIT_POLICY=PASSIVE is set: with {threads} threads the matcher's small "
-            "operations wait for sleeping threads (a lego pose 1.4x slower on 2 cores); unset it "
-            "unless other busy processes share these cores (docs/SPEED.md)")
+            "operations wait for sleeping threads (a lego pose 1.3-1.9x slower on 2 cores); "
+            "unset it unless other busy processes share these cores (docs/SPEED.md)")
 
 
 @contextlib.contextmanager

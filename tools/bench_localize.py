@@ -149,7 +149,7 @@ def machine_info() -> Dict[str, Any]:
         "cpu": cpu,
         "cores": cores,
         "torch_threads": torch.get_num_threads(),
-        "thread_env": thread_env(),  # OMP_WAIT_POLICY=PASSIVE: ~1.4x a lego pose
+        "thread_env": thread_env(),  # OMP_WAIT_POLICY=PASSIVE: 1.3-1.9x a lego pose
         "torch": torch.__version__,
         "python": platform.python_version(),
         "commit": commit,
@@ -932,7 +932,7 @@ def _main(args) -> int:
         matcher = make_matcher(args.matcher, **dict(parse_overrides(args.matcher_set or [],
                                                                      "--matcher-set")))
     except (ValueError, TypeError) as e:  # an unknown or malformed argument: one line
-        print(f"error: --matcher-set: {e}", file=sys.stderr)
+        print(f"error: {'--matcher-set: ' if args.matcher_set else ''}{e}", file=sys.stderr)
         return 2
     result: Dict[str, Any] = {
         "machine": machine_info(),
