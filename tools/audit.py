@@ -152,6 +152,7 @@ def _run(cfg: DictConfig, out: Path) -> Dict[str, Any]:
     from icomma_plugin.app.audit import audit_pictures, run_audit, select_views
     from icomma_plugin.app.problem import open_model_folder, scene_centre_of
     from icomma_plugin.io.atomic import write_json_atomic
+    from icomma_plugin.io.datasets.colmap_tracks import record_precision
     from icomma_plugin.localization.calibration import model_key
     from icomma_plugin.pose.convert import cameras_extent
 
@@ -162,6 +163,7 @@ def _run(cfg: DictConfig, out: Path) -> Dict[str, Any]:
     mf, white = open_model_folder({"model_path": _model_path(cfg), "iteration": cfg.iteration,
                                    "white_background": cfg.white_background})
     root, train = _photos_to_audit(cfg, mf, white)
+    records = record_precision(root)  # {} unless the capture has COLMAP tracks
     views = select_views(train, plan.sample)
     localizer = _localizer(cfg, mf, white, train, backend)
     scale = cameras_extent([e.c2w for e in mf.cameras] or [v.c2w for v in train])
@@ -180,7 +182,8 @@ def _run(cfg: DictConfig, out: Path) -> Dict[str, Any]:
                     scene_centre=scene_centre_of(mf.model), image_scale=image_scale,
                     settings={"config": common.container(cfg), **identity,
                               "train_photos": len(train)},
-                    identity=identity, on_camera=hook, progress=bool(oc.get("progress")))
+                    identity=identity, on_camera=hook, progress=bool(oc.get("progress")),
+                    records=records)
     doc["calibration"] = _calibrate(cfg, doc, mf.model, out, calibration)
     doc["files"] = audit_pictures(out, doc, [e.c2w for e in mf.cameras] or None,
                                   sheet=bool(oc.get("contact_sheet")),
@@ -246,6 +249,12 @@ def summary(doc: Dict[str, Any]) -> str:
         lines.append(f"  control: the model's renders at the records come back to "
                      f"{control:.3f} deg (median): "
                      + _control_reading(s.get("median_rot_err_deg_unflagged"), control))
+    record = s.get("median_record_rot_std_deg")
+    if record is not None:
+        lines.append(f"  records: the capture's own tracks fix a recorded rotation to {record:.3f} "
+                     f"deg (median rms, first order); {s['unflagged_within_record']} of "
+                     f"{s['unflagged_with_record']} unflagged photos lie within their record's "
+                     "uncertainty (99 %)")
     if cal.get("stored"):
         moved = ", ".join(f"{k} {a:g} -> {b:g}" for k, (a, b) in cal["changed"].items())
         lines.append(f"  calibration ({cal['counts']['used']} right ok poses): "

@@ -44,8 +44,10 @@ import numpy as np
 
 from ..checks import check_bool, check_choice, check_int, check_pair, check_real
 from ..io.atomic import write_json_atomic
+from ..io.datasets.colmap_tracks import precision_of
 from ..localization.types import VERDICTS, Query
-from ..pose.convert import rotation_error_deg, translation_error
+from ..pose.convert import invert_rigid, rotation_error_deg, translation_error
+from ..pose.precision import WITHIN_SIGMAS, rotation_sigmas
 from .inputs import INIT_PIVOTS, natural_key, perturbed_start
 
 logger = logging.getLogger(__name__)
@@ -324,6 +326,24 @@ def summarize_camera(name: str, rows: Sequence[Mapping[str, Any]], rule: FlagRul
     }
 
 
+def attach_record(camera: Dict[str, Any], record: Optional[Mapping[str, Any]]) -> None:
+    """Put a record's own precision on its camera summary (``record``, None without one).
+
+    ``record_sigmas``: the Mahalanobis distance of the shown pose's rotation from the record's
+    under the record's rotation covariance (``pose.precision.rotation_sigmas``); ``within_record``:
+    at most ``WITHIN_SIGMAS`` (the photo and its record agree as far as the record can tell).
+    """
+    camera["record"] = None if record is None else dict(record)
+    sig = None
+    if record is not None and record.get("rot_cov") and camera.get("c2w") is not None \
+            and camera.get("recorded_c2w") is not None:
+        sig = rotation_sigmas(invert_rigid(np.asarray(camera["c2w"], np.float64)),
+                              invert_rigid(np.asarray(camera["recorded_c2w"], np.float64)),
+                              record["rot_cov"])
+    camera["record_sigmas"] = sig
+    camera["within_record"] = None if sig is None else sig <= WITHIN_SIGMAS
+
+
 def audit_summary(cameras: Sequence[Mapping[str, Any]], rows: Sequence[Mapping[str, Any]],
                   rule: FlagRule) -> Dict[str, Any]:
     """The audit's totals: runs, verdicts, flagged cameras by flag, ``ok`` poses off the record.
@@ -350,6 +370,13 @@ def audit_summary(cameras: Sequence[Mapping[str, Any]], rows: Sequence[Mapping[s
             (c.get("control") or {}).get("rot_err_deg") for c in cameras),
         "median_control_trans_err_rel": _median(
             (c.get("control") or {}).get("trans_err_rel") for c in cameras),
+        # how precisely the capture's own tracks fix its records (None without tracks)
+        "median_record_rot_std_deg": _median(
+            (c.get("record") or {}).get("rot_std_deg") for c in cameras),
+        "unflagged_within_record": sum(1 for c in cameras
+                                       if not c.get("flag") and c.get("within_record")),
+        "unflagged_with_record": sum(1 for c in cameras
+                                     if not c.get("flag") and c.get("within_record") is not None),
     }
 
 
@@ -453,7 +480,8 @@ def run_audit(localizer, views: Sequence[Any], plan: AuditPlan, rule: FlagRule, 
               settings: Optional[Dict[str, Any]] = None,
               identity: Optional[Dict[str, Any]] = None,
               on_camera: Optional[Callable[[Any, Query, Dict[str, Any]], Any]] = None,
-              progress: bool = True) -> Dict[str, Any]:
+              progress: bool = True,
+              records: Optional[Mapping[str, Mapping[str, Any]]] = None) -> Dict[str, Any]:
     """Audit ``views`` (already selected) with ``localizer``; write and return ``audit.json``.
 
     Args:
@@ -470,6 +498,8 @@ def run_audit(localizer, views: Sequence[Any], plan: AuditPlan, rule: FlagRule, 
             (:class:`AuditJournal`).
         on_camera: called with (view, query, camera summary) after each camera (thumbnails).
         progress: a tqdm bar over the runs.
+        records: each record's own precision by photo name (``colmap_tracks.record_precision``;
+            None or {} when the capture has no tracks): attached to its camera (``record``).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -507,6 +537,7 @@ def run_audit(localizer, views: Sequence[Any], plan: AuditPlan, rule: FlagRule, 
                 bar.run(None, cameras)
             rows += cam_rows
             cameras.append(summarize_camera(name, cam_rows, rule, scene_scale, control))
+            attach_record(cameras[-1], precision_of(records or {}, name))
             if on_camera is not None:
                 on_camera(view, query or Query.from_view(view, bg, image_scale(view)),
                           cameras[-1])

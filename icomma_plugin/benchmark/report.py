@@ -16,13 +16,14 @@ from typing import Any, Dict, List, Optional, Sequence
 
 import numpy as np
 
+from ..pose.precision import WITHIN_SIGMAS
 from .metrics import failure_stats, mean_or_none, pose_auc, success_curve, success_mask
 from .paper import NOT_FOUND, PaperValue, paper_value
 from .protocols import METHODS, ProtocolSpec
 from .runner import threshold_key
 
 __all__ = ["calibrated_status", "summarize", "table_rows", "markdown", "save_plots",
-           "paper_method", "verdict_stats"]
+           "paper_method", "record_stats", "verdict_stats"]
 
 PERCENT_METRICS = (
     "success_rate",
@@ -33,12 +34,34 @@ PERCENT_METRICS = (
     "verdict_precision_calibrated",
     "verdict_recall_calibrated",
     "wrong_flagged_calibrated",
+    "within_record",
 )
 
 #: The metrics of the verdict with a model's calibrated thresholds (in a cell only when the
 #: summary was given a calibration).
 CALIBRATED_METRICS = ("verdict_precision_calibrated", "verdict_recall_calibrated",
                       "wrong_flagged_calibrated")
+
+#: The metrics of the queries' records' own precision (in a cell only when the capture has
+#: COLMAP tracks: ``io/datasets/colmap_tracks.py``).
+RECORD_METRICS = ("median_record_rot_std_deg", "within_record")
+
+
+def record_stats(records: Sequence[Dict[str, Any]]) -> Dict[str, Any]:
+    """How precisely the capture's tracks fix the queries' records, beside the errors.
+
+    ``median_record_rot_std_deg``: the median of the runs' record rms rotation uncertainty;
+    ``within_record``: the share of those runs whose pose lies within its record's uncertainty
+    (``record_sigmas``, the rotation's Mahalanobis distance, at most ``WITHIN_SIGMAS``; a run
+    without a pose is not). Empty when no run's query has a record precision.
+    """
+    rs = [r for r in records if r.get("record_rot_std_deg")]
+    if not rs:
+        return {}
+    within = [r.get("record_sigmas") is not None and r["record_sigmas"] <= WITHIN_SIGMAS
+              for r in rs]
+    return {"median_record_rot_std_deg": float(np.median([r["record_rot_std_deg"] for r in rs])),
+            "within_record": float(np.mean(within))}
 
 
 def _groups(spec: ProtocolSpec, records: Sequence[Dict[str, Any]]):
@@ -77,6 +100,7 @@ def summarize(spec: ProtocolSpec, records: Sequence[Dict[str, Any]],
             cell["median_seconds"] = float(np.median(secs)) if secs else None
             cell["mean_iterations"] = mean_or_none(r.get("iterations") for r in rs)
             cell.update(verdict_stats(rs, spec.thresholds[0], calibration))
+            cell.update(record_stats(rs))
         cell["num_errors"] = sum(1 for r in rs if r.get("error"))
         if spec.kind == "relative_pose":
             aucs = pose_auc(rot, spec.auc_thresholds) if rs else [None] * len(spec.auc_thresholds)
@@ -196,6 +220,7 @@ def _metrics_of(spec: ProtocolSpec, method: str) -> List[str]:
             "verdict_recall",
             "wrong_flagged",
             *CALIBRATED_METRICS,
+            *RECORD_METRICS,
             "num_errors",
         ]
     )
@@ -226,8 +251,8 @@ def table_rows(
         for metric in _metrics_of(spec, cell["method"]):
             if cell["method"] == "essential" and not metric.startswith("auc"):
                 continue
-            if metric in CALIBRATED_METRICS and metric not in cell:
-                continue  # no calibration given
+            if metric in CALIBRATED_METRICS + RECORD_METRICS and metric not in cell:
+                continue  # no calibration given, or no tracks to tell a record's precision
             pmetric = "success_rate" if metric == "success_rate" else metric
             pv: PaperValue = paper_value(
                 spec.name, cell["interval"], pm, pmetric, spec.paper_dataset

@@ -18,6 +18,8 @@ import torch
 from ..localization.icomma import LocalizerConfig
 from ..localization.robust import RobustConfig
 from ..localization.types import blank_row
+from ..pose.convert import invert_rigid
+from ..pose.precision import rotation_sigmas
 from .baselines import essential_matrix_baseline
 from .metrics import time_to_success
 from .protocols import NEEDS_START, ProtocolSpec, is_localizer_method, method_config
@@ -207,6 +209,8 @@ def run_protocol(
                         "seed": list(seed),
                         "init": None if init is None else init.to_json(),
                     }
+                    if q.record is not None:
+                        rec["record_rot_std_deg"] = q.record["rot_std_deg"]
                     if init is not None:
                         init_trans_w = float(np.linalg.norm(init.c2w[:3, 3] - q.gt_c2w[:3, 3]))
                         rec.update({"init_rot_err_deg": init.rot_deg,
@@ -238,6 +242,10 @@ def run_protocol(
                             exc,
                         )
                         rec.update(_error_record(exc))
+                    if q.record is not None and rec.get("c2w") is not None:
+                        rec["record_sigmas"] = rotation_sigmas(
+                            invert_rigid(np.asarray(rec["c2w"], np.float64)),
+                            invert_rigid(q.gt_c2w), q.record["rot_cov"])
                     rec["method"] = method  # the protocol's variant (a row says the algorithm)
                     rec["wall_seconds"] = time.perf_counter() - t0
                     if not store_curves:

@@ -53,6 +53,9 @@ class BenchQuery:
     query: Query
     gt_c2w: np.ndarray  # [4, 4] float64, OpenCV axes
     index: int
+    # how precisely the capture's own tracks fix gt_c2w (colmap_tracks.record_precision's
+    # entry: rot_std_deg, rot_cov, ...); None: no tracks
+    record: Optional[Dict[str, Any]] = None
 
     @property
     def name(self) -> str:
@@ -194,6 +197,7 @@ def load_model_folder_scene(
     if photos not in ("auto", "none"):
         raise ValueError(f"photos must be auto or none, got {photos!r}")
     from ..io.datasets import detect_dataset_kind, read_dataset
+    from ..io.datasets.colmap_tracks import precision_of, record_precision
     from ..io.model_folder import load_model_folder
     from ..pose.convert import same_as_any_mask
     from ..pose.views import scene_frame
@@ -230,9 +234,12 @@ def load_model_folder_scene(
     if image_scale is None:
         image_scale = training_scale(mf.cfg, mf.cameras, views[0].intrinsics.width)
     bg = torch.ones(3) if white else torch.zeros(3)
+    records = record_precision(root)  # {} unless the capture has COLMAP tracks
+
     def load(i):
         return BenchQuery(Query.from_view(views[i], bg, float(image_scale)),
-                          np.asarray(views[i].c2w, np.float64), i)
+                          np.asarray(views[i].c2w, np.float64), i,
+                          precision_of(records, views[i].name))
 
     queries = [load(i) for i in idx]
     by_index = {q.index: q for q in queries}
@@ -288,6 +295,7 @@ def load_model_folder_scene(
             "image_scale": float(image_scale),
             "white_background": white,
             "candidate_cameras": len(cams),
+            "records_with_precision": len(records),
         },
     )
 

@@ -616,3 +616,40 @@ def test_no_start_interval_runs_only_the_default_method():
     assert r["hypotheses"] >= 1 and r["status"] == "ok", r["reason"]
     assert r["rot_err_deg"] < 0.5 and r["trans_err_rel"] < 0.005, r
     assert r["time_to_success"]["5deg_0.05"] is not None
+
+
+def test_the_report_puts_the_records_own_precision_beside_the_errors():
+    """Rows of the records' precision only where the queries have one (COLMAP tracks)."""
+    spec = ProtocolSpec.from_dict({"name": "real_capture", "kind": "time", "methods": ["robust"],
+                                   "intervals": [{"label": "r20-40", "rot_deg": [20, 40],
+                                                  "trans": [0.0, 0.05]}],
+                                   "num_queries": 2, "poses_per_query": 2})
+    base = {"interval": "r20-40", "method": "robust", "seconds": 1.0, "iterations": 3,
+            "status": "ok", "trans_err_rel": 0.001}
+    recs = [dict(base, rot_err_deg=e, record_rot_std_deg=s, record_sigmas=m)
+            for e, s, m in ((0.05, 0.08, 1.0), (0.15, 0.08, 2.0), (0.3, 0.1, 5.0),
+                            (0.1, 0.06, 3.0))]
+    cell = summarize(spec, recs)["cells"][0]
+    assert cell["median_record_rot_std_deg"] == pytest.approx(0.08)
+    assert cell["within_record"] == pytest.approx(0.75)  # 5 sigmas: outside its record's
+    md = markdown(spec, summarize(spec, recs), "xfeat")
+    assert "| r20-40 | robust | median_record_rot_std_deg | 4 | 0.08 |" in md
+    assert "| r20-40 | robust | within_record | 4 | 75.0% |" in md
+    plain = [{k: v for k, v in r.items() if not k.startswith("record")} for r in recs]
+    assert "record" not in markdown(spec, summarize(spec, plain), "xfeat")
+
+
+def test_the_bird_capture_records_precision_from_its_tracks(shared_data):
+    """Every photo of the shared COLMAP capture gets its record's precision from its tracks."""
+    from icomma_plugin.io.datasets.colmap_tracks import record_precision
+
+    bird = shared_data / "bird"
+    if not (bird / "sparse" / "0").is_dir():
+        pytest.skip("../shared/data/bird not found")
+    table = record_precision(bird)
+    assert len(table) == 184  # every photo: SIMPLE_PINHOLE, one camera each, 200-400 points
+    stds = np.array([v["rot_std_deg"] for v in table.values()])
+    assert 0.02 < np.median(stds) < 0.2 and all(v["focal_free"] for v in table.values())
+    assert 0.5 < np.median([v["rms_px"] for v in table.values()]) < 2.0
+    cov = np.array(next(iter(table.values()))["rot_cov"])
+    assert cov.shape == (3, 3) and np.all(np.linalg.eigvalsh(cov) > 0)

@@ -21,7 +21,9 @@ from icomma_plugin.app.audit import (
     AuditJournal,
     AuditPlan,
     FlagRule,
+    attach_record,
     audit_starts,
+    audit_summary,
     evenly_spread,
     select_views,
     summarize_camera,
@@ -125,6 +127,37 @@ def test_confident_poses_that_disagree_are_inconsistent_unless_all_on_the_record
     # ... but a lone ok pose off the record is not confirmed by another start
     lone[0] = _run(TRUE)
     assert _flag(lone)["flag"] == "inconsistent"
+
+
+def test_a_records_own_precision_says_whether_a_photo_is_within_it():
+    """0.1 deg off a record fixed to 0.05 deg a direction is within it; 0.3 deg is not."""
+    near = _flag([_run(_off(0.1, 0.0, k), start=f"start{k}") for k in range(2)])
+    far = dict(_flag([_run(_off(0.3, 0.0, k), start=f"start{k}") for k in range(2)]),
+               camera="far")
+    bare = dict(_flag([_run(_off(0.3))]), camera="bare")
+    sd = np.radians(0.05)
+    record = {"rot_std_deg": 0.0866, "centre_std_rel": 0.003, "rms_px": 1.0, "points": 300,
+              "focal_free": True, "rot_cov": (np.eye(3) * sd * sd).tolist()}
+    attach_record(near, record)
+    attach_record(far, record)
+    attach_record(bare, None)
+    assert near["record"] == record and near["record_sigmas"] == pytest.approx(
+        near["rot_err_deg"] / 0.05, rel=1e-3)  # isotropic: the angle in units of 0.05 deg
+    assert near["within_record"] is True
+    assert far["record_sigmas"] > 3.368 and far["within_record"] is False
+    assert bare["record"] is None and bare["within_record"] is None
+    rows = [dict(r, camera=c["camera"]) for c in (near, far, bare) for r in [{"status": "ok"}]]
+    s = audit_summary([near, far, bare], rows, FlagRule())
+    assert s["median_record_rot_std_deg"] == pytest.approx(0.0866)
+    assert (s["unflagged_within_record"], s["unflagged_with_record"]) == (1, 2)
+    doc = {"summary": s, "cameras": [near, far, bare], "calibration": {}}
+    assert "records: the capture's own tracks fix a recorded rotation to 0.087 deg (median " \
+        "rms, first order); 1 of 2 unflagged photos lie within their record's uncertainty" \
+        in audit_tool().summary(doc)
+    # without tracks nothing is said about the records
+    plain = audit_summary([bare], rows[2:], FlagRule())
+    assert plain["median_record_rot_std_deg"] is None
+    assert "records:" not in audit_tool().summary(dict(doc, summary=plain, cameras=[bare]))
 
 
 def test_bad_rule_and_plan_values_name_the_argument():
@@ -260,6 +293,9 @@ def test_the_corrupted_cameras_are_flagged_and_the_others_are_not(capture, tmp_p
     # 0.25-degree / 0.0025-depth bound, is called uncertain; its pose is right all the same)
     assert sum(c["control"]["status"] == "ok" for c in cams.values()) >= 5
     assert doc["summary"]["median_control_rot_err_deg"] < 0.2
+    # a capture without COLMAP tracks: nothing said about its records' own precision
+    assert doc["summary"]["median_record_rot_std_deg"] is None
+    assert all(c["record"] is None and c["within_record"] is None for c in cams.values())
     assert sum(doc["summary"]["verdicts"].values()) == 12
     text = audit_tool().summary(doc)
     assert "control: the model's renders at the records come back to" in text

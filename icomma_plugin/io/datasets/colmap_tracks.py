@@ -1,0 +1,206 @@
+"""What a COLMAP model's tracks say about its own poses: each photo's record precision.
+
+``colmap.py`` reads the cameras, poses and points a fit needs and skips the 2D observations.
+This module reads them (binary or text, COLMAP's layouts) and, for every registered photo of a
+pinhole camera, the first-order precision of its recorded pose from the points it observes
+(``icomma_plugin.pose.precision``): how far the record itself may be from the truth, so that the
+audit and the benchmark can say when a localized pose is "off its record" by no more than the
+record's own uncertainty (docs/AUDIT.md).
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, Optional
+
+import numpy as np
+
+from icomma_plugin.pose.convert import cameras_extent, invert_rigid
+from icomma_plugin.pose.precision import pose_precision
+
+from .base import DatasetError, PathLike
+from .colmap import (
+    _BinReader,
+    _parse,
+    _pick,
+    _text_lines,
+    colmap_w2c,
+    find_sparse_dir,
+    read_cameras_binary,
+    read_cameras_text,
+)
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["ImageTrack", "precision_of", "read_image_tracks", "record_precision"]
+
+#: Observations a photo needs before its record's precision is estimated.
+MIN_POINTS = 10
+
+
+@dataclass
+class ImageTrack:
+    """One registered photo's pose and the 3D points it observes.
+
+    w2c: its recorded world-to-camera pose; camera_id: its COLMAP camera; xy [N, 2]: where it
+    observed the points, COLMAP's pixel convention; point_ids [N]: the points' ids.
+    """
+
+    name: str
+    w2c: np.ndarray
+    camera_id: int
+    xy: np.ndarray
+    point_ids: np.ndarray
+
+
+def _images_with_points_binary(path: Path) -> Dict[str, ImageTrack]:
+    r = _BinReader(path)
+    (n,) = r.read("Q", "the image count")
+    r.check_count(n, 73, "images")
+    out: Dict[str, ImageTrack] = {}
+    for i in range(n):
+        vals = r.read("idddddddi", f"image {i} header")
+        name = r.read_cstring(f"image {vals[0]} name")
+        (npts,) = r.read("Q", f"image {vals[0]} point count")
+        r.check_count(npts, 24, f"2D points of image {vals[0]}")
+        raw = np.frombuffer(r.data, dtype=np.dtype([("x", "<f8"), ("y", "<f8"), ("id", "<i8")]),
+                            count=npts, offset=r.pos)
+        r.skip(24 * npts, f"image {vals[0]} 2D points")
+        seen = raw["id"] >= 0  # -1: an observation without a 3D point
+        out[name] = ImageTrack(name, colmap_w2c(vals[1:5], vals[5:8]), vals[8],
+                               np.stack([raw["x"][seen], raw["y"][seen]], 1),
+                               raw["id"][seen].copy())
+    return out
+
+
+def _images_with_points_text(path: Path) -> Dict[str, ImageTrack]:
+    out: Dict[str, ImageTrack] = {}
+    it = _text_lines(path)
+    for no, s in it:
+        if not s:
+            continue
+        el = s.split()
+        if len(el) < 10:
+            raise DatasetError(
+                f"{path}:{no}: expected 'IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME', got {s!r}")
+        vals = [_parse(float, t, path, no, "a pose value") for t in el[1:8]]
+        cid = _parse(int, el[8], path, no, "CAMERA_ID")
+        name = " ".join(el[9:])
+        pno, line = next(it, (no + 1, ""))
+        tok = line.split()
+        if len(tok) % 3:
+            raise DatasetError(f"{path}:{pno}: expected 'X Y POINT3D_ID' triples, got "
+                               f"{len(tok)} values")
+        xy = np.array([[_parse(float, tok[k], path, pno, "X"), _parse(float, tok[k + 1], path,
+                                                                      pno, "Y")]
+                       for k in range(0, len(tok), 3)]).reshape(-1, 2)
+        ids = np.array([_parse(int, tok[k + 2], path, pno, "POINT3D_ID")
+                        for k in range(0, len(tok), 3)], dtype=np.int64)
+        seen = ids >= 0
+        out[name] = ImageTrack(name, colmap_w2c(vals[:4], vals[4:7]), cid, xy[seen], ids[seen])
+    return out
+
+
+def _points_by_id(path: Path) -> Dict[int, np.ndarray]:
+    """point id -> xyz of points3D.bin/.txt."""
+    pts: Dict[int, np.ndarray] = {}
+    if path.suffix == ".bin":
+        r = _BinReader(path)
+        (n,) = r.read("Q", "the point count")
+        r.check_count(n, 51, "points")
+        for i in range(n):
+            vals = r.read("QdddBBBd", f"point {i}")
+            pts[vals[0]] = np.array(vals[1:4])
+            (tl,) = r.read("Q", f"point {vals[0]} track length")
+            r.skip(8 * tl, f"point {vals[0]} track")
+        return pts
+    for no, s in _text_lines(path):
+        if not s:
+            continue
+        el = s.split()
+        if len(el) < 8:
+            raise DatasetError(
+                f"{path}:{no}: expected 'POINT3D_ID X Y Z R G B ERROR TRACK...', got {s!r}")
+        pts[_parse(int, el[0], path, no, "POINT3D_ID")] = np.array(
+            [_parse(float, t, path, no, "X/Y/Z") for t in el[1:4]])
+    return pts
+
+
+def read_image_tracks(sparse_dir: PathLike):
+    """(cameras, {image name: ImageTrack}, {point id: xyz}) of a COLMAP model folder.
+
+    Raises:
+        DatasetError: a missing or malformed file (the message names it).
+    """
+    sparse = Path(sparse_dir)
+    cp, ip = _pick(sparse, "cameras"), _pick(sparse, "images")
+    pp = _pick(sparse, "points3D")
+    cams = read_cameras_binary(cp) if cp.suffix == ".bin" else read_cameras_text(cp)
+    images = (_images_with_points_binary(ip) if ip.suffix == ".bin"
+              else _images_with_points_text(ip))
+    return cams, images, _points_by_id(pp)
+
+
+def record_precision(root: PathLike) -> Dict[str, Dict]:
+    """Each registered photo's record precision, by image name (``PosePrecision.to_json()``).
+
+    ``root``: a dataset folder with ``sparse/0`` (or ``sparse``), as ``read_colmap`` takes, LLFF
+    folders with a COLMAP model beside included. Each entry adds ``centre_std_rel``: the centre's
+    precision in units of the records' camera extent (``cameras_extent``, the scene radius the
+    benchmark and the audit use, and the same whatever similarity transform a reader applied).
+    The focal length counts as a parameter when the photo has a camera of its own (COLMAP then
+    estimated it per photo), one focal for SIMPLE_PINHOLE, two for PINHOLE. Photos of distorted
+    camera models, or with fewer than ``MIN_POINTS`` observations, are left out (logged once).
+
+    Returns ``{}`` when the folder has no COLMAP model or no points3D file.
+    """
+    try:
+        sparse = find_sparse_dir(root)
+        if _pick(sparse, "points3D", required=False) is None:
+            return {}
+        cams, images, points = read_image_tracks(sparse)
+    except DatasetError as e:
+        logger.info("no record precision for %s: %s", root, e)
+        return {}
+    users: Dict[int, int] = {}
+    for im in images.values():
+        users[im.camera_id] = users.get(im.camera_id, 0) + 1
+    extent = cameras_extent([invert_rigid(im.w2c) for im in images.values()]) if images else 1.0
+    out: Dict[str, Dict] = {}
+    skipped = {"distorted camera model": 0, "too few points": 0, "degenerate": 0}
+    for name, im in images.items():
+        cam = cams.get(im.camera_id)
+        if cam is None or cam.model not in ("SIMPLE_PINHOLE", "PINHOLE"):
+            skipped["distorted camera model"] += 1
+            continue
+        known = [k for k, pid in enumerate(im.point_ids) if int(pid) in points]
+        if len(known) < MIN_POINTS:
+            skipped["too few points"] += 1
+            continue
+        xyz = np.stack([points[int(im.point_ids[k])] for k in known])
+        p = [float(v) for v in cam.params]
+        fx, fy, cx, cy = (p[0], p[0], p[1], p[2]) if cam.model == "SIMPLE_PINHOLE" else p
+        focal = "none" if users[im.camera_id] > 1 else (
+            "shared" if cam.model == "SIMPLE_PINHOLE" else "separate")
+        try:
+            prec = pose_precision(im.w2c, fx, fy, cx, cy, xyz, im.xy[known], focal)
+        except ValueError:
+            skipped["degenerate"] += 1
+            continue
+        out[name] = dict(prec.to_json(), centre_std_rel=prec.centre_std / extent)
+    left = {k: v for k, v in skipped.items() if v}
+    if left:
+        logger.info("record precision of %s: photos left out: %s", root, left)
+    return out
+
+
+def precision_of(table: Dict[str, Dict], name: str) -> Optional[Dict]:
+    """``table``'s entry for a view ``name`` (exact, else by file name, else by stem)."""
+    if name in table:
+        return table[name]
+    base = Path(name).name
+    for key, value in table.items():
+        if Path(key).name == base or Path(key).stem == Path(base).stem:
+            return value
+    return None

@@ -1,0 +1,153 @@
+"""How precisely 2D-3D observations fix a pinhole camera's pose (first-order covariance).
+
+A registered photo's recorded pose (COLMAP's, for instance) is an estimate from the image points
+it observes, each off its projection by about the reconstruction's reprojection error. To first
+order, with the 3D points held fixed, the pose's covariance is ``sigma^2 (J^T J)^-1``: ``J`` the
+Jacobian of the projections with respect to the pose (and to the focal length where the
+reconstruction estimated one per photo), ``sigma^2`` the residuals' variance. The points' own
+uncertainty is left out, so this is a lower bound on how far a record may be from the truth: a
+localized pose cannot be checked against the record more finely than that (docs/AUDIT.md).
+
+Perturbation: ``w2c <- se3_exp(xi) @ w2c`` with ``xi = (tau, omega)`` (a camera-frame twist,
+docs/CONTRACTS.md), to first order ``Xc <- Xc + omega x Xc + tau``; the camera centre moves by
+``-R^T tau``. The covariance's columns here are ``omega`` first, then ``tau``.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any, Dict, List
+
+import numpy as np
+
+__all__ = ["WITHIN_SIGMAS", "PosePrecision", "pose_precision", "rotation_sigmas"]
+
+#: A rotation whose Mahalanobis distance under a pose's rotation covariance is at most this is
+#: within that pose's uncertainty: the 99 % quantile of the chi-square law with 3 degrees of
+#: freedom is 11.34 = 3.368^2.
+WITHIN_SIGMAS = 3.368
+
+
+@dataclass
+class PosePrecision:
+    """One camera's pose precision from its observations.
+
+    rot_std_deg: root-mean-square rotation error (the square root of the rotation covariance's
+        trace), degrees; the median angle of such an error is about 0.9 times this.
+    centre_std: root-mean-square camera-centre error, world units.
+    rms_px: the residuals' root-mean-square (the ``sigma`` used), pixels.
+    points: observations used.
+    focal_free: whether the focal length was a parameter too (one camera per photo).
+    rot_cov: [3, 3] covariance of the camera-frame rotation ``omega`` (rad^2), the translation
+        and focal length marginalised: an error along a direction the observations fix poorly
+        (a turn that a shift of the camera makes up for) is judged by that direction's spread.
+    """
+
+    rot_std_deg: float
+    centre_std: float
+    rms_px: float
+    points: int
+    focal_free: bool
+    rot_cov: List[List[float]] = field(default_factory=list)
+
+    def to_json(self) -> Dict[str, Any]:
+        """The fields as a JSON-ready dict."""
+        return asdict(self)
+
+
+def _projection_jacobian(xc: np.ndarray, fx: float, fy: float, focal: str) -> np.ndarray:
+    """[2N, P] Jacobian of the pinhole projections of camera-frame points ``xc`` [N, 3].
+
+    Columns: the rotation (3), the translation (3) of the camera-frame twist, then the focal
+    parameters (``focal``: "none", "shared" (one f) or "separate" (fx, fy)).
+    """
+    x, y, z = xc[:, 0], xc[:, 1], xc[:, 2]
+    a, b = x / z, y / z
+    zero = np.zeros_like(z)
+    ju = [fx * -a * b, fx * (1.0 + a * a), fx * -b, fx / z, zero, -fx * a / z]
+    jv = [fy * -(1.0 + b * b), fy * a * b, fy * a, zero, fy / z, -fy * b / z]
+    if focal == "shared":
+        ju.append(a)
+        jv.append(b)
+    elif focal == "separate":
+        ju += [a, zero]
+        jv += [zero, b]
+    return np.concatenate([np.stack(ju, 1), np.stack(jv, 1)], 0)
+
+
+def pose_precision(w2c: np.ndarray, fx: float, fy: float, cx: float, cy: float,
+                   xyz: np.ndarray, xy: np.ndarray, focal: str = "none") -> PosePrecision:
+    """First-order precision of the pose ``w2c`` given its observations (module docstring).
+
+    Args:
+        w2c: [4, 4] world-to-camera pose (OpenCV axes).
+        fx: focal length along x [px].
+        fy: focal length along y [px].
+        cx: principal point x, in the pixel convention of ``xy``.
+        cy: principal point y, likewise.
+        xyz: [N, 3] world points.
+        xy: [N, 2] where the photo observed them [px].
+        focal: "none" (intrinsics known), "shared" (one focal length estimated with the pose)
+            or "separate" (fx and fy estimated).
+
+    Raises:
+        ValueError: mismatched shapes, too few points for the parameters, points behind the
+            camera, or a degenerate configuration (a singular ``J^T J``).
+    """
+    w2c = np.asarray(w2c, np.float64)
+    xyz, xy = np.asarray(xyz, np.float64), np.asarray(xy, np.float64)
+    if w2c.shape != (4, 4):
+        raise ValueError(f"w2c must be [4, 4], got {list(w2c.shape)}")
+    if xyz.ndim != 2 or xyz.shape[1] != 3 or xy.shape != (len(xyz), 2):
+        raise ValueError(f"xyz must be [N, 3] and xy [N, 2] with the same N, got "
+                         f"{list(xyz.shape)} and {list(xy.shape)}")
+    if focal not in ("none", "shared", "separate"):
+        raise ValueError(f"focal must be 'none', 'shared' or 'separate', got {focal!r}")
+    n_params = 6 + {"none": 0, "shared": 1, "separate": 2}[focal]
+    if 2 * len(xyz) <= n_params:
+        raise ValueError(f"{len(xyz)} observations cannot fix {n_params} parameters: at least "
+                         f"{n_params // 2 + 1} needed")
+    R, t = w2c[:3, :3], w2c[:3, 3]
+    xc = xyz @ R.T + t
+    if np.any(xc[:, 2] <= 0):
+        raise ValueError(f"{int(np.sum(xc[:, 2] <= 0))} of {len(xc)} points lie behind the camera")
+    u = fx * xc[:, 0] / xc[:, 2] + cx
+    v = fy * xc[:, 1] / xc[:, 2] + cy
+    r = np.concatenate([u - xy[:, 0], v - xy[:, 1]])
+    J = _projection_jacobian(xc, fx, fy, focal)
+    sigma2 = float(r @ r) / (len(r) - n_params)
+    jtj = J.T @ J
+    if np.linalg.cond(jtj) > 1e14:
+        raise ValueError("the observations do not fix the pose (a singular J^T J: too few or "
+                         "collinear points)")
+    cov = sigma2 * np.linalg.inv(jtj)
+    rot = float(np.degrees(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))))
+    centre = float(np.sqrt(max(np.trace(R.T @ cov[3:6, 3:6] @ R), 0.0)))
+    return PosePrecision(rot, centre, float(np.sqrt(sigma2)), len(xyz), focal != "none",
+                         cov[:3, :3].tolist())
+
+
+def rotation_sigmas(w2c_est: np.ndarray, w2c_rec: np.ndarray, rot_cov) -> float:
+    """Mahalanobis distance of ``w2c_est``'s rotation from ``w2c_rec``'s under ``rot_cov``.
+
+    ``omega = log(R_est R_rec^T)`` (the camera-frame rotation taking the record to the estimate,
+    the module's perturbation); ``sqrt(omega^T rot_cov^-1 omega)``. Rotations are compared in
+    the cameras' frame, so a similarity transform of the world (a reader's recentring) leaves it
+    unchanged. At most ``WITHIN_SIGMAS``: within the record's uncertainty (99 %).
+
+    Raises:
+        ValueError: poses that are not [4, 4], or a covariance that is not a positive definite
+            [3, 3].
+    """
+    import torch
+
+    from .se3 import so3_log
+
+    a, b = np.asarray(w2c_est, np.float64), np.asarray(w2c_rec, np.float64)
+    if a.shape != (4, 4) or b.shape != (4, 4):
+        raise ValueError(f"w2c_est and w2c_rec must be [4, 4], got {list(a.shape)} and "
+                         f"{list(b.shape)}")
+    cov = np.asarray(rot_cov, np.float64)
+    if cov.shape != (3, 3) or not np.all(np.linalg.eigvalsh((cov + cov.T) / 2) > 0):
+        raise ValueError(f"rot_cov must be a positive definite [3, 3], got {cov.tolist()}")
+    omega = so3_log(torch.as_tensor(a[:3, :3] @ b[:3, :3].T)).numpy()
+    return float(np.sqrt(omega @ np.linalg.solve(cov, omega)))
