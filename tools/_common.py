@@ -18,7 +18,8 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple, TypeVar
+from typing import (Any, Callable, Dict, Iterable, Iterator, List, Optional, Sequence, Tuple,
+                    TypeVar)
 
 import numpy as np
 import torch
@@ -49,31 +50,50 @@ class UserError(ValueError):
     """Bad input from the command line or the config: reported as one line, no traceback."""
 
 
-def _cpu_times(stat: str = "/proc/stat") -> Tuple[int, int]:
-    """(all, idle) jiffies of the machine's CPUs so far (the ``cpu`` line of ``stat``)."""
-    with open(stat) as f:
-        fields = f.readline().split()
-    if not fields or fields[0] != "cpu" or len(fields) < 5:
-        raise ValueError(f"{stat}: no aggregate cpu line")
-    ticks = [int(v) for v in fields[1:9]]  # user nice system idle iowait irq softirq steal
-    return sum(ticks), ticks[3] + (ticks[4] if len(ticks) > 4 else 0)
+def _cpu_times(stat: str = "/proc/stat", cpus: Optional[Iterable[int]] = None
+               ) -> Tuple[int, int]:
+    """(all, idle) jiffies so far of the machine's CPUs (the ``cpu`` line of ``stat``).
 
-
-def busy_cores_now(seconds: float = 0.2, stat: str = "/proc/stat") -> Optional[float]:
-    """How many cores other work keeps busy now: the machine's non-idle share over ``seconds``.
-
-    This process sleeps meanwhile, so its own past work does not count. None where ``stat``
-    cannot be read (not Linux).
+    With ``cpus``, of those CPUs only (their ``cpuN`` lines, summed).
     """
+    with open(stat) as f:
+        lines = [ln.split() for ln in f]
+    if cpus is None:
+        wanted = [ln for ln in lines[:1] if ln and ln[0] == "cpu"]
+        if not wanted or len(wanted[0]) < 5:
+            raise ValueError(f"{stat}: no aggregate cpu line")
+    else:
+        names = {f"cpu{c}" for c in cpus}
+        wanted = [ln for ln in lines if ln and ln[0] in names and len(ln) >= 5]
+        if len(wanted) != len(names):
+            raise ValueError(f"{stat}: lines of CPUs {sorted(names)} not all found")
+    total = idle = 0
+    for ln in wanted:
+        ticks = [int(v) for v in ln[1:9]]  # user nice system idle iowait irq softirq steal
+        total += sum(ticks)
+        idle += ticks[3] + (ticks[4] if len(ticks) > 4 else 0)
+    return total, idle
+
+
+def busy_cores_now(seconds: float = 0.2, stat: str = "/proc/stat",
+                   cpus: Optional[Iterable[int]] = None) -> Optional[float]:
+    """How many cores other work keeps busy now: the non-idle share over ``seconds``.
+
+    Of the whole machine, or of the CPUs ``cpus`` only (the ones this process may run on). This
+    process sleeps meanwhile, so its own past work does not count. None where ``stat`` cannot
+    be read (not Linux).
+    """
+    cpus = None if cpus is None else sorted(cpus)
     try:
-        all0, idle0 = _cpu_times(stat)
+        all0, idle0 = _cpu_times(stat, cpus)
         time.sleep(seconds)
-        all1, idle1 = _cpu_times(stat)
+        all1, idle1 = _cpu_times(stat, cpus)
     except (OSError, ValueError):
         return None
     if all1 <= all0:
         return None
-    return (1.0 - (idle1 - idle0) / (all1 - all0)) * (os.cpu_count() or 1)
+    n = len(cpus) if cpus is not None else (os.cpu_count() or 1)
+    return (1.0 - (idle1 - idle0) / (all1 - all0)) * n
 
 
 def choose_threads(requested: Optional[int] = None) -> int:
@@ -85,14 +105,18 @@ def choose_threads(requested: Optional[int] = None) -> int:
     1.3-1.5 on the idle 2-core machine, and the next tool took 1 thread). Intra-op threads that
     share a core with another busy process stall at every OpenMP barrier: on a 2-core machine
     with one other busy process, 2 threads ran the demo ~15x slower than 1 thread (243 s vs
-    15 s).
+    15 s). A process pinned to some of the machine's cores (a cluster job's slot, ``taskset``)
+    looks at those cores only: the machine's load average counts the other jobs' cores too.
     """
     if requested is not None and int(requested) > 0:
         return int(requested)
-    if hasattr(os, "sched_getaffinity"):
-        cores = len(os.sched_getaffinity(0))
-    else:
-        cores = os.cpu_count() or 1
+    cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
+    machine = os.cpu_count() or 1
+    cores = len(cpus) if cpus else machine
+    if cpus and cores < machine:  # pinned: the busy share of our own cores
+        now = busy_cores_now(cpus=cpus)
+        busy = now if now is not None else 0.0
+        return max(1, min(cores, int(cores - busy + 0.5)))
     try:
         load = os.getloadavg()[0]
     except OSError:

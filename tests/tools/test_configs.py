@@ -325,7 +325,45 @@ def test_automatic_threads_follow_the_cores_busy_now_not_a_stale_load(monkeypatc
     assert common.busy_cores_now() == pytest.approx(1.0)
     assert common.choose_threads() == 1
     assert common.choose_threads(3) == 3  # asked for: as asked
-    monkeypatch.setattr(common, "_cpu_times", lambda stat="": (_ for _ in ()).throw(OSError()))
+    monkeypatch.setattr(common, "_cpu_times", lambda *a: (_ for _ in ()).throw(OSError()))
     assert common.busy_cores_now() is None and common.choose_threads() == 1  # the load average
     monkeypatch.setattr(os, "getloadavg", lambda: (0.2, 0.2, 0.2))
     assert common.choose_threads() == 2
+
+
+def test_a_process_pinned_to_some_cores_looks_at_those_cores_only(tmp_path, monkeypatch):
+    """A cluster slot of 4 cores on a busy 16-core machine takes its 4 threads."""
+    import os
+
+    common = _tools_common()
+    stat = tmp_path / "stat"
+
+    def write(busy_of):  # jiffies per CPU: 100 a reading, busy_of[cpu] of them busy
+        write.n += 1
+        busy = [busy_of.get(c, 100) * write.n for c in range(16)]
+        idle = [write.n * 100 - b for b in busy]
+        rows = [f"cpu  {sum(busy)} 0 0 {sum(idle)} 0 0 0 0 0 0"]
+        rows += [f"cpu{c} {b} 0 0 {i} 0 0 0 0 0 0" for c, (b, i) in enumerate(zip(busy, idle))]
+        stat.write_text("\n".join(rows) + "\n")
+    write.n = 0
+    real_open = open
+
+    def fake_open(path, *args, **kw):
+        if str(path) == "/proc/stat":
+            write(fake_open.busy)
+            return real_open(stat, *args, **kw)
+        return real_open(path, *args, **kw)
+
+    monkeypatch.setattr("builtins.open", fake_open)
+    monkeypatch.setattr(common.time, "sleep", lambda s: None)
+    monkeypatch.setattr(os, "cpu_count", lambda: 16)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {4, 5, 6, 7}, raising=False)
+    monkeypatch.setattr(os, "getloadavg", lambda: (15.0, 15.0, 15.0))  # the other jobs
+    fake_open.busy = {4: 0, 5: 0, 6: 0, 7: 0}  # every other core busy, ours idle
+    assert common.busy_cores_now(cpus=[4, 5, 6, 7]) == pytest.approx(0.0)
+    assert common.busy_cores_now() == pytest.approx(12.0)
+    assert common.choose_threads() == 4  # the machine's load average alone gave 1
+    fake_open.busy = {4: 100, 5: 0, 6: 0, 7: 0}  # one of our cores taken by another process
+    assert common.choose_threads() == 3
+    monkeypatch.setattr(common, "_cpu_times", lambda *a: (_ for _ in ()).throw(OSError()))
+    assert common.choose_threads() == 4  # unreadable: the slot is ours
