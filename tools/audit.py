@@ -251,8 +251,10 @@ def summary(doc: Dict[str, Any]) -> str:
                      + _control_reading(s.get("median_rot_err_deg_unflagged"), control))
     record = s.get("median_record_rot_std_deg")
     if record is not None:
+        how = ("the reconstruction's points free" if s.get("record_points_free")
+               else "the points held fixed: a lower bound")
         lines.append(f"  records: the capture's own tracks fix a recorded rotation to {record:.3f} "
-                     f"deg (median rms, first order); {s['unflagged_within_record']} of "
+                     f"deg (median rms, first order, {how}); {s['unflagged_within_record']} of "
                      f"{s['unflagged_with_record']} unflagged photos lie within their record's "
                      "uncertainty (99 %)")
     if cal.get("stored"):

@@ -373,6 +373,7 @@ def audit_summary(cameras: Sequence[Mapping[str, Any]], rows: Sequence[Mapping[s
         # how precisely the capture's own tracks fix its records (None without tracks)
         "median_record_rot_std_deg": _median(
             (c.get("record") or {}).get("rot_std_deg") for c in cameras),
+        "record_points_free": any((c.get("record") or {}).get("points_free") for c in cameras),
         "unflagged_within_record": sum(1 for c in cameras
                                        if not c.get("flag") and c.get("within_record")),
         "unflagged_with_record": sum(1 for c in cameras

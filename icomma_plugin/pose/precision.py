@@ -19,7 +19,8 @@ from typing import Any, Dict, List
 
 import numpy as np
 
-__all__ = ["WITHIN_SIGMAS", "PosePrecision", "pose_precision", "rotation_sigmas"]
+__all__ = ["MAX_BUNDLE_PARAMS", "WITHIN_SIGMAS", "PosePrecision", "bundle_precision",
+           "pose_precision", "rotation_sigmas"]
 
 #: A rotation whose Mahalanobis distance under a pose's rotation covariance is at most this is
 #: within that pose's uncertainty: the 99 % quantile of the chi-square law with 3 degrees of
@@ -40,6 +41,8 @@ class PosePrecision:
     rot_cov: [3, 3] covariance of the camera-frame rotation ``omega`` (rad^2), the translation
         and focal length marginalised: an error along a direction the observations fix poorly
         (a turn that a shift of the camera makes up for) is judged by that direction's spread.
+    points_free: the points were estimated too (``bundle_precision``: the whole
+        reconstruction's uncertainty); False: held fixed (``pose_precision``: a lower bound).
     """
 
     rot_std_deg: float
@@ -48,6 +51,7 @@ class PosePrecision:
     points: int
     focal_free: bool
     rot_cov: List[List[float]] = field(default_factory=list)
+    points_free: bool = False
 
     def to_json(self) -> Dict[str, Any]:
         """The fields as a JSON-ready dict."""
@@ -151,3 +155,125 @@ def rotation_sigmas(w2c_est: np.ndarray, w2c_rec: np.ndarray, rot_cov) -> float:
         raise ValueError(f"rot_cov must be a positive definite [3, 3], got {cov.tolist()}")
     omega = so3_log(torch.as_tensor(a[:3, :3] @ b[:3, :3].T)).numpy()
     return float(np.sqrt(omega @ np.linalg.solve(cov, omega)))
+
+
+#: A bundle of more camera parameters than this is not inverted (a dense matrix of its size
+#: squared): ``bundle_precision`` refuses it and callers fall back to the points held fixed.
+MAX_BUNDLE_PARAMS = 12000
+
+_FOCAL_PARAMS = {"none": 0, "shared": 1, "separate": 2}
+
+
+def bundle_precision(w2cs, intrinsics, focal, xyz, obs_camera, obs_point, obs_xy):
+    """First-order precision of every camera of a reconstruction, its points free.
+
+    As a bundle adjustment sees it, relative to the reconstruction as a whole: the normal matrix
+    of all cameras' twists (and focal lengths, per ``focal``) and all points, the points
+    eliminated (Schur complement, each point's 3x3 block inverted), inverted without its 7
+    smallest eigen-directions, the 7 free directions of a reconstruction (where it sits, how it
+    is turned, its scale): the pseudo-inverse, which fixes them by the least change of the
+    camera parameters, so each camera's uncertainty is relative to the others'. ``sigma^2``:
+    the residuals' variance over the degrees of freedom. Points seen by fewer than two cameras
+    are left out (nothing fixes their depth).
+
+    Args:
+        w2cs: [C, 4, 4] world-to-camera poses.
+        intrinsics: [C, 4] (fx, fy, cx, cy) in the pixel convention of ``obs_xy``.
+        focal: per camera "none", "shared" or "separate" (its focal lengths estimated too).
+        xyz: [M, 3] points.
+        obs_camera: [K] the camera of each observation.
+        obs_point: [K] its point.
+        obs_xy: [K, 2] where the camera observed the point.
+
+    Returns:
+        A ``PosePrecision`` per camera (``points`` its observations used).
+
+    Raises:
+        ValueError: mismatched shapes, a point behind a camera that observes it, or more than
+            ``MAX_BUNDLE_PARAMS`` camera parameters.
+    """
+    from scipy import sparse
+
+    w2cs = np.asarray(w2cs, np.float64)
+    K_ = np.asarray(intrinsics, np.float64)
+    xyz = np.asarray(xyz, np.float64)
+    cam = np.asarray(obs_camera, np.int64)
+    pt = np.asarray(obs_point, np.int64)
+    xy = np.asarray(obs_xy, np.float64)
+    C = len(w2cs)
+    if C < 2:
+        raise ValueError(f"a bundle needs at least 2 cameras, got {C}")
+    if w2cs.shape != (C, 4, 4) or K_.shape != (C, 4) or len(focal) != C:
+        raise ValueError(f"w2cs [C, 4, 4], intrinsics [C, 4] and focal [C] must agree, got "
+                         f"{list(w2cs.shape)}, {list(K_.shape)} and {len(focal)}")
+    if not (cam.shape == pt.shape == xy.shape[:1]) or xy.shape[1:] != (2,):
+        raise ValueError(f"obs_camera, obs_point [K] and obs_xy [K, 2] must agree, got "
+                         f"{list(cam.shape)}, {list(pt.shape)} and {list(xy.shape)}")
+    nf = np.array([_FOCAL_PARAMS[f] for f in focal])
+    if int((6 + nf).sum()) > MAX_BUNDLE_PARAMS:
+        raise ValueError(f"{int((6 + nf).sum())} camera parameters: more than "
+                         f"MAX_BUNDLE_PARAMS={MAX_BUNDLE_PARAMS}")
+    track = np.bincount(pt, minlength=len(xyz))
+    keep = track[pt] >= 2
+    cam, pt, xy = cam[keep], pt[keep], xy[keep]
+    R, t = w2cs[cam, :3, :3], w2cs[cam, :3, 3]
+    xc = np.einsum("kij,kj->ki", R, xyz[pt]) + t
+    if np.any(xc[:, 2] <= 0):
+        raise ValueError(f"{int(np.sum(xc[:, 2] <= 0))} observations lie behind their camera")
+    fx, fy, cx, cy = (K_[cam, i] for i in range(4))
+    x, y, z = xc.T
+    r = np.concatenate([fx * x / z + cx - xy[:, 0], fy * y / z + cy - xy[:, 1]])
+    n = len(cam)
+    # camera columns, padded to 8 (twist, fx, fy); a camera's unused focal columns are zero
+    J = _projection_jacobian(xc, fx, fy, "separate")
+    A = np.stack([J[:n], J[n:]], 1)  # [K, 2, 8]
+    shared = nf[cam] == 1
+    A[shared, :, 6] += A[shared, :, 7]  # one focal length: d/df = d/dfx + d/dfy
+    A[:, :, 7] *= (nf[cam] == 2)[:, None]
+    A[:, :, 6] *= (nf[cam] >= 1)[:, None]
+    du = np.stack([fx / z, 0 * z, -fx * x / z ** 2], 1)
+    dv = np.stack([0 * z, fy / z, -fy * y / z ** 2], 1)
+    B = np.einsum("kai,kij->kaj", np.stack([du, dv], 1), R)  # [K, 2, 3] d/d(world point)
+    U = np.zeros((C, 8, 8))
+    np.add.at(U, cam, np.einsum("kai,kaj->kij", A, A))
+    V = np.zeros((len(xyz), 3, 3))
+    np.add.at(V, pt, np.einsum("kai,kaj->kij", B, B))
+    used = np.unique(pt)
+    Vi = np.zeros_like(V)
+    Vi[used] = np.linalg.pinv(V[used], hermitian=True)
+    W = np.einsum("kai,kaj->kij", A, B)  # [K, 8, 3]
+    rows = (cam[:, None, None] * 8 + np.arange(8)[None, :, None]).repeat(3, 2)
+    cols = (pt[:, None, None] * 3 + np.arange(3)[None, None, :]).repeat(8, 1)
+    Wsp = sparse.csr_matrix((W.ravel(), (rows.ravel(), cols.ravel())),
+                            shape=(C * 8, len(xyz) * 3))
+    vr = (np.arange(len(xyz))[:, None, None] * 3 + np.arange(3)[None, :, None]).repeat(3, 2)
+    vc = (np.arange(len(xyz))[:, None, None] * 3 + np.arange(3)[None, None, :]).repeat(3, 1)
+    Visp = sparse.csr_matrix((Vi.ravel(), (vr.ravel(), vc.ravel())),
+                             shape=(len(xyz) * 3, len(xyz) * 3))
+    S = -(Wsp @ Visp @ Wsp.T).toarray()
+    for c in range(C):
+        S[c * 8:(c + 1) * 8, c * 8:(c + 1) * 8] += U[c]
+    active = np.concatenate([c * 8 + np.arange(6 + (2 if nf[c] == 2 else nf[c]))
+                             for c in range(C)])
+    S = S[np.ix_(active, active)]
+    dof = len(r) - len(active) - 3 * len(used) + 7
+    if dof <= 0:
+        raise ValueError(f"{n} observations cannot fix {len(active)} camera parameters and "
+                         f"{len(used)} points")
+    sigma2 = float(r @ r) / dof
+    # the 7 directions of a similarity transform are free (zero eigenvalues up to rounding); the
+    # next ones can be weak but real (a focal length against the distance): drop exactly 7
+    lam, Q = np.linalg.eigh((S + S.T) / 2)
+    cov = sigma2 * (Q[:, 7:] / lam[7:]) @ Q[:, 7:].T
+    out, start = [], 0
+    counts = np.bincount(cam, minlength=C)
+    for c in range(C):
+        p = 6 + (2 if nf[c] == 2 else nf[c])
+        blk = cov[start:start + p, start:start + p]
+        start += p
+        Rc = w2cs[c, :3, :3]
+        rot = float(np.degrees(np.sqrt(max(np.trace(blk[:3, :3]), 0.0))))
+        centre = float(np.sqrt(max(np.trace(Rc.T @ blk[3:6, 3:6] @ Rc), 0.0)))
+        out.append(PosePrecision(rot, centre, float(np.sqrt(sigma2)), int(counts[c]),
+                                 bool(nf[c]), blk[:3, :3].tolist(), points_free=True))
+    return out

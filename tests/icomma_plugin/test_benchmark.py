@@ -649,7 +649,8 @@ def test_the_bird_capture_records_precision_from_its_tracks(shared_data):
     table = record_precision(bird)
     assert len(table) == 184  # every photo: SIMPLE_PINHOLE, one camera each, 200-400 points
     stds = np.array([v["rot_std_deg"] for v in table.values()])
-    assert 0.02 < np.median(stds) < 0.2 and all(v["focal_free"] for v in table.values())
+    assert 0.1 < np.median(stds) < 0.3 and all(v["focal_free"] for v in table.values())
+    assert all(v["points_free"] for v in table.values())  # the bundle: 184 x 7 parameters
     assert 0.5 < np.median([v["rms_px"] for v in table.values()]) < 2.0
     cov = np.array(next(iter(table.values()))["rot_cov"])
     assert cov.shape == (3, 3) and np.all(np.linalg.eigvalsh(cov) > 0)

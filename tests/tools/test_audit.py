@@ -152,8 +152,11 @@ def test_a_records_own_precision_says_whether_a_photo_is_within_it():
     assert (s["unflagged_within_record"], s["unflagged_with_record"]) == (1, 2)
     doc = {"summary": s, "cameras": [near, far, bare], "calibration": {}}
     assert "records: the capture's own tracks fix a recorded rotation to 0.087 deg (median " \
-        "rms, first order); 1 of 2 unflagged photos lie within their record's uncertainty" \
-        in audit_tool().summary(doc)
+        "rms, first order, the points held fixed: a lower bound); 1 of 2 unflagged photos lie " \
+        "within their record's uncertainty" in audit_tool().summary(doc)
+    near["record"]["points_free"] = True
+    s = audit_summary([near, far, bare], rows, FlagRule())
+    assert "the reconstruction's points free" in audit_tool().summary(dict(doc, summary=s))
     # without tracks nothing is said about the records
     plain = audit_summary([bare], rows[2:], FlagRule())
     assert plain["median_record_rot_std_deg"] is None

@@ -22,8 +22,10 @@ from tests.helpers.geometry import look_at_c2w
 W, H = 640, 480
 
 
-def _model(seed=0):
+def _model(seed=0, distorted=True):
     """Four photos of 50 points; camera 1 is photo 1's alone, 2 is shared, 3 is distorted.
+
+    With ``distorted=False`` camera 3 is a SIMPLE_PINHOLE (photo 4's alone).
 
     Returns (cameras, images, points, {name: (w2c, params, xy, xyz)}) with noisy observations;
     photo 2 also observes a point id that points3D lacks, and two observations have no point.
@@ -32,14 +34,15 @@ def _model(seed=0):
     xyz = rng.uniform(-1.0, 1.0, (50, 3))
     cameras = [(1, "SIMPLE_PINHOLE", W, H, [520.0, 320.5, 240.5]),
                (2, "PINHOLE", W, H, [500.0, 505.0, 319.0, 241.0]),
-               (3, "SIMPLE_RADIAL", W, H, [500.0, 320.0, 240.0, 0.01])]
+               (3, "SIMPLE_RADIAL", W, H, [500.0, 320.0, 240.0, 0.01]) if distorted
+               else (3, "SIMPLE_PINHOLE", W, H, [500.0, 320.0, 240.0])]
     cam_of = {1: 1, 2: 2, 3: 2, 4: 3}
     images, truth = [], {}
     for i in range(1, 5):
         a = 2 * math.pi * i / 7
         w2c = np.linalg.inv(look_at_c2w([4 * math.cos(a), 4 * math.sin(a), 1.0]))
-        p = cameras[cam_of[i] - 1][4]
-        fx, fy, cx, cy = (p[0], p[0], p[1], p[2]) if len(p) != 4 else p
+        model, p = cameras[cam_of[i] - 1][1], cameras[cam_of[i] - 1][4]
+        fx, fy, cx, cy = p if model == "PINHOLE" else (p[0], p[0], p[1], p[2])
         xc = xyz @ w2c[:3, :3].T + w2c[:3, 3]
         xy = np.stack([fx * xc[:, 0] / xc[:, 2] + cx, fy * xc[:, 1] / xc[:, 2] + cy], 1)
         xy += rng.normal(0.0, 0.7, xy.shape)
@@ -66,13 +69,16 @@ def test_tracks_and_record_precision_from_the_files(tmp_path, writer):
     np.testing.assert_allclose(t1.w2c, truth["sub/IMG_1.jpg"][0], atol=1e-9)
     np.testing.assert_allclose(t1.xy, truth["sub/IMG_1.jpg"][2], atol=1e-9)
 
-    table = record_precision(tmp_path)
+    with pytest.raises(ValueError, match="points must be"):
+        record_precision(tmp_path, points="loose")
+    table = record_precision(tmp_path)  # a distorted camera: the points held fixed for all
     assert set(table) == {"sub/IMG_1.jpg", "sub/IMG_2.jpg", "sub/IMG_3.jpg"}  # 4: distorted
+    assert not any(v["points_free"] for v in table.values())
     assert table["sub/IMG_1.jpg"]["focal_free"]  # a camera of its own: its focal was estimated
     assert not table["sub/IMG_2.jpg"]["focal_free"] and not table["sub/IMG_3.jpg"]["focal_free"]
     assert table["sub/IMG_2.jpg"]["points"] == 50  # the unknown point id left out
     w2c, (fx, fy, cx, cy), xy, xyz = truth["sub/IMG_1.jpg"]
-    want = pose_precision(w2c, fx, fy, cx, cy, xyz, xy, focal="shared")
+    want = pose_precision(w2c, fx, fy, cx, cy, xyz, xy, focal="shared")  # the points fixed
     got = table["sub/IMG_1.jpg"]
     assert got["rot_std_deg"] == pytest.approx(want.rot_std_deg, rel=1e-6)
     assert got["rms_px"] == pytest.approx(0.7, rel=0.25)
@@ -81,6 +87,19 @@ def test_tracks_and_record_precision_from_the_files(tmp_path, writer):
     assert precision_of(table, "IMG_1.jpg") is got  # a reader's name without the folder
     assert precision_of(table, "IMG_1.png") is got  # or another extension
     assert precision_of(table, "IMG_9.jpg") is None
+
+
+def test_with_the_points_free_the_bundle_says_more_than_each_photo_alone(tmp_path):
+    """Pinhole cameras only: the whole reconstruction's uncertainty, the points estimated too."""
+    cameras, images, points, truth = _model(distorted=False)
+    write_colmap_bin(tmp_path / "sparse" / "0", cameras, images, points)
+    free = record_precision(tmp_path)
+    fixed = record_precision(tmp_path, points="fixed")
+    assert set(free) == set(fixed) == set(truth)
+    for name in truth:
+        assert free[name]["points_free"] and not fixed[name]["points_free"]
+        assert free[name]["rot_std_deg"] > fixed[name]["rot_std_deg"]  # the points move too
+        assert len(free[name]["rot_cov"]) == 3
 
 
 def test_no_model_or_no_points_gives_an_empty_table(tmp_path):

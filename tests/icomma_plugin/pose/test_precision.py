@@ -143,3 +143,83 @@ def test_rotation_sigmas_whiten_by_the_covariance_and_ignore_the_worlds_frame():
         rotation_sigmas(turned, w2c, np.zeros((3, 3)))
     with pytest.raises(ValueError, match="must be \\[4, 4\\]"):
         rotation_sigmas(turned[:3], w2c, cov)
+
+
+def _bundle(n_cams=5, n_pts=40, seed=7):
+    """Cameras on a ring around points, each observing every point with 0.5 px of noise."""
+    rng = np.random.default_rng(seed)
+    xyz = rng.uniform(-1.0, 1.0, (n_pts, 3))
+    w2cs, intr, focal = [], [], []
+    cam, pt, xy = [], [], []
+    for c in range(n_cams):
+        a = 2 * np.pi * c / (n_cams * 3)
+        w2c = np.linalg.inv(look_at_c2w([4 * np.cos(a), 4 * np.sin(a), 1.0 + 0.1 * c]))
+        f = FX + 10 * c
+        w2cs.append(w2c)
+        intr.append([f, f * 0.98, CX, CY])
+        focal.append(("none", "shared", "separate")[c % 3])
+        uv = _project(w2c, xyz, f, f * 0.98) + rng.normal(0, 0.5, (n_pts, 2))
+        cam += [c] * n_pts
+        pt += list(range(n_pts))
+        xy.append(uv)
+    return np.array(w2cs), np.array(intr), focal, xyz, np.array(cam), np.array(pt), np.vstack(xy)
+
+
+def test_bundle_precision_is_the_schur_complement_of_the_whole_normal_matrix():
+    """The points eliminated (sparse, per point) as a dense solve of the whole system does."""
+    from icomma_plugin.pose.precision import bundle_precision
+
+    w2cs, intr, focal, xyz, cam, pt, xy = _bundle()
+    got = bundle_precision(w2cs, intr, focal, xyz, cam, pt, xy)
+    # the reference: the dense Jacobian of every camera parameter and point coordinate
+    nf = [{"none": 0, "shared": 1, "separate": 2}[f] for f in focal]
+    offs = np.cumsum([0] + [6 + k for k in nf])
+    P, M = offs[-1], len(xyz)
+    rows, res = [], []
+    for k in range(len(cam)):
+        c, j = cam[k], pt[k]
+        fx, fy, cx, cy = intr[c]
+        xc = w2cs[c, :3, :3] @ xyz[j] + w2cs[c, :3, 3]
+        Jc = _projection_jacobian(xc[None], fx, fy, focal[c])  # [2, 6 + nf]
+        x, y, z = xc
+        Jp = np.array([[fx / z, 0, -fx * x / z ** 2], [0, fy / z, -fy * y / z ** 2]])
+        Jp = Jp @ w2cs[c, :3, :3]
+        row = np.zeros((2, P + 3 * M))
+        row[:, offs[c]:offs[c + 1]] = Jc
+        row[:, P + 3 * j:P + 3 * j + 3] = Jp
+        rows.append(row)
+        res += [fx * x / z + cx - xy[k, 0], fy * y / z + cy - xy[k, 1]]
+    J = np.vstack(rows)
+    H = J.T @ J
+    S = H[:P, :P] - H[:P, P:] @ np.linalg.solve(H[P:, P:], H[P:, :P])
+    res = np.array(res)
+    sigma2 = res @ res / (len(res) - P - 3 * M + 7)
+    lam, Q = np.linalg.eigh(S)
+    assert np.all(np.abs(lam[:7]) < 1e-12 * lam[-1]) and lam[7] > 1e-11 * lam[-1]  # the gauge
+    cov = sigma2 * np.linalg.pinv(S, rcond=1e-13, hermitian=True)
+    for c, p in enumerate(got):  # (a weak direction at 6e-10 of the largest: rounding x 1e5)
+        blk = cov[offs[c]:offs[c] + 3, offs[c]:offs[c] + 3]
+        np.testing.assert_allclose(np.array(p.rot_cov), blk, rtol=1e-4,
+                                   atol=1e-4 * np.abs(blk).max())
+        assert p.rot_std_deg == pytest.approx(np.degrees(np.sqrt(np.trace(blk))), rel=1e-4)
+        assert p.points_free and p.points == 40 and p.focal_free == (focal[c] != "none")
+        assert p.rms_px == pytest.approx(np.sqrt(sigma2), rel=1e-9)
+
+
+def test_bundle_precision_leaves_out_points_seen_once_and_refuses_bad_input():
+    from icomma_plugin.pose.precision import MAX_BUNDLE_PARAMS, bundle_precision
+
+    w2cs, intr, focal, xyz, cam, pt, xy = _bundle()
+    extra = np.vstack([xyz, [[0.1, 0.2, 0.3]]])  # seen by camera 0 only
+    base = bundle_precision(w2cs, intr, focal, xyz, cam, pt, xy)
+    more = bundle_precision(w2cs, intr, focal, extra, np.r_[cam, 0], np.r_[pt, 40],
+                            np.vstack([xy, [[300.0, 200.0]]]))
+    assert [p.rot_cov for p in more] == [p.rot_cov for p in base]
+    with pytest.raises(ValueError, match="must agree"):
+        bundle_precision(w2cs, intr[:2], focal, xyz, cam, pt, xy)
+    with pytest.raises(ValueError, match="obs_xy"):
+        bundle_precision(w2cs, intr, focal, xyz, cam, pt[:3], xy)
+    many = np.repeat(w2cs[:1], MAX_BUNDLE_PARAMS // 6 + 1, 0)
+    with pytest.raises(ValueError, match="MAX_BUNDLE_PARAMS"):
+        bundle_precision(many, np.repeat(intr[:1], len(many), 0), ["none"] * len(many), xyz,
+                         cam, pt, xy)
