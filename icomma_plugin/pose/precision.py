@@ -159,7 +159,7 @@ def rotation_sigmas(w2c_est: np.ndarray, w2c_rec: np.ndarray, rot_cov) -> float:
 
 #: A bundle of more camera parameters than this is not inverted (a dense matrix of its size
 #: squared): ``bundle_precision`` refuses it and callers fall back to the points held fixed.
-MAX_BUNDLE_PARAMS = 12000
+MAX_BUNDLE_PARAMS = 8000
 
 _FOCAL_PARAMS = {"none": 0, "shared": 1, "separate": 2}
 
