@@ -98,6 +98,10 @@ class ColmapImage:
     camera_id: int
     name: str
     num_points2D: int = 0
+    # with_points=True: the 2D points ([N, 2], COLMAP's pixel convention) and their 3D point ids
+    # ([N] int64, -1: none); None otherwise
+    xys: Optional[np.ndarray] = None
+    point3D_ids: Optional[np.ndarray] = None
 
 
 # ----------------------------------------------------------------------------- math
@@ -265,8 +269,11 @@ def read_cameras_binary(path: PathLike) -> Dict[int, ColmapCamera]:
     return cams
 
 
-def read_images_binary(path: PathLike) -> Dict[int, ColmapImage]:
-    """images.bin: image id -> image (the 2D points are skipped, only counted).
+_POINT2D = np.dtype([("x", "<f8"), ("y", "<f8"), ("id", "<i8")])
+
+
+def read_images_binary(path: PathLike, with_points: bool = False) -> Dict[int, ColmapImage]:
+    """images.bin: image id -> image (the 2D points only counted, unless ``with_points``).
 
     Raises:
         DatasetError: a truncated or malformed file.
@@ -279,30 +286,41 @@ def read_images_binary(path: PathLike) -> Dict[int, ColmapImage]:
         vals = r.read("idddddddi", f"image {i} header")
         name = r.read_cstring(f"image {vals[0]} name")
         (npts,) = r.read("Q", f"image {vals[0]} point count")
+        raw = None
+        if with_points:
+            r.check_count(npts, 24, f"2D points of image {vals[0]}")
+            raw = np.frombuffer(r.data, dtype=_POINT2D, count=npts, offset=r.pos)
         r.skip(24 * npts, f"image {vals[0]} 2D points")
         images[vals[0]] = ColmapImage(
-            vals[0], np.array(vals[1:5]), np.array(vals[5:8]), vals[8], name, npts
+            vals[0], np.array(vals[1:5]), np.array(vals[5:8]), vals[8], name, npts,
+            None if raw is None else np.stack([raw["x"], raw["y"]], 1),
+            None if raw is None else raw["id"].copy(),
         )
     r.finish()
     return images
 
 
-def read_points3D_binary(path: PathLike) -> Tuple[np.ndarray, np.ndarray]:
-    """(xyz [N, 3] float64, rgb [N, 3] float64 in [0, 1])."""
+def read_points3D_binary(path: PathLike, with_ids: bool = False):
+    """points3D.bin: (xyz [N, 3] float64, rgb [N, 3] float64 in [0, 1]) (and ids).
+
+    ``with_ids``: the points' ids too, as a third item (a list of N ints: COLMAP's are uint64).
+    """
     r = _BinReader(Path(path))
     (n,) = r.read("Q", "the point count")
     r.check_count(n, 51, "points")
     xyz = np.empty((n, 3), dtype=np.float64)
     rgb = np.empty((n, 3), dtype=np.float64)
+    ids = []
     for i in range(n):
         vals = r.read("QdddBBBd", f"point {i}")
+        ids.append(vals[0])
         xyz[i] = vals[1:4]
         rgb[i] = vals[4:7]
         (tl,) = r.read("Q", f"point {vals[0]} track length")
         r.skip(8 * tl, f"point {vals[0]} track")
     r.finish()
     _check_points(xyz, path)
-    return xyz, rgb / 255.0
+    return (xyz, rgb / 255.0, ids) if with_ids else (xyz, rgb / 255.0)
 
 
 # ----------------------------------------------------------------------------- text
@@ -365,8 +383,10 @@ def read_cameras_text(path: PathLike) -> Dict[int, ColmapCamera]:
     return cams
 
 
-def read_images_text(path: PathLike) -> Dict[int, ColmapImage]:
-    """images.txt: image id -> image (two lines per image; the 2D points are only counted).
+def read_images_text(path: PathLike, with_points: bool = False) -> Dict[int, ColmapImage]:
+    """images.txt: image id -> image (two lines per image; the 2D points counted).
+
+    ``with_points``: the 2D points and their 3D point ids kept too (``ColmapImage.xys``).
 
     Raises:
         DatasetError: a malformed line (the message names the file and line).
@@ -385,20 +405,32 @@ def read_images_text(path: PathLike) -> Dict[int, ColmapImage]:
         vals = [_parse(float, t, path, no, "a pose value") for t in el[1:8]]
         cid = _parse(int, el[8], path, no, "CAMERA_ID")
         name = " ".join(el[9:])
-        pts = next(it, (no + 1, ""))[1]  # the POINTS2D line (may be empty)
-        npts = len(pts.split()) // 3
-        images[iid] = ColmapImage(iid, np.array(vals[:4]), np.array(vals[4:7]), cid, name, npts)
+        pno, pts = next(it, (no + 1, ""))  # the POINTS2D line (may be empty)
+        tok = pts.split()
+        npts = len(tok) // 3
+        im = ColmapImage(iid, np.array(vals[:4]), np.array(vals[4:7]), cid, name, npts)
+        if with_points:
+            if len(tok) % 3:
+                raise DatasetError(f"{path}:{pno}: expected 'X Y POINT3D_ID' triples, got "
+                                   f"{len(tok)} values")
+            im.xys = np.array([_parse(float, t, path, pno, "X/Y") for k, t in enumerate(tok)
+                               if k % 3 != 2], dtype=np.float64).reshape(-1, 2)
+            im.point3D_ids = np.array([_parse(int, t, path, pno, "POINT3D_ID")
+                                       for t in tok[2::3]], dtype=np.int64)
+        images[iid] = im
     return images
 
 
-def read_points3D_text(path: PathLike) -> Tuple[np.ndarray, np.ndarray]:
-    """points3D.txt: (xyz [N, 3] float64, rgb [N, 3] float64 in [0, 1]).
+def read_points3D_text(path: PathLike, with_ids: bool = False):
+    """points3D.txt: (xyz [N, 3] float64, rgb [N, 3] float64 in [0, 1]) (and ids [N]).
+
+    ``with_ids``: the points' ids too, as a third item (a list of ints).
 
     Raises:
         DatasetError: a malformed line or non-finite coordinates.
     """
     path = Path(path)
-    xyz, rgb = [], []
+    xyz, rgb, ids = [], [], []
     for no, s in _text_lines(path):
         if not s:
             continue
@@ -407,14 +439,17 @@ def read_points3D_text(path: PathLike) -> Tuple[np.ndarray, np.ndarray]:
             raise DatasetError(
                 f"{path}:{no}: expected 'POINT3D_ID X Y Z R G B ERROR TRACK...', got {s!r}"
             )
+        if with_ids:
+            ids.append(_parse(int, el[0], path, no, "POINT3D_ID"))
         xyz.append([_parse(float, t, path, no, "X/Y/Z") for t in el[1:4]])
         rgb.append([_parse(int, t, path, no, "R/G/B") for t in el[4:7]])
         if not all(0 <= c <= 255 for c in rgb[-1]):
             raise DatasetError(f"{path}:{no}: R/G/B must be in 0..255, got {el[4:7]}")
-    if not xyz:
-        return np.zeros((0, 3)), np.zeros((0, 3))
-    _check_points(np.array(xyz, dtype=np.float64), path)
-    return np.array(xyz, dtype=np.float64), np.array(rgb, dtype=np.float64) / 255.0
+    out = (np.array(xyz, dtype=np.float64).reshape(-1, 3),
+           np.array(rgb, dtype=np.float64).reshape(-1, 3) / 255.0)
+    if len(out[0]):
+        _check_points(out[0], path)
+    return out + (ids,) if with_ids else out
 
 
 def _check_points(xyz: np.ndarray, path) -> None:

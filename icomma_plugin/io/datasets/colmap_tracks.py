@@ -1,7 +1,7 @@
 """What a COLMAP model's tracks say about its own poses: each photo's record precision.
 
-``colmap.py`` reads the cameras, poses and points a fit needs and skips the 2D observations.
-This module reads them (binary or text, COLMAP's layouts) and, for every registered photo of a
+``colmap.py`` reads the cameras, poses and points a fit needs; this module asks it for the 2D
+observations too (binary or text, COLMAP's layouts) and, for every registered photo of a
 pinhole camera, the first-order precision of its recorded pose from the points it observes
 (``icomma_plugin.pose.precision``): how far the record itself may be from the truth, so that the
 audit and the benchmark can say when a localized pose is "off its record" by no more than the
@@ -21,14 +21,15 @@ from icomma_plugin.pose.precision import PosePrecision, bundle_precision, pose_p
 
 from .base import DatasetError, PathLike
 from .colmap import (
-    _BinReader,
-    _parse,
     _pick,
-    _text_lines,
     colmap_w2c,
     find_sparse_dir,
     read_cameras_binary,
     read_cameras_text,
+    read_images_binary,
+    read_images_text,
+    read_points3D_binary,
+    read_points3D_text,
 )
 
 logger = logging.getLogger(__name__)
@@ -54,79 +55,6 @@ class ImageTrack:
     point_ids: np.ndarray
 
 
-def _images_with_points_binary(path: Path) -> Dict[str, ImageTrack]:
-    r = _BinReader(path)
-    (n,) = r.read("Q", "the image count")
-    r.check_count(n, 73, "images")
-    out: Dict[str, ImageTrack] = {}
-    for i in range(n):
-        vals = r.read("idddddddi", f"image {i} header")
-        name = r.read_cstring(f"image {vals[0]} name")
-        (npts,) = r.read("Q", f"image {vals[0]} point count")
-        r.check_count(npts, 24, f"2D points of image {vals[0]}")
-        raw = np.frombuffer(r.data, dtype=np.dtype([("x", "<f8"), ("y", "<f8"), ("id", "<i8")]),
-                            count=npts, offset=r.pos)
-        r.skip(24 * npts, f"image {vals[0]} 2D points")
-        seen = raw["id"] >= 0  # -1: an observation without a 3D point
-        out[name] = ImageTrack(name, colmap_w2c(vals[1:5], vals[5:8]), vals[8],
-                               np.stack([raw["x"][seen], raw["y"][seen]], 1),
-                               raw["id"][seen].copy())
-    return out
-
-
-def _images_with_points_text(path: Path) -> Dict[str, ImageTrack]:
-    out: Dict[str, ImageTrack] = {}
-    it = _text_lines(path)
-    for no, s in it:
-        if not s:
-            continue
-        el = s.split()
-        if len(el) < 10:
-            raise DatasetError(
-                f"{path}:{no}: expected 'IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME', got {s!r}")
-        vals = [_parse(float, t, path, no, "a pose value") for t in el[1:8]]
-        cid = _parse(int, el[8], path, no, "CAMERA_ID")
-        name = " ".join(el[9:])
-        pno, line = next(it, (no + 1, ""))
-        tok = line.split()
-        if len(tok) % 3:
-            raise DatasetError(f"{path}:{pno}: expected 'X Y POINT3D_ID' triples, got "
-                               f"{len(tok)} values")
-        xy = np.array([[_parse(float, tok[k], path, pno, "X"), _parse(float, tok[k + 1], path,
-                                                                      pno, "Y")]
-                       for k in range(0, len(tok), 3)]).reshape(-1, 2)
-        ids = np.array([_parse(int, tok[k + 2], path, pno, "POINT3D_ID")
-                        for k in range(0, len(tok), 3)], dtype=np.int64)
-        seen = ids >= 0
-        out[name] = ImageTrack(name, colmap_w2c(vals[:4], vals[4:7]), cid, xy[seen], ids[seen])
-    return out
-
-
-def _points_by_id(path: Path) -> Dict[int, np.ndarray]:
-    """point id -> xyz of points3D.bin/.txt."""
-    pts: Dict[int, np.ndarray] = {}
-    if path.suffix == ".bin":
-        r = _BinReader(path)
-        (n,) = r.read("Q", "the point count")
-        r.check_count(n, 51, "points")
-        for i in range(n):
-            vals = r.read("QdddBBBd", f"point {i}")
-            pts[vals[0]] = np.array(vals[1:4])
-            (tl,) = r.read("Q", f"point {vals[0]} track length")
-            r.skip(8 * tl, f"point {vals[0]} track")
-        return pts
-    for no, s in _text_lines(path):
-        if not s:
-            continue
-        el = s.split()
-        if len(el) < 8:
-            raise DatasetError(
-                f"{path}:{no}: expected 'POINT3D_ID X Y Z R G B ERROR TRACK...', got {s!r}")
-        pts[_parse(int, el[0], path, no, "POINT3D_ID")] = np.array(
-            [_parse(float, t, path, no, "X/Y/Z") for t in el[1:4]])
-    return pts
-
-
 def read_image_tracks(sparse_dir: PathLike):
     """(cameras, {image name: ImageTrack}, {point id: xyz}) of a COLMAP model folder.
 
@@ -137,9 +65,16 @@ def read_image_tracks(sparse_dir: PathLike):
     cp, ip = _pick(sparse, "cameras"), _pick(sparse, "images")
     pp = _pick(sparse, "points3D")
     cams = read_cameras_binary(cp) if cp.suffix == ".bin" else read_cameras_text(cp)
-    images = (_images_with_points_binary(ip) if ip.suffix == ".bin"
-              else _images_with_points_text(ip))
-    return cams, images, _points_by_id(pp)
+    images = (read_images_binary(ip, with_points=True) if ip.suffix == ".bin"
+              else read_images_text(ip, with_points=True))
+    xyz, _, ids = (read_points3D_binary(pp, with_ids=True) if pp.suffix == ".bin"
+                   else read_points3D_text(pp, with_ids=True))
+    tracks = {}
+    for im in images.values():
+        seen = im.point3D_ids >= 0  # -1: an observation without a 3D point
+        tracks[im.name] = ImageTrack(im.name, colmap_w2c(im.qvec, im.tvec), im.camera_id,
+                                     im.xys[seen], im.point3D_ids[seen])
+    return cams, tracks, {int(i): p for i, p in zip(ids, xyz)}
 
 
 def _pinhole(cam) -> tuple:
