@@ -337,9 +337,12 @@ def attach_record(camera: Dict[str, Any], record: Optional[Mapping[str, Any]]) -
     sig = None
     if record is not None and record.get("rot_cov") and camera.get("c2w") is not None \
             and camera.get("recorded_c2w") is not None:
-        sig = rotation_sigmas(invert_rigid(np.asarray(camera["c2w"], np.float64)),
-                              invert_rigid(np.asarray(camera["recorded_c2w"], np.float64)),
-                              record["rot_cov"])
+        try:
+            sig = rotation_sigmas(invert_rigid(np.asarray(camera["c2w"], np.float64)),
+                                  invert_rigid(np.asarray(camera["recorded_c2w"], np.float64)),
+                                  record["rot_cov"])
+        except ValueError:  # a covariance that is not positive definite: nothing to say
+            sig = None
     camera["record_sigmas"] = sig
     camera["within_record"] = None if sig is None else sig <= WITHIN_SIGMAS
 

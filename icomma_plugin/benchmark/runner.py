@@ -243,9 +243,7 @@ def run_protocol(
                         )
                         rec.update(_error_record(exc))
                     if q.record is not None and rec.get("c2w") is not None:
-                        rec["record_sigmas"] = rotation_sigmas(
-                            invert_rigid(np.asarray(rec["c2w"], np.float64)),
-                            invert_rigid(q.gt_c2w), q.record["rot_cov"])
+                        rec["record_sigmas"] = _record_sigmas(rec["c2w"], q)
                     rec["method"] = method  # the protocol's variant (a row says the algorithm)
                     rec["wall_seconds"] = time.perf_counter() - t0
                     if not store_curves:
@@ -259,6 +257,15 @@ def run_protocol(
                         progress({"event": "run_end", "key": key, "count": count, "total": total,
                                   "reused": False, "record": rec})
     return records
+
+
+def _record_sigmas(c2w, q) -> Optional[float]:
+    """``rotation_sigmas`` of a run's pose against its query's record (None: no covariance)."""
+    try:
+        return rotation_sigmas(invert_rigid(np.asarray(c2w, np.float64)), invert_rigid(q.gt_c2w),
+                               q.record["rot_cov"])
+    except ValueError:
+        return None
 
 
 def _run_one(

@@ -189,8 +189,9 @@ def bundle_precision(w2cs, intrinsics, focal, xyz, obs_camera, obs_point, obs_xy
         A ``PosePrecision`` per camera (``points`` its observations used).
 
     Raises:
-        ValueError: mismatched shapes, a point behind a camera that observes it, or more than
-            ``MAX_BUNDLE_PARAMS`` camera parameters.
+        ValueError: mismatched shapes, a point behind a camera that observes it, more than
+            ``MAX_BUNDLE_PARAMS`` camera parameters, or more free directions than the 7 of a
+            similarity (a camera that shares no point with the others).
     """
     from scipy import sparse
 
@@ -264,6 +265,10 @@ def bundle_precision(w2cs, intrinsics, focal, xyz, obs_camera, obs_point, obs_xy
     # the 7 directions of a similarity transform are free (zero eigenvalues up to rounding); the
     # next ones can be weak but real (a focal length against the distance): drop exactly 7
     lam, Q = np.linalg.eigh((S + S.T) / 2)
+    if not lam[7] > 1e3 * np.abs(lam[:7]).max():
+        raise ValueError(f"the observations leave more than the 7 directions of a similarity "
+                         f"free (eigenvalues {lam[:9].tolist()}): a camera or a part of the "
+                         "reconstruction is not tied to the rest")
     cov = sigma2 * (Q[:, 7:] / lam[7:]) @ Q[:, 7:].T
     out, start = [], 0
     counts = np.bincount(cam, minlength=C)

@@ -654,3 +654,16 @@ def test_the_bird_capture_records_precision_from_its_tracks(shared_data):
     assert 0.5 < np.median([v["rms_px"] for v in table.values()]) < 2.0
     cov = np.array(next(iter(table.values()))["rot_cov"])
     assert cov.shape == (3, 3) and np.all(np.linalg.eigvalsh(cov) > 0)
+
+
+def test_a_records_covariance_that_says_nothing_gives_no_sigmas():
+    from icomma_plugin.benchmark.runner import _record_sigmas
+    from icomma_plugin.benchmark.scene import BenchQuery
+
+    gt = _gt()
+    q = BenchQuery(None, gt, 0, {"rot_std_deg": 0.1, "rot_cov": np.zeros((3, 3)).tolist()})
+    assert _record_sigmas(gt, q) is None
+    q.record["rot_cov"] = (np.eye(3) * np.radians(0.1) ** 2).tolist()
+    turned = gt.copy()
+    turned[:3, :3] = gt[:3, :3] @ rotation_matrix(np.array([0.0, 0.0, 1.0]), 0.2)
+    assert _record_sigmas(turned, q) == pytest.approx(2.0, rel=1e-6)

@@ -415,8 +415,11 @@ def read_images_text(path: PathLike, with_points: bool = False) -> Dict[int, Col
                                    f"{len(tok)} values")
             im.xys = np.array([_parse(float, t, path, pno, "X/Y") for k, t in enumerate(tok)
                                if k % 3 != 2], dtype=np.float64).reshape(-1, 2)
-            im.point3D_ids = np.array([_parse(int, t, path, pno, "POINT3D_ID")
-                                       for t in tok[2::3]], dtype=np.int64)
+            try:
+                im.point3D_ids = np.array([_parse(int, t, path, pno, "POINT3D_ID")
+                                           for t in tok[2::3]], dtype=np.int64)
+            except OverflowError:
+                raise DatasetError(f"{path}:{pno}: a POINT3D_ID out of the int64 range") from None
         images[iid] = im
     return images
 

@@ -118,3 +118,16 @@ def test_a_truncated_images_file_gives_an_empty_table_not_a_crash(tmp_path, capl
     with caplog.at_level("INFO"):
         assert record_precision(tmp_path) == {}
     assert any("truncated" in r.getMessage() for r in caplog.records)
+
+
+def test_a_point_id_out_of_range_in_a_text_model_is_one_clear_error(tmp_path):
+    from icomma_plugin.io.datasets import DatasetError
+    from icomma_plugin.io.datasets.colmap import read_images_text
+
+    cameras, images, points, _ = _model()
+    iid, q, t, cid, name, obs = images[0]
+    images[0] = (iid, q, t, cid, name, obs + [(1.0, 2.0, 2 ** 70)])
+    write_colmap_txt(tmp_path / "sparse" / "0", cameras, images, points)
+    with pytest.raises(DatasetError, match="out of the int64 range"):
+        read_images_text(tmp_path / "sparse" / "0" / "images.txt", with_points=True)
+    assert record_precision(tmp_path) == {}  # said in the log, not raised

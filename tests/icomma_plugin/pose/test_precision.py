@@ -223,3 +223,13 @@ def test_bundle_precision_leaves_out_points_seen_once_and_refuses_bad_input():
     with pytest.raises(ValueError, match="MAX_BUNDLE_PARAMS"):
         bundle_precision(many, np.repeat(intr[:1], len(many), 0), ["none"] * len(many), xyz,
                          cam, pt, xy)
+
+
+def test_a_camera_tied_to_nothing_else_is_refused():
+    """Two groups of cameras that share no point: 14 free directions, not 7."""
+    from icomma_plugin.pose.precision import bundle_precision
+
+    w2cs, intr, focal, xyz, cam, pt, xy = _bundle(n_cams=4)
+    apart = (cam >= 2) & (pt < 20) | (cam < 2) & (pt >= 20)  # cameras 0-1 see 0-19, 2-3 20-39
+    with pytest.raises(ValueError, match="not tied to the rest"):
+        bundle_precision(w2cs, intr, ["none"] * 4, xyz, cam[~apart], pt[~apart], xy[~apart])
