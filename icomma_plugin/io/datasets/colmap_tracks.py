@@ -44,7 +44,7 @@ MIN_POINTS = 10
 class ImageTrack:
     """One registered photo's pose and the 3D points it observes.
 
-    w2c: its recorded world-to-camera pose; camera_id: its COLMAP camera; xy [N, 2]: where it
+    w2c: its recorded world-to-camera pose (NaN where COLMAP has none); camera_id: its COLMAP camera; xy [N, 2]: where it
     observed the points, COLMAP's pixel convention; point_ids [N]: the points' ids.
     """
 
@@ -72,8 +72,11 @@ def read_image_tracks(sparse_dir: PathLike):
     tracks = {}
     for im in images.values():
         seen = im.point3D_ids >= 0  # -1: an observation without a 3D point
-        tracks[im.name] = ImageTrack(im.name, colmap_w2c(im.qvec, im.tvec), im.camera_id,
-                                     im.xys[seen], im.point3D_ids[seen])
+        q = np.asarray(im.qvec, np.float64)
+        posed = np.all(np.isfinite(q)) and np.linalg.norm(q) > 1e-8  # else no pose: NaN
+        w2c = colmap_w2c(q, im.tvec) if posed else np.full((4, 4), np.nan)
+        tracks[im.name] = ImageTrack(im.name, w2c, im.camera_id, im.xys[seen],
+                                     im.point3D_ids[seen])
     return cams, tracks, {int(i): p for i, p in zip(ids, xyz)}
 
 
@@ -117,9 +120,11 @@ def record_precision(root: PathLike, points: str = "free") -> Dict[str, Dict]:
     users: Dict[int, int] = {}
     for im in images.values():
         users[im.camera_id] = users.get(im.camera_id, 0) + 1
-    extent = cameras_extent([invert_rigid(im.w2c) for im in images.values()]) if images else 1.0
     usable, skipped = {}, {"distorted camera model": 0, "too few points": 0, "degenerate": 0}
-    for name, im in images.items():
+    posed = {n: im for n, im in images.items()  # (read_colmap skips the others too)
+             if np.all(np.isfinite(im.w2c))}
+    skipped["degenerate"] = len(images) - len(posed)
+    for name, im in posed.items():
         cam = cams.get(im.camera_id)
         if cam is None or cam.model not in ("SIMPLE_PINHOLE", "PINHOLE"):
             skipped["distorted camera model"] += 1
@@ -131,6 +136,7 @@ def record_precision(root: PathLike, points: str = "free") -> Dict[str, Dict]:
         focal = "none" if users[im.camera_id] > 1 else (
             "shared" if cam.model == "SIMPLE_PINHOLE" else "separate")
         usable[name] = (im, _pinhole(cam), focal, known)
+    extent = cameras_extent([invert_rigid(im.w2c) for im in posed.values()]) if posed else 1.0
     precisions = None
     if points == "free" and not skipped["distorted camera model"] and len(usable) >= 2:
         precisions = _bundle(usable, pts, root)

@@ -82,7 +82,7 @@ def test_tracks_and_record_precision_from_the_files(tmp_path, writer):
     got = table["sub/IMG_1.jpg"]
     assert got["rot_std_deg"] == pytest.approx(want.rot_std_deg, rel=1e-6)
     assert got["rms_px"] == pytest.approx(0.7, rel=0.25)
-    extent = cameras_extent([np.linalg.inv(truth[n][0]) for n in truth])
+    extent = cameras_extent([np.linalg.inv(truth[n][0]) for n in truth])  # every posed photo
     assert got["centre_std_rel"] == pytest.approx(want.centre_std / extent, rel=1e-6)
     assert precision_of(table, "IMG_1.jpg") is got  # a reader's name without the folder
     assert precision_of(table, "IMG_1.png") is got  # or another extension
@@ -131,3 +131,13 @@ def test_a_point_id_out_of_range_in_a_text_model_is_one_clear_error(tmp_path):
     with pytest.raises(DatasetError, match="out of the int64 range"):
         read_images_text(tmp_path / "sparse" / "0" / "images.txt", with_points=True)
     assert record_precision(tmp_path) == {}  # said in the log, not raised
+
+
+def test_a_photo_without_a_valid_pose_is_left_out(tmp_path):
+    cameras, images, points, truth = _model(distorted=False)
+    iid, q, t, cid, name, obs = images[1]
+    images[1] = (iid, [0.0, 0.0, 0.0, 0.0], t, cid, name, obs)  # COLMAP's "no pose"
+    write_colmap_bin(tmp_path / "sparse" / "0", cameras, images, points)
+    table = record_precision(tmp_path)
+    assert set(table) == set(truth) - {name}
+    assert all(v["points_free"] and np.isfinite(v["rot_std_deg"]) for v in table.values())
