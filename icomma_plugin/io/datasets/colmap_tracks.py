@@ -44,8 +44,9 @@ MIN_POINTS = 10
 class ImageTrack:
     """One registered photo's pose and the 3D points it observes.
 
-    w2c: its recorded world-to-camera pose (NaN where COLMAP has none); camera_id: its COLMAP camera; xy [N, 2]: where it
-    observed the points, COLMAP's pixel convention; point_ids [N]: the points' ids.
+    w2c: its recorded world-to-camera pose (NaN where COLMAP has none); camera_id: its COLMAP
+    camera; xy [N, 2]: where it observed the points, COLMAP's pixel convention; point_ids [N]:
+    the points' ids.
     """
 
     name: str
