@@ -210,6 +210,12 @@ def bundle_precision(w2cs, intrinsics, focal, xyz, obs_camera, obs_point, obs_xy
     if not (cam.shape == pt.shape == xy.shape[:1]) or xy.shape[1:] != (2,):
         raise ValueError(f"obs_camera, obs_point [K] and obs_xy [K, 2] must agree, got "
                          f"{list(cam.shape)}, {list(pt.shape)} and {list(xy.shape)}")
+    bad = [f for f in focal if f not in _FOCAL_PARAMS]
+    if bad:
+        raise ValueError(f"focal must be 'none', 'shared' or 'separate' per camera, got {bad[0]!r}")
+    if len(cam) and (cam.min() < 0 or cam.max() >= C or pt.min() < 0 or pt.max() >= len(xyz)):
+        raise ValueError(f"obs_camera must index the {C} cameras and obs_point the {len(xyz)} "
+                         "points")
     nf = np.array([_FOCAL_PARAMS[f] for f in focal])
     if int((6 + nf).sum()) > MAX_BUNDLE_PARAMS:
         raise ValueError(f"{int((6 + nf).sum())} camera parameters: more than "

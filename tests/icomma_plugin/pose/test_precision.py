@@ -219,6 +219,10 @@ def test_bundle_precision_leaves_out_points_seen_once_and_refuses_bad_input():
         bundle_precision(w2cs, intr[:2], focal, xyz, cam, pt, xy)
     with pytest.raises(ValueError, match="obs_xy"):
         bundle_precision(w2cs, intr, focal, xyz, cam, pt[:3], xy)
+    with pytest.raises(ValueError, match="per camera"):
+        bundle_precision(w2cs, intr, ["none"] * 4 + ["maybe"], xyz, cam, pt, xy)
+    with pytest.raises(ValueError, match="obs_point the 40 points"):
+        bundle_precision(w2cs, intr, focal, xyz, cam, pt + 1, xy)
     many = np.repeat(w2cs[:1], MAX_BUNDLE_PARAMS // 6 + 1, 0)
     with pytest.raises(ValueError, match="MAX_BUNDLE_PARAMS"):
         bundle_precision(many, np.repeat(intr[:1], len(many), 0), ["none"] * len(many), xyz,
