@@ -112,8 +112,11 @@ def record_precision(root: PathLike, points: str = "free") -> Dict[str, Dict]:
         raise ValueError(f"points must be 'free' or 'fixed', got {points!r}")
     try:
         sparse = find_sparse_dir(root)
-        if _pick(sparse, "points3D", required=False) is None:
-            return {}
+    except DatasetError:  # not a COLMAP capture: nothing to say, nothing to log
+        return {}
+    if _pick(sparse, "points3D", required=False) is None:
+        return {}
+    try:
         cams, images, pts = read_image_tracks(sparse)
     except DatasetError as e:
         logger.info("no record precision for %s: %s", root, e)
