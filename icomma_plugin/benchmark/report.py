@@ -317,6 +317,12 @@ def markdown(spec: ProtocolSpec, summary: Dict[str, Any], matcher: Optional[str]
                      f"{_fmt(r['ours'], r['metric'])} | {paper_txt} | {delta} | {source} |")
     if missing:
         lines += ["", f"A – in the paper's columns: {NOT_FOUND} ({missing} of {len(rows)} rows)."]
+    if any(r["metric"] in RECORD_METRICS for r in rows):
+        lines += ["", "`median_record_rot_std_deg`: how precisely the capture's own COLMAP tracks "
+                  "fix the queries' recorded poses (rms rotation, first order, the points free); "
+                  "a perfect method would land about 0.9x this from them (median). "
+                  "`within_record`: the runs whose rotation lies within its record's uncertainty "
+                  f"(Mahalanobis distance <= {WITHIN_SIGMAS:g}, 99 %; docs/AUDIT.md)."]
     lines.append("")
     return "\n".join(lines)
 

@@ -635,6 +635,7 @@ def test_the_report_puts_the_records_own_precision_beside_the_errors():
     md = markdown(spec, summarize(spec, recs), "xfeat")
     assert "| r20-40 | robust | median_record_rot_std_deg | 4 | 0.08 |" in md
     assert "| r20-40 | robust | within_record | 4 | 75.0% |" in md
+    assert "a perfect method would land about 0.9x this from them" in md
     plain = [{k: v for k, v in r.items() if not k.startswith("record")} for r in recs]
     assert "record" not in markdown(spec, summarize(spec, plain), "xfeat")
 
