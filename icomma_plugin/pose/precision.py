@@ -58,6 +58,19 @@ class PosePrecision:
         return asdict(self)
 
 
+#: The focal-length parameters of each ``focal`` mode.
+_FOCAL_PARAMS = {"none": 0, "shared": 1, "separate": 2}
+
+
+def _from_covariance(cov: np.ndarray, R: np.ndarray, sigma: float, points: int, focal_free: bool,
+                     points_free: bool) -> PosePrecision:
+    """A camera's ``PosePrecision`` from its covariance block (twist ``omega, tau`` first)."""
+    rot = float(np.degrees(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))))
+    centre = float(np.sqrt(max(np.trace(R.T @ cov[3:6, 3:6] @ R), 0.0)))
+    return PosePrecision(rot, centre, sigma, points, focal_free, cov[:3, :3].tolist(),
+                         points_free)
+
+
 def _projection_jacobian(xc: np.ndarray, fx: float, fy: float, focal: str) -> np.ndarray:
     """[2N, P] Jacobian of the pinhole projections of camera-frame points ``xc`` [N, 3].
 
@@ -104,9 +117,9 @@ def pose_precision(w2c: np.ndarray, fx: float, fy: float, cx: float, cy: float,
     if xyz.ndim != 2 or xyz.shape[1] != 3 or xy.shape != (len(xyz), 2):
         raise ValueError(f"xyz must be [N, 3] and xy [N, 2] with the same N, got "
                          f"{list(xyz.shape)} and {list(xy.shape)}")
-    if focal not in ("none", "shared", "separate"):
+    if focal not in _FOCAL_PARAMS:
         raise ValueError(f"focal must be 'none', 'shared' or 'separate', got {focal!r}")
-    n_params = 6 + {"none": 0, "shared": 1, "separate": 2}[focal]
+    n_params = 6 + _FOCAL_PARAMS[focal]
     if 2 * len(xyz) <= n_params:
         raise ValueError(f"{len(xyz)} observations cannot fix {n_params} parameters: at least "
                          f"{n_params // 2 + 1} needed")
@@ -123,11 +136,8 @@ def pose_precision(w2c: np.ndarray, fx: float, fy: float, cx: float, cy: float,
     if np.linalg.cond(jtj) > 1e14:
         raise ValueError("the observations do not fix the pose (a singular J^T J: too few or "
                          "collinear points)")
-    cov = sigma2 * np.linalg.inv(jtj)
-    rot = float(np.degrees(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))))
-    centre = float(np.sqrt(max(np.trace(R.T @ cov[3:6, 3:6] @ R), 0.0)))
-    return PosePrecision(rot, centre, float(np.sqrt(sigma2)), len(xyz), focal != "none",
-                         cov[:3, :3].tolist())
+    return _from_covariance(sigma2 * np.linalg.inv(jtj), R, float(np.sqrt(sigma2)), len(xyz),
+                            focal != "none", points_free=False)
 
 
 def rotation_sigmas(w2c_est: np.ndarray, w2c_rec: np.ndarray, rot_cov) -> float:
@@ -160,8 +170,6 @@ def rotation_sigmas(w2c_est: np.ndarray, w2c_rec: np.ndarray, rot_cov) -> float:
 #: A bundle of more camera parameters than this is not inverted (a dense matrix of its size
 #: squared): ``bundle_precision`` refuses it and callers fall back to the points held fixed.
 MAX_BUNDLE_PARAMS = 8000
-
-_FOCAL_PARAMS = {"none": 0, "shared": 1, "separate": 2}
 
 
 def bundle_precision(w2cs, intrinsics, focal, xyz, obs_camera, obs_point, obs_xy):
@@ -260,8 +268,7 @@ def bundle_precision(w2cs, intrinsics, focal, xyz, obs_camera, obs_point, obs_xy
     S = -(Wsp @ Visp @ Wsp.T).toarray()
     for c in range(C):
         S[c * 8:(c + 1) * 8, c * 8:(c + 1) * 8] += U[c]
-    active = np.concatenate([c * 8 + np.arange(6 + (2 if nf[c] == 2 else nf[c]))
-                             for c in range(C)])
+    active = np.concatenate([c * 8 + np.arange(6 + nf[c]) for c in range(C)])
     S = S[np.ix_(active, active)]
     dof = len(r) - len(active) - 3 * len(used) + 7
     if dof <= 0:
@@ -279,12 +286,9 @@ def bundle_precision(w2cs, intrinsics, focal, xyz, obs_camera, obs_point, obs_xy
     out, start = [], 0
     counts = np.bincount(cam, minlength=C)
     for c in range(C):
-        p = 6 + (2 if nf[c] == 2 else nf[c])
-        blk = cov[start:start + p, start:start + p]
+        p = 6 + nf[c]
+        out.append(_from_covariance(cov[start:start + p, start:start + p], w2cs[c, :3, :3],
+                                    float(np.sqrt(sigma2)), int(counts[c]), bool(nf[c]),
+                                    points_free=True))
         start += p
-        Rc = w2cs[c, :3, :3]
-        rot = float(np.degrees(np.sqrt(max(np.trace(blk[:3, :3]), 0.0))))
-        centre = float(np.sqrt(max(np.trace(Rc.T @ blk[3:6, 3:6] @ Rc), 0.0)))
-        out.append(PosePrecision(rot, centre, float(np.sqrt(sigma2)), int(counts[c]),
-                                 bool(nf[c]), blk[:3, :3].tolist(), points_free=True))
     return out
