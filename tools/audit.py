@@ -50,9 +50,11 @@ def _plan_and_rule(cfg: DictConfig):
         plan = AuditPlan(starts=cfg.starts, no_start=cfg.no_start,
                          rot_deg=tuple(rot) if isinstance(rot, list) else rot,
                          trans=float(cfg.trans), pivot=str(cfg.pivot), seed=cfg.seed,
-                         sample=cfg.get("sample"), control=cfg.get("control", True))
+                         sample=cfg.get("sample"), control=cfg.get("control", True),
+                         focal_step=float(cfg.focal.step) if cfg.focal.enabled else None)
         f = cfg.flag
-        rule = FlagRule(rot_deg=float(f.rot_deg), trans=float(f.trans), min_ok=f.min_ok)
+        rule = FlagRule(rot_deg=float(f.rot_deg), trans=float(f.trans), min_ok=f.min_ok,
+                        focal_min_drop=float(cfg.focal.min_drop))
     except ValueError as e:
         raise common.UserError(str(e)) from None
     return plan, rule
@@ -257,6 +259,11 @@ def summary(doc: Dict[str, Any]) -> str:
                      f"deg (median rms, first order, {how}); {s['unflagged_within_record']} of "
                      f"{s['unflagged_with_record']} unflagged photos lie within their record's "
                      "uncertainty (99 %)")
+    if s.get("focal_checked") is not None:
+        lines.append(f"  focal lengths: {len(s['focal_disagreeing'])} of {s['focal_checked']} "
+                     "photos explained better at another focal length than their record's"
+                     + "".join(f"\n    {c['camera']}: {_focal_reading(c['focal'])}"
+                               for c in doc["cameras"] if (c.get("focal") or {}).get("disagrees")))
     if cal.get("stored"):
         moved = ", ".join(f"{k} {a:g} -> {b:g}" for k, (a, b) in cal["changed"].items())
         lines.append(f"  calibration ({cal['counts']['used']} right ok poses): "
@@ -265,6 +272,17 @@ def summary(doc: Dict[str, Any]) -> str:
         lines.append(f"  no calibration: {cal.get('reason')}")
     lines += [f"  outputs in {doc.get('output_dir')}", "=" * 72]
     return "\n".join(lines)
+
+
+def _focal_reading(focal: Dict[str, Any]) -> str:
+    """One camera's focal check in words."""
+    best = focal.get("best_scale")
+    where = f"best at x{best:.3f} of its recorded focal length" if best is not None else \
+        "no minimum within the scales tried"
+    rots = ", ".join("-" if r is None else f"{r:.2f}" for r in focal["rot_err_deg"])
+    return (f"{where}; the final loss {100 * focal['loss_drop']:.0f} % lower at the better of "
+            f"x{focal['scales'][0]:.2f} / x{focal['scales'][2]:.2f} (rotation off the record at "
+            f"the three scales: {rots} deg)")
 
 
 #: Photos this close to their records (median, deg) agree with them, whatever the control says.

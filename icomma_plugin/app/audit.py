@@ -25,6 +25,12 @@ measures what the method itself achieves on this model at that view. A photo who
 its record on this model (the record, or the model fitted on it, is off), not through the method.
 Control runs are kept apart: they are not among the camera's verdicts and never flag it.
 
+With ``focal_step`` (off by default) each photo is also localized from its recorded pose with its
+recorded focal length scaled by ``1 - step``, ``1`` and ``1 + step`` (:func:`focal_agreement`):
+where the photometric refinement's final loss is clearly lower at another focal length, the
+photo's recorded intrinsics disagree with the model (a reconstruction that gave each photo its
+own focal length can trade it against the camera's distance). Those runs are kept apart too.
+
 ``audit.json`` (rewritten atomically after each camera): ``settings``, ``rows`` (one per run: the
 one row schema plus ``camera`` and ``start``), ``cameras`` (one summary per camera) and
 ``summary``. Every run is first appended to ``audit.jsonl``; a run on the same output folder
@@ -36,7 +42,7 @@ import json
 import logging
 import os
 import zlib
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
 
@@ -63,6 +69,8 @@ __all__ = [
     "audit_starts",
     "audit_summary",
     "evenly_spread",
+    "focal_agreement",
+    "focal_label",
     "run_audit",
     "select_views",
     "summarize_camera",
@@ -84,7 +92,9 @@ class AuditPlan:
         it and the photo's name). sample: localize this many photos, evenly spread over the
         name-sorted training photos (None: all). control: also localize the model's render at
         the recorded pose from the photo's first start (or none): the method's own precision
-        on this model at that view (module docstring).
+        on this model at that view (module docstring). focal_step: also localize each photo from
+        its recorded pose with its focal length scaled by ``1 -+ focal_step`` and 1
+        (:func:`focal_agreement`; None: not).
     """
 
     starts: int = 3
@@ -95,6 +105,7 @@ class AuditPlan:
     seed: int = 0
     sample: Optional[int] = None
     control: bool = True
+    focal_step: Optional[float] = None
 
     def __post_init__(self):
         if isinstance(self.rot_deg, (int, float)) and not isinstance(self.rot_deg, bool):
@@ -107,6 +118,7 @@ class AuditPlan:
         check_int(self.seed, "seed", 0)
         check_int(self.sample, "sample", 1, optional=True)
         check_bool(self.control, "control")
+        check_real(self.focal_step, "focal.step", 0.0, 0.5, lo_open=True, optional=True)
         if self.starts == 0 and not self.no_start:
             raise ValueError("starts is 0 and no_start is false: each photo needs at least one "
                              "run (starts >= 1, or no_start=true)")
@@ -116,8 +128,14 @@ class AuditPlan:
         return (["none"] if self.no_start else []) + [f"start{k}" for k in range(self.starts)]
 
     def runs_per_photo(self) -> int:
-        """The photo's runs and its control run."""
-        return len(self.labels()) + int(self.control)
+        """The photo's runs, its control run and its focal-length runs."""
+        return len(self.labels()) + int(self.control) + len(self.focal_scales())
+
+    def focal_scales(self) -> Tuple[float, ...]:
+        """The focal-length scales of the focal check (none without ``focal_step``)."""
+        if self.focal_step is None:
+            return ()
+        return (1.0 - self.focal_step, 1.0, 1.0 + self.focal_step)
 
 
 #: The label of a photo's control run (:attr:`AuditPlan.control`).
@@ -132,16 +150,20 @@ class FlagRule:
         a pose agrees with the record likewise.
     min_ok: ``ok`` poses that must agree with each other before they contradict the record
         (fewer when a photo has fewer runs).
+    focal_min_drop: the focal check (:func:`focal_agreement`) says a photo's recorded focal
+        length disagrees with the model when another scale lowers the final loss by this share.
     """
 
     rot_deg: float = 5.0
     trans: float = 0.05
     min_ok: int = 2
+    focal_min_drop: float = 0.05
 
     def __post_init__(self):
         check_real(self.rot_deg, "flag.rot_deg", 0.0, lo_open=True)
         check_real(self.trans, "flag.trans", 0.0, lo_open=True)
         check_int(self.min_ok, "flag.min_ok", 1)
+        check_real(self.focal_min_drop, "focal.min_drop", 0.0, 1.0, lo_open=True)
 
 
 # ---------------------------------------------------------------------------------- photos, starts
@@ -347,6 +369,44 @@ def attach_record(camera: Dict[str, Any], record: Optional[Mapping[str, Any]]) -
     camera["within_record"] = None if sig is None else sig <= WITHIN_SIGMAS
 
 
+def focal_label(scale: float) -> str:
+    """The run label of the focal check at ``scale`` (``focal1.030``)."""
+    return f"focal{scale:.3f}"
+
+
+def focal_agreement(rows: Sequence[Mapping[str, Any]], scales: Sequence[float],
+                    min_drop: float) -> Dict[str, Any]:
+    """Whether a photo's recorded focal length is where the model explains it best.
+
+    ``rows``: its runs from the recorded pose with the focal length scaled by ``scales`` (1 in the
+    middle, one step either side). Each run ends at the photometric refinement's final loss
+    (``details["refine_loss"][1]``: the exposure-fitted mean squared difference of render and
+    photo at the model's side). ``best_scale``: the minimum of the parabola through the three
+    losses (clamped to two steps either side; None where they are not convex); ``loss_drop``:
+    the share of the loss at scale 1 that the better of the other two saves. ``disagrees``: that
+    share is at least ``min_drop`` (None when a run has no loss: raised, or no refinement).
+    """
+    losses = []
+    for r in rows:
+        rl = (r.get("details") or {}).get("refine_loss")
+        losses.append(float(rl[1]) if not r.get("error") and rl and rl[1] is not None else None)
+    out = {"scales": [float(s) for s in scales], "losses": losses,
+           "rot_err_deg": [r.get("rot_err_deg") for r in rows],
+           "inliers": [r.get("inliers") for r in rows], "statuses": [r.get("status") for r in rows],
+           "best_scale": None, "loss_drop": None, "disagrees": None}
+    if len(losses) != 3 or any(v is None or not np.isfinite(v) for v in losses) or losses[1] <= 0:
+        return out
+    lo, mid, hi = losses
+    step = (scales[2] - scales[0]) / 2.0
+    curv = lo - 2.0 * mid + hi
+    if curv > 0:
+        off = float(np.clip(0.5 * (lo - hi) / curv, -2.0, 2.0))
+        out["best_scale"] = float(scales[1] + off * step)
+    out["loss_drop"] = float(max(0.0, (mid - min(lo, hi)) / mid))
+    out["disagrees"] = bool(out["loss_drop"] >= min_drop)
+    return out
+
+
 def audit_summary(cameras: Sequence[Mapping[str, Any]], rows: Sequence[Mapping[str, Any]],
                   rule: FlagRule) -> Dict[str, Any]:
     """The audit's totals: runs, verdicts, flagged cameras by flag, ``ok`` poses off the record.
@@ -381,6 +441,12 @@ def audit_summary(cameras: Sequence[Mapping[str, Any]], rows: Sequence[Mapping[s
                                        if not c.get("flag") and c.get("within_record")),
         "unflagged_with_record": sum(1 for c in cameras
                                      if not c.get("flag") and c.get("within_record") is not None),
+        # the focal check (None without it): photos whose recorded focal length the model doubts
+        "focal_checked": sum(1 for c in cameras if (c.get("focal") or {}).get("disagrees")
+                             is not None) if any(c.get("focal") for c in cameras) else None,
+        "focal_disagreeing": sorted((c["camera"] for c in cameras
+                                     if (c.get("focal") or {}).get("disagrees")),
+                                    key=natural_key),
     }
 
 
@@ -470,10 +536,18 @@ def _control_query(localizer, view, recorded: np.ndarray, scale: float) -> Query
                  name=f"{view.name} (the model's render at its record)")
 
 
-def _document(settings, rows, controls, cameras, rule, status: str) -> Dict[str, Any]:
+def _focal_query(query: Query, scale: float) -> Query:
+    """``query`` with its focal lengths scaled by ``scale`` (the same pixels)."""
+    i = query.intrinsics
+    intr = replace(i, fx=i.fx * scale, fy=i.fy * scale)
+    return Query(query.rgb, intr, query.alpha, query.valid, query.name)
+
+
+def _document(settings, rows, controls, cameras, rule, status: str,
+              focals=()) -> Dict[str, Any]:
     return {"format": AUDIT_FORMAT, "status": status, "settings": settings,
             "summary": audit_summary(cameras, rows, rule), "cameras": cameras, "rows": rows,
-            "controls": controls,
+            "controls": controls, "focal_runs": list(focals),
             "conventions": "c2w: 4x4 camera-to-world, OpenCV axes; *_rel and trans in scene "
                            "radii (scene_scale); errors are against the recorded pose"}
 
@@ -513,6 +587,7 @@ def run_audit(localizer, views: Sequence[Any], plan: AuditPlan, rule: FlagRule, 
     bar = _Progress(progress, len(views) * plan.runs_per_photo())
     rows: List[Dict[str, Any]] = []
     controls: List[Dict[str, Any]] = []
+    focals: List[Dict[str, Any]] = []
     cameras: List[Dict[str, Any]] = []
     bg = localizer.background.detach().float().cpu()
     try:
@@ -539,17 +614,30 @@ def run_audit(localizer, views: Sequence[Any], plan: AuditPlan, rule: FlagRule, 
                 control = journal.rows[(name, CONTROL)]
                 controls.append(control)
                 bar.run(None, cameras)
+            focal_rows = []
+            for f in plan.focal_scales():
+                label = focal_label(f)
+                if not journal.has(name, label):
+                    query = query or Query.from_view(view, bg, image_scale(view))
+                    journal.record(_localize(localizer, _focal_query(query, f), name, label,
+                                             recorded, recorded, scene_scale))
+                focal_rows.append(journal.rows[(name, label)])
+                bar.run(None, cameras)
+            focals += focal_rows
             rows += cam_rows
             cameras.append(summarize_camera(name, cam_rows, rule, scene_scale, control))
             attach_record(cameras[-1], precision_of(records or {}, name))
+            cameras[-1]["focal"] = (focal_agreement(focal_rows, plan.focal_scales(),
+                                                    rule.focal_min_drop) if focal_rows else None)
             if on_camera is not None:
                 on_camera(view, query or Query.from_view(view, bg, image_scale(view)),
                           cameras[-1])
             write_json_atomic(out / "audit.json",
-                              _document(settings, rows, controls, cameras, rule, "running"))
+                              _document(settings, rows, controls, cameras, rule, "running",
+                                                focals))
     finally:
         bar.close()
-    doc = _document(settings, rows, controls, cameras, rule, "complete")
+    doc = _document(settings, rows, controls, cameras, rule, "complete", focals)
     write_json_atomic(out / "audit.json", doc)
     return doc
 

@@ -25,6 +25,8 @@ from icomma_plugin.app.audit import (
     audit_starts,
     audit_summary,
     evenly_spread,
+    focal_agreement,
+    focal_label,
     select_views,
     summarize_camera,
 )
@@ -163,6 +165,45 @@ def test_a_records_own_precision_says_whether_a_photo_is_within_it():
     assert "records:" not in audit_tool().summary(dict(doc, summary=plain, cameras=[bare]))
 
 
+def _focal_row(loss, rot=0.1, status="ok"):
+    return {"status": status, "rot_err_deg": rot, "inliers": 50,
+            "details": {"refine_loss": [2 * loss, loss] if loss is not None else None}}
+
+
+def test_the_focal_check_reads_the_loss_at_three_focal_lengths():
+    """The parabola's minimum is the preferred scale; a clear drop means the record disagrees."""
+    scales = (0.97, 1.0, 1.03)
+    # a parabola with its minimum at 1.015: losses (1.0 - 0.03) .. (1.0 + 0.03)
+    lo, mid, hi = (100.0 * (s - 1.015) ** 2 + 1.0 for s in scales)
+    f = focal_agreement([_focal_row(lo), _focal_row(mid), _focal_row(hi)], scales, 0.05)
+    assert f["best_scale"] == pytest.approx(1.015)
+    assert f["loss_drop"] == 0.0 and f["disagrees"] is False  # 1.03 is no better than 1.0
+    assert f["scales"] == list(scales) and f["losses"] == [lo, mid, hi]
+    # minimum beyond the scales tried: clamped to two steps, and a clear drop
+    f = focal_agreement([_focal_row(4.0), _focal_row(2.0), _focal_row(1.0)], scales, 0.05)
+    assert f["best_scale"] == pytest.approx(1.045) and f["loss_drop"] == pytest.approx(0.5)
+    f = focal_agreement([_focal_row(3.0), _focal_row(2.0), _focal_row(1.05)], scales, 0.05)
+    assert f["best_scale"] == pytest.approx(1.06)  # nearly straight: clamped to two steps
+    assert f["disagrees"] is True
+    assert focal_agreement([_focal_row(1.0), _focal_row(1.0), _focal_row(0.97)], scales,
+                           0.05)["disagrees"] is False  # 3 % lower: under min_drop
+    # not convex: no minimum, the drop still said
+    f = focal_agreement([_focal_row(1.0), _focal_row(2.0), _focal_row(1.5)], scales, 0.05)
+    assert f["best_scale"] is None and f["disagrees"] is True
+    # a run without a loss (raised, or no refinement): nothing is said
+    f = focal_agreement([_focal_row(1.0), dict(_focal_row(None), error="ValueError: x"),
+                         _focal_row(1.0)], scales, 0.05)
+    assert f["disagrees"] is None and f["best_scale"] is None and f["loss_drop"] is None
+    assert focal_label(1.03) == "focal1.030"
+    assert AuditPlan(focal_step=0.03).focal_scales() == (0.97, 1.0, 1.03)
+    assert AuditPlan(focal_step=0.03, starts=1, no_start=False,
+                     control=True).runs_per_photo() == 5
+    with pytest.raises(ValueError, match="focal.step"):
+        AuditPlan(focal_step=0.0)
+    with pytest.raises(ValueError, match="focal.min_drop"):
+        FlagRule(focal_min_drop=1.5)
+
+
 def test_bad_rule_and_plan_values_name_the_argument():
     with pytest.raises(ValueError, match="rows of camera 'cam' is empty"):
         _flag([])
@@ -238,6 +279,28 @@ def capture(tmp_path_factory):
         recorded.append(dataclasses.replace(e, c2w=c2w))
     write_cameras_json(cap / "cameras.json", recorded)
     write_model_folder(root / "model", model, dict(mf.cfg, source_path=str(cap)), recorded,
+                       mf.iteration)
+    return {"model": root / "model", "capture": cap, "root": root}
+
+
+@pytest.fixture(scope="module")
+def focal_capture(capture, tmp_path_factory):
+    """The capture with every record right but ring_007's focal length 5 % short of the truth."""
+    from icomma_plugin.io.cameras_json import read_cameras_json, write_cameras_json
+    from icomma_plugin.io.model_folder import load_model_folder, write_model_folder
+
+    root = tmp_path_factory.mktemp("audit_focal")
+    cap = root / "capture"
+    (cap / "images").mkdir(parents=True)
+    for p in (capture["capture"] / "images").iterdir():
+        (cap / "images" / p.name).write_bytes(p.read_bytes())
+    mf = load_model_folder(capture["model"])
+    truth = load_model_folder(capture["root"] / "demo").cameras  # the uncorrupted poses
+    recorded = [dataclasses.replace(e, fx=e.fx * 0.95, fy=e.fy * 0.95)
+                if e.img_name == "ring_007" else e for e in truth]
+    write_cameras_json(cap / "cameras.json", recorded)
+    assert read_cameras_json(cap / "cameras.json")[7].fx == pytest.approx(truth[7].fx * 0.95)
+    write_model_folder(root / "model", mf.model, dict(mf.cfg, source_path=str(cap)), recorded,
                        mf.iteration)
     return {"model": root / "model", "capture": cap, "root": root}
 
@@ -342,3 +405,23 @@ def test_the_pictures_mark_only_the_flagged_cameras(tmp_path):
     plot_trajectory(tmp_path / "t.png", [TRUE, RECORDED], cams, cams, flagged=[True, False],
                     labels={"truth": "recorded"})
     assert (tmp_path / "t.png").is_file()
+
+
+def test_the_focal_check_finds_the_photo_whose_focal_length_is_off(focal_capture, tmp_path):
+    """ring_007's recorded focal length is 5 % short: the check prefers a longer one there only."""
+    out = tmp_path / "audit"
+    doc = _audit(focal_capture, out, "focal.enabled=true", "no_start=false", "control=false",
+                 "calibration.enabled=false", "output.contact_sheet=false",
+                 "output.trajectory_plot=false")
+    cams = {c["camera"]: c for c in doc["cameras"]}
+    assert doc["summary"]["focal_disagreeing"] == ["ring_007"]
+    assert doc["summary"]["focal_checked"] == 6
+    f = cams["ring_007"]["focal"]
+    assert f["disagrees"] is True and f["best_scale"] > 1.02 and f["loss_drop"] > 0.05
+    for n in set(cams) - {"ring_007"}:
+        assert cams[n]["focal"]["disagrees"] is False, (n, cams[n]["focal"])
+    # the focal runs are kept apart from the photos' runs and verdicts
+    assert len(doc["rows"]) == 6 and len(doc["focal_runs"]) == 18
+    assert {r["start"] for r in doc["focal_runs"]} == {"focal0.970", "focal1.000", "focal1.030"}
+    assert "focal lengths: 1 of 6 photos explained better at another focal length" in \
+        audit_tool().summary(dict(doc, output_dir=str(out)))
