@@ -329,7 +329,7 @@ class Localizer:
             name=query.name, c2w=invert_rigid(out.w2c), verdict=out.verdict, method=cfg.name,
             matcher=getattr(self.matcher, "name", None) if self._matches(cfg) else None,
             iterations=out.iterations, stop_reason=out.stop_reason, seconds=state.elapsed(),
-            intrinsics=query.intrinsics,
+            intrinsics=state.intrinsics_at(1.0),  # the query's, or its estimated focal length
             init_c2w=None if init_c2w is None else as_rigid(init_c2w, "init_c2w"), gt_c2w=gt,
             rot_err_deg=rot, trans_err=trans, init_rot_err_deg=init_rot,
             init_trans_err=init_trans, inliers=None if score is None else score.inliers,

@@ -127,6 +127,18 @@ class RefineConfig:
         called ``ok`` (249 -> 280 of 281), none wrongly (docs/LOCALIZATION.md).
     robust_scale: that multiple of the median residual (1.5 and 3 gave the same errors on fox
         and bird, measured with the first, fixed-weight version).
+    focal: also estimate the photo's focal length (a 7th parameter, the log of a scale of both
+        focal lengths; ``state.focal_scale``), for photos whose intrinsics are approximate: a
+        focal length 4 % off moves a pose by 0.1-0.8 deg (docs/LOCALIZATION.md). Its Jacobian
+        column is a forward difference too (a 7th render), its gradient the Gauss-Newton one of
+        that column (``2 J^T W r / N``; the pose's stays the backward pass's). The focal length
+        trades against the camera's distance, and along that valley the Jacobian turns: the
+        finite-difference Hessian is made again after every accepted step (7 renders each) and
+        a level takes twice its ``iterations`` and ``extra_iterations`` (fox's photos with
+        their focal lengths 4 % off: 0.49-0.51 -> 0.08-0.20 deg, in 3.4x the time). Needs the
+        Hessian at the level's own resolution (``hessian_scale`` 1) and the squared difference
+        (``robust`` none). Off by default.
+    stop_focal: a step of the focal length's log smaller than this (with the pose's) ends a level.
     still_rot_deg, still_trans_rel: the pose counts as having stopped moving (a signal of the
         verdict) when the last step of the finest level was smaller than this. On a fitted scene
         the last steps creep along flat directions of the loss (0.01-0.1 deg) without changing
@@ -153,6 +165,8 @@ class RefineConfig:
     exposure_gain: Tuple[float, float] = (0.5, 2.0)
     robust: str = "none"
     robust_scale: float = 3.0
+    focal: bool = False
+    stop_focal: float = 1e-4
 
     def __post_init__(self):
         self.exposure_gain = tuple(float(g) for g in self.exposure_gain)
@@ -186,8 +200,15 @@ class RefineConfig:
         check_int(self.hessian_every, "RefineConfig.hessian_every", 0)
         check_bool(self.secant, "RefineConfig.secant")
         check_bool(self.hessian_reduced, "RefineConfig.hessian_reduced")
-        for name in ("stop_rot_deg", "stop_trans_rel", "still_rot_deg", "still_trans_rel"):
+        for name in ("stop_rot_deg", "stop_trans_rel", "still_rot_deg", "still_trans_rel",
+                     "stop_focal"):
             check_real(getattr(self, name), f"RefineConfig.{name}", 0.0)
+        check_bool(self.focal, "RefineConfig.focal")
+        if self.focal and (self.hessian != "finite_difference" or self.hessian_scale != 1.0
+                           or self.robust != "none"):
+            raise ValueError("RefineConfig.focal needs hessian='finite_difference', "
+                             f"hessian_scale=1 and robust='none', got {self.hessian!r}, "
+                             f"{self.hessian_scale} and {self.robust!r}")
 
 
     @property
@@ -209,6 +230,7 @@ class RefineOutcome:
     last_step_rot_deg: Optional[float] = None
     last_step_trans: Optional[float] = None
     observation: Optional[Observation] = None  # the render at ``w2c`` (unmatched), if one was made
+    focal_scale: float = 1.0  # the focal lengths' scale it ended at (``RefineConfig.focal``)
 
 
 def _filled_depth(depth: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
@@ -342,7 +364,7 @@ _GN_BLOCK = 1 << 16
 
 def _gauss_newton(J: torch.Tensor, mask: torch.Tensor, exposure=None,
                   norm: Optional[float] = None) -> torch.Tensor:
-    """``2 J^T W J / (C N)`` (float64, on the CPU) of a ``[C, 6, H, W]`` Jacobian, ``W`` = mask.
+    """``2 J^T W J / (C N)`` (float64, on the CPU) of a ``[C, K, H, W]`` Jacobian, ``W`` = mask.
 
     ``N`` is ``norm``, or the mask's sum (a robust loss's weights are not its normaliser).
     ``exposure`` ``(gains [C], base [C, H, W])``: the Gauss-Newton matrix of the exposure-profiled
@@ -355,12 +377,12 @@ def _gauss_newton(J: torch.Tensor, mask: torch.Tensor, exposure=None,
     taken in ``J``'s dtype over blocks of ``_GN_BLOCK`` pixels (a float32 Jacobian: half the
     memory traffic of float64) and summed in float64.
     """
-    C = J.shape[0]
-    Jf = J.reshape(C, 6, -1)
+    C, K = J.shape[0], J.shape[1]
+    Jf = J.reshape(C, K, -1)
     w = mask.detach()[0].reshape(-1).to(J.dtype)
     sw = max(float(w.double().sum()), 1e-12)
     f64 = dict(dtype=torch.float64, device=J.device)
-    H, a, c = torch.zeros(C, 6, 6, **f64), torch.zeros(C, 6, **f64), torch.zeros(C, 6, **f64)
+    H, a, c = torch.zeros(C, K, K, **f64), torch.zeros(C, K, **f64), torch.zeros(C, K, **f64)
     b = None if exposure is None else exposure[1].detach().reshape(C, -1).to(J.dtype)
     sb, sbb = torch.zeros(C, **f64), torch.zeros(C, **f64)  # sum W b, sum W b^2 per channel
     for s in range(0, Jf.shape[-1], _GN_BLOCK):
@@ -394,7 +416,7 @@ class _Jacobian:
     ``exposure`` ``(gains, base)`` or None; ``blur`` the level's blur at its resolution.
     """
 
-    J: torch.Tensor  # [C, 6, H, W], float32
+    J: torch.Tensor  # [C, 6, H, W] (7 with the focal length), float32
     mask: torch.Tensor  # [1, H, W] float64
     base: torch.Tensor
     query: torch.Tensor
@@ -438,8 +460,8 @@ def _fd_jacobian(state, cfg, w2c, scale, out, mask, blur, gains, query,
     # doubled the memory traffic of a [3, 6, 800, 800] Jacobian, and its Gauss-Newton matrix
     # sums in float64 anyway)
     base = gaussian_blur(out.color.detach().float(), blur)
-    J = torch.empty((base.shape[0], 6) + tuple(base.shape[1:]), dtype=base.dtype,
-                    device=base.device)
+    J = torch.empty((base.shape[0], 7 if cfg.focal else 6) + tuple(base.shape[1:]),
+                    dtype=base.dtype, device=base.device)
     w2c_t = torch.as_tensor(w2c, dtype=torch.float64)
     with torch.no_grad():
         for k in range(6):
@@ -448,8 +470,37 @@ def _fd_jacobian(state, cfg, w2c, scale, out, mask, blur, gains, query,
             img = gaussian_blur(state.render((se3_exp(e) @ w2c_t).numpy(), scale).color.float(),
                                 blur)
             torch.sub(img, base, out=J[:, k]).div_(cfg.fd_step)
+        if cfg.focal:  # d/d log(focal scale)
+            f0 = state.focal_scale
+            state.focal_scale = f0 * math.exp(cfg.fd_step)
+            try:
+                img = gaussian_blur(state.render(w2c, scale).color.float(), blur)
+            finally:
+                state.focal_scale = f0
+            torch.sub(img, base, out=J[:, 6]).div_(cfg.fd_step)
     exposure = None if gains is None else (gains, base)
     return _Jacobian(J, mask.detach().double(), base, query, exposure, blur)
+
+
+def _focal_gradient(jac: "_Jacobian", color: torch.Tensor, gain_range) -> torch.Tensor:
+    """The loss's Gauss-Newton gradient along the focal length's log, ``[1]`` float64.
+
+    ``2 sum_c a_c sum_p W (a_c I_c + b_c - Q_c) J_f,c / (C sum W)`` of the level's Jacobian's focal
+    column and the render ``color`` (at the Jacobian's resolution), the exposure ``a, b`` fitted
+    (its derivative is not needed at the fit: the envelope theorem).
+    """
+    with torch.no_grad():
+        img = gaussian_blur(color.detach().to(jac.J.dtype), jac.blur)
+        q = jac.query.to(img.dtype)
+        w = jac.mask.to(img.dtype)
+        a = torch.ones(img.shape[0], 1, 1, dtype=img.dtype, device=img.device)
+        if gain_range is not None:
+            a, b = exposure_fit(img, q, w, gain_range)
+            img = a * img + b
+        r = (img - q) * w
+        g = 2.0 * float((a * r * jac.J[:, 6]).double().sum())
+        return torch.tensor([g / (img.shape[0] * max(float(w.double().sum()), 1e-12))],
+                            dtype=torch.float64)
 
 
 def _bfgs_update(hess: torch.Tensor, s: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -559,12 +610,18 @@ def _lm_level(state: LocalizationState, cfg: RefineConfig, w2c: np.ndarray, scal
         translation, or None).
     """
     intr, blur, query, mask, n_it, robust = level
+    extra = cfg.extra_iterations
+    if cfg.focal:  # twice the steps: along the valley where the focal length and the camera's
+        n_it, extra = 2 * n_it, 2 * extra  # distance trade, Gauss-Newton steps fall short
     # steps past the level's own only without a level of detail (each renders the full model)
-    n_max = n_it + (cfg.extra_iterations if state.reduced is None else 0)
+    n_max = n_it + (extra if state.reduced is None else 0)
     loss, grad, out = start
     hess, jac = _hessian_and_jacobian(state, cfg, w2c, scale, out, mask, intr, blur, query,
                                       robust)
     gain = cfg.fitted_gain_range
+    K = 7 if cfg.focal else 6
+    if cfg.focal:  # the focal length's log: a 7th parameter (``state.focal_scale``)
+        grad = torch.cat([grad, _focal_gradient(jac, out.color, gain)])
     lam, nu = cfg.lambda_init, 2.0
     last_rot = last_trans = None
     drop = 1.0  # the share of the loss the last step took off
@@ -573,18 +630,23 @@ def _lm_level(state: LocalizationState, cfg: RefineConfig, w2c: np.ndarray, scal
             break  # past the level's steps, only while the loss still falls
         counts["total"] += 1
         damp = torch.diag(torch.diag(hess)).clamp_min(0) + 1e-12 * torch.eye(
-            6, dtype=torch.float64
+            K, dtype=torch.float64
         )
         step = -torch.linalg.solve(hess + lam * damp, grad)
         if not bool(torch.isfinite(step).all()):
             break
         predicted = -float(grad @ step + 0.5 * step @ hess @ step)
-        w2c_try = (se3_exp(step) @ torch.as_tensor(w2c)).numpy()
+        w2c_try = (se3_exp(step[:6]) @ torch.as_tensor(w2c)).numpy()
         last = it == n_max - 1  # the last step's gradient would serve no further step
+        focal = state.focal_scale
+        if cfg.focal:
+            state.focal_scale = focal * math.exp(float(step[6]))
         loss_try, grad_try, out_try, _ = _evaluate(state, w2c_try, scale, mask, loss, blur, query,
                                                    want_grad=not last, exposure_gain=gain,
                                                    robust=robust)
         ok = out_try is not None
+        if cfg.focal and not ok:
+            state.focal_scale = focal
         state.record(state.new_record(Stage.REFINE, w2c_try, loss=loss_try, loss_compare=loss_try,
                                       accepted=ok, hypothesis=hypothesis, scale=scale, lr=lam))
         if not ok:
@@ -605,20 +667,26 @@ def _lm_level(state: LocalizationState, cfg: RefineConfig, w2c: np.ndarray, scal
         w2c, loss, grad, out = w2c_try, loss_try, grad_try, out_try
         if last:
             pass  # no step follows: no Hessian for one
-        elif cfg.hessian == "motion_field" or (
+        elif cfg.hessian == "motion_field" or cfg.focal or (
             cfg.hessian_every and counts["accepted"] % cfg.hessian_every == 0
         ):
-            # a new Jacobian too: the robust reweighting below must not go on with the old one
+            # a new Jacobian too: the robust reweighting below must not go on with the old one;
+            # with the focal length, at every step (along the valley where it trades against the
+            # camera's distance the Jacobian turns: with one per level it crept, 1.00 -> 1.02 of
+            # 1.04 in 12 steps on the demo scene, with one a step it reached 1.04)
             hess, jac = _hessian_and_jacobian(state, cfg, w2c, scale, out_try, mask, intr, blur,
                                               query, robust)
+            if cfg.focal:
+                grad = torch.cat([grad, _focal_gradient(jac, out_try.color, gain)])
         elif robust is not None and jac is not None and jac.mask.shape == mask.shape:
             # the weights of the new residuals (those of the level's start were of a misaligned
             # render: too little curvature, overshooting steps; docs/LOCALIZATION.md)
             hess = jac.matrix(robust, gain, out_try.color)
         elif cfg.secant:
             hess = _bfgs_update(hess, step, grad - grad_prev)
-        last_rot, last_trans = math.degrees(float(step[3:].norm())), float(step[:3].norm())
-        if last_rot < cfg.stop_rot_deg and last_trans < cfg.stop_trans_rel * scene_depth:
+        last_rot, last_trans = math.degrees(float(step[3:6].norm())), float(step[:3].norm())
+        if (last_rot < cfg.stop_rot_deg and last_trans < cfg.stop_trans_rel * scene_depth
+                and (not cfg.focal or abs(float(step[6])) < cfg.stop_focal)):
             return w2c, loss, out, True, last_rot, last_trans
     return w2c, loss, out, False, last_rot, last_trans
 
@@ -670,4 +738,4 @@ def refine_photometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Ref
             last_out.alpha.detach(),
         )
     return RefineOutcome(w2c, counts["total"], counts["accepted"], loss0, loss, converged,
-                         last_rot, last_trans, final)
+                         last_rot, last_trans, final, state.focal_scale)

@@ -429,6 +429,7 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
         logger.info(
             "photometric refinement rolled back: %d -> %d agreeing matches", geo.inliers, sc.inliers
         )
+        state.focal_scale = 1.0  # the geometric pose's (the recorded focal length)
         w2c, score = best.w2c, _full_model_score(state, best, scale, cfg.verdict.inlier_px)
     extra = {
         "start_render_empty": search.empty_start,
@@ -452,4 +453,6 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
                "refine_iterations": ref.iterations, "refine_loss": [ref.loss_start, ref.loss_end],
                "start_render_empty": search.empty_start,
                "verified_on": "geometric" if reuse else "final"}
+    if cfg.refine.focal:  # the focal lengths' scale the pose holds with (1: as given)
+        details["focal_scale"] = state.focal_scale
     return MethodOutcome(np.asarray(w2c, np.float64), verdict, score, state.steps, stop, details)

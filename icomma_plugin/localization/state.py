@@ -9,6 +9,7 @@ returned explicitly (``w2c``, float64 numpy), so that a stage can be run and tes
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -116,6 +117,8 @@ class LocalizationState:
     rendered: per stage (the label of the enclosing :meth:`serving` block, ``other`` outside
         one): ``{"gaussians": [counts rendered], "renders": n, "reduced": any by the reduced
         model}`` (which model served which stage).
+    focal_scale: the query's focal lengths are rendered and matched at this multiple of its
+        recorded ones (1 unless the refinement estimates it: ``RefineConfig.focal``).
     """
 
     model: GaussianModel
@@ -140,6 +143,7 @@ class LocalizationState:
     cpu_seconds: Dict[str, float] = field(default_factory=lambda: defaultdict(float))
     _queries: Dict[float, Query] = field(default_factory=dict)
     steps: int = 0  # trace records made so far (also when the trace is not kept)
+    focal_scale: float = 1.0
     # renders the patch search matched, and those it left to the descriptors (too far off)
     patch_searched: Dict[str, int] = field(
         default_factory=lambda: {"matched": 0, "fell_back": 0})
@@ -229,9 +233,13 @@ class LocalizationState:
 
     # ------------------------------------------------------------------ query
     def intrinsics_at(self, scale: float) -> Intrinsics:
-        """The query's intrinsics at working ``scale``."""
+        """The query's intrinsics at working ``scale`` (its focal lengths x ``focal_scale``)."""
         intr = self.query.intrinsics
-        return intr if scale == 1.0 else intr.scaled(scale)
+        intr = intr if scale == 1.0 else intr.scaled(scale)
+        if self.focal_scale != 1.0:
+            intr = dataclasses.replace(intr, fx=intr.fx * self.focal_scale,
+                                       fy=intr.fy * self.focal_scale)
+        return intr
 
     def query_at(self, scale: float) -> Query:
         """The query resized to ``scale``.

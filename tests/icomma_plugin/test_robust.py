@@ -1014,3 +1014,70 @@ def test_patch_search_is_checked_and_needs_a_matcher_with_keypoints(demo, xfeat)
     assert TrackingConfig().fast_method(RobustConfig(), 200, xfeat).patch_search is None
     assert TrackingConfig(fast_patch_search=None).fast_method(
         RobustConfig(), 200, xfeat).patch_search is None
+
+
+# ------------------------------------------------------------------------------ the focal length
+
+
+def test_the_focal_gradient_matches_finite_differences_of_the_loss(demo):
+    """The Gauss-Newton gradient along the focal length's log against central differences.
+
+    Of the exposure-profiled loss, at a pose 1 deg off and a focal length 3 % off the query's.
+    """
+    from icomma_plugin.localization.refine import (
+        RefineConfig,
+        _evaluate,
+        _fd_jacobian,
+        _focal_gradient,
+    )
+
+    scene = demo[0]
+    st = _state(demo)
+    st.focal_scale = 1.03
+    w2c = np.linalg.inv(perturb_pose(scene.gt_c2w, 1.0, 0.01, 4, pivot="camera"))
+    rng = (0.5, 2.0)
+    cfg = RefineConfig(focal=True)
+    _, _, out, mask = _evaluate(st, w2c, 1.0, None, None, exposure_gain=rng)
+    gains = torch.ones(3, dtype=torch.float64)
+    jac = _fd_jacobian(st, cfg, w2c, 1.0, out, mask, 0.0, gains, st.query_at(1.0).rgb,
+                       own_render=False)
+    assert jac.J.shape[1] == 7 and st.focal_scale == 1.03  # the column's render is undone
+    g = float(_focal_gradient(jac, out.color, rng)[0])
+    h, val = 1e-3, []
+    for sign in (1.0, -1.0):
+        st.focal_scale = 1.03 * np.exp(sign * h)
+        val.append(_evaluate(st, w2c, 1.0, mask, None, want_grad=False, exposure_gain=rng)[0])
+    fd = (val[0] - val[1]) / (2 * h)
+    assert abs(fd) > 1e-5 and g == pytest.approx(fd, rel=0.1), (g, fd)
+
+
+def test_with_the_focal_length_free_a_wrong_one_is_corrected(demo):
+    """A query whose given focal length is 4 % short: the pose is off with it fixed, not free."""
+    from icomma_plugin.localization.refine import RefineConfig, refine_photometric
+
+    scene, _, q, _ = demo
+    i = scene.intrinsics
+    wrong = Query(q, Intrinsics(i.width, i.height, i.fx * 0.96, i.fy * 0.96, i.cx, i.cy))
+    start = np.linalg.inv(perturb_pose(scene.gt_c2w, 0.5, 0.005, 2, pivot="camera"))
+    errors = {}
+    for focal in (False, True):
+        st = LocalizationState(scene.load_model(), wrong, torch.zeros(3), gt_c2w=scene.gt_c2w)
+        out = refine_photometric(st, start, RefineConfig(focal=focal), scene_depth=4.0)
+        errors[focal] = float(rotation_error_deg(np.linalg.inv(out.w2c), scene.gt_c2w))
+        if focal:
+            assert out.focal_scale == pytest.approx(1 / 0.96, abs=0.01)
+            assert st.intrinsics_at(1.0).fx == pytest.approx(i.fx * 0.96 * out.focal_scale)
+        else:
+            assert out.focal_scale == 1.0
+    assert errors[True] < 0.1 and errors[True] < 0.5 * errors[False], errors
+
+
+def test_a_bad_focal_setting_is_one_error_naming_it():
+    from icomma_plugin.localization.refine import RefineConfig
+
+    with pytest.raises(ValueError, match="RefineConfig.focal needs"):
+        RefineConfig(focal=True, hessian="motion_field")
+    with pytest.raises(ValueError, match="RefineConfig.focal needs"):
+        RefineConfig(focal=True, robust="cauchy")
+    with pytest.raises(ValueError, match="RefineConfig.focal must be"):
+        RefineConfig(focal="yes")
