@@ -632,9 +632,8 @@ def run_audit(localizer, views: Sequence[Any], plan: AuditPlan, rule: FlagRule, 
             if on_camera is not None:
                 on_camera(view, query or Query.from_view(view, bg, image_scale(view)),
                           cameras[-1])
-            write_json_atomic(out / "audit.json",
-                              _document(settings, rows, controls, cameras, rule, "running",
-                                                focals))
+            write_json_atomic(out / "audit.json", _document(settings, rows, controls, cameras,
+                                                            rule, "running", focals))
     finally:
         bar.close()
     doc = _document(settings, rows, controls, cameras, rule, "complete", focals)

@@ -482,7 +482,7 @@ def _fd_jacobian(state, cfg, w2c, scale, out, mask, blur, gains, query,
     return _Jacobian(J, mask.detach().double(), base, query, exposure, blur)
 
 
-def _focal_gradient(jac: "_Jacobian", color: torch.Tensor, gain_range) -> torch.Tensor:
+def _focal_gradient(jac: _Jacobian, color: torch.Tensor, gain_range) -> torch.Tensor:
     """The loss's Gauss-Newton gradient along the focal length's log, ``[1]`` float64.
 
     ``2 sum_c a_c sum_p W (a_c I_c + b_c - Q_c) J_f,c / (C sum W)`` of the level's Jacobian's focal
