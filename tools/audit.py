@@ -57,6 +57,9 @@ def _plan_and_rule(cfg: DictConfig):
                         focal_min_drop=float(cfg.focal.min_drop))
     except ValueError as e:
         raise common.UserError(str(e)) from None
+    if plan.focal_step is not None and (cfg.get("optimizer") or {}).get("refine", {}).get("focal"):
+        raise common.UserError("focal.enabled compares the loss at given focal lengths: it needs "
+                               "optimizer.refine.focal=false (which estimates the focal length)")
     return plan, rule
 
 

@@ -322,6 +322,8 @@ def test_bad_input_is_one_error_naming_the_key(capture, tmp_path):
         ([f"model_path={capture['model']}", "matcher=none"], "needs a matcher"),
         ([f"model_path={capture['model']}", "optimizer=icomma"], "needs a start pose"),
         ([f"model_path={capture['model']}", "calibration.margin=2"], "margin"),
+        ([f"model_path={capture['model']}", "focal.enabled=true", "optimizer.refine.focal=true"],
+         "focal.enabled .* needs optimizer.refine.focal=false"),
     ):
         with pytest.raises(ValueError, match=message):
             tool.run(compose(overrides + [f"output.dir={tmp_path / 'out'}"], name="audit"),
