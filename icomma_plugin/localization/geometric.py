@@ -161,7 +161,7 @@ def _motion(w2c_a: np.ndarray, w2c_b: np.ndarray):
     return float(rotation_error_deg(ca, cb)), float(np.linalg.norm(ca[:3, 3] - cb[:3, 3]))
 
 
-def _render_correspondences(state: LocalizationState, obs: Observation, cfg: GeometricConfig,
+def render_correspondences(state: LocalizationState, obs: Observation, cfg: GeometricConfig,
                             subpixel: bool) -> Tuple[np.ndarray, np.ndarray]:
     """(world points, query pixels) of the matches of ``obs``, lifted with its rendered depth."""
     m = obs.matches
@@ -204,7 +204,7 @@ def pnp_from_observation(state: LocalizationState, obs: Observation, cfg: Geomet
         photos = None  # the render agrees well: its own correspondences are the precise ones
     pts, pix = np.zeros((0, 3)), np.zeros((0, 2))
     if cfg.anchors != "photos" or photos is None:
-        pts, pix = _render_correspondences(state, obs, cfg, subpixel)
+        pts, pix = render_correspondences(state, obs, cfg, subpixel)
     if photos is not None:
         X, x, _ = photos(state, obs.scale, invert_rigid(obs.w2c), cfg, subpixel=subpixel)
         pts, pix = np.concatenate([pts, X]), np.concatenate([pix, x])

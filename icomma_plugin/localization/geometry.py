@@ -24,6 +24,7 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "PnPResult",
     "depth_edges",
+    "fit_pose_and_focal",
     "lift_keypoints",
     "median_depth",
     "project",
@@ -227,3 +228,65 @@ def solve_pnp(
     if int(inliers.sum()) < min_inliers:
         return None
     return PnPResult(w2c=w2c, inliers=inliers, median_error_px=float(np.median(err[inliers])))
+
+
+def fit_pose_and_focal(points_world: np.ndarray, pixels: np.ndarray, w2c: np.ndarray,
+                       intrinsics: Intrinsics, threshold_px: float, iterations: int = 30,
+                       max_log_focal: float = 0.2) -> Optional[Tuple[np.ndarray, float, float]]:
+    """The pose and a scale of both focal lengths that best reproject 2D-3D correspondences.
+
+    Levenberg-Marquardt over a camera-frame twist of ``w2c`` and the log of the focal scale (the
+    log clamped to +-``max_log_focal``), on the correspondences within ``threshold_px`` of their
+    projection at ``w2c`` with ``intrinsics`` (the principal point stays).
+
+    Returns:
+        ``(w2c [4, 4], focal_scale, median error [px] of those correspondences there)``, or None
+        with fewer than 12 of them.
+    """
+    from ..pose.se3 import se3_exp
+
+    X = np.asarray(points_world, np.float64).reshape(-1, 3)
+    x = np.asarray(pixels, np.float64).reshape(-1, 2)
+    uv, z = project(X, w2c, intrinsics)
+    use = (np.linalg.norm(uv - x, axis=1) < threshold_px) & (z > 0)
+    if int(use.sum()) < 12:
+        return None
+    X, x = X[use], x[use]
+    cx, cy = intrinsics.cx_px, intrinsics.cy_px
+
+    def pose(p: np.ndarray) -> np.ndarray:
+        return se3_exp(torch.as_tensor(p[:6], dtype=torch.float64)).numpy() @ w2c
+
+    def residual(p: np.ndarray) -> np.ndarray:
+        f = float(np.exp(p[6]))
+        pc = X @ pose(p)[:3, :3].T + pose(p)[:3, 3]
+        zs = np.where(np.abs(pc[:, 2]) < 1e-12, 1e-12, pc[:, 2])
+        u = intrinsics.fx * f * pc[:, 0] / zs + cx
+        v = intrinsics.fy * f * pc[:, 1] / zs + cy
+        return np.concatenate([u - x[:, 0], v - x[:, 1]])
+
+    p, lam = np.zeros(7), 1e-3
+    r = residual(p)
+    cost = float(r @ r)
+    for _ in range(iterations):
+        J = np.empty((r.size, 7))
+        for k in range(7):  # central differences: 14 projections of a few hundred points
+            e = np.zeros(7)
+            e[k] = 1e-6
+            J[:, k] = (residual(p + e) - residual(p - e)) / 2e-6
+        A, g = J.T @ J, J.T @ r
+        step = -np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12), g)
+        trial = p + step
+        trial[6] = float(np.clip(trial[6], -max_log_focal, max_log_focal))
+        r_try = residual(trial)
+        c_try = float(r_try @ r_try)
+        if c_try < cost:
+            p, r, cost, lam = trial, r_try, c_try, max(lam / 3.0, 1e-9)
+            if np.abs(step).max() < 1e-9:
+                break
+        else:
+            lam *= 4.0
+            if lam > 1e8:
+                break
+    err = np.hypot(r[: len(x)], r[len(x):])
+    return pose(p), float(np.exp(p[6])), float(np.median(err))

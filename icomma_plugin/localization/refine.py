@@ -134,8 +134,9 @@ class RefineConfig:
         that column (``2 J^T W r / N``; the pose's stays the backward pass's). The focal length
         trades against the camera's distance, and along that valley the Jacobian turns: the
         finite-difference Hessian is made again after every accepted step (7 renders each) and
-        a level takes twice its ``iterations`` and ``extra_iterations`` (fox's photos with
-        their focal lengths 4 % off: 0.49-0.51 -> 0.08-0.20 deg, in 3.4x the time). Needs the
+        a level takes twice its ``iterations`` and ``extra_iterations``. The default method
+        starts it from the matches' reprojection fit (``robust._focal_from_matches``): fox's
+        photos with their focal lengths 4 % off, 0.49-0.51 -> 0.03-0.07 deg. Needs the
         Hessian at the level's own resolution (``hessian_scale`` 1) and the squared difference
         (``robust`` none). Off by default.
     stop_focal: a step of the focal length's log smaller than this (with the pose's) ends a level.

@@ -1081,3 +1081,47 @@ def test_a_bad_focal_setting_is_one_error_naming_it():
         RefineConfig(focal=True, robust="cauchy")
     with pytest.raises(ValueError, match="RefineConfig.focal must be"):
         RefineConfig(focal="yes")
+
+
+def test_the_matches_reprojection_recovers_a_known_focal_length():
+    """``fit_pose_and_focal``: points seen at a known pose by a camera 5 % longer than given."""
+    from icomma_plugin.localization.geometry import fit_pose_and_focal, project
+
+    rng = np.random.default_rng(3)
+    X = rng.uniform(-1.0, 1.0, (300, 3)) * [1.0, 1.0, 0.8]
+    truth_c2w = look_at_c2w(np.array([0.3, -3.5, 1.0]), np.zeros(3))
+    given = Intrinsics(200, 150, 180.0, 180.0)
+    true_intr = Intrinsics(200, 150, 189.0, 189.0)
+    x, _ = project(X, np.linalg.inv(truth_c2w), true_intr)
+    x = x + rng.normal(0.0, 0.2, x.shape)
+    start = np.linalg.inv(perturb_pose(truth_c2w, 0.5, 0.02, 5, pivot="camera"))
+    w2c, scale, med = fit_pose_and_focal(X, x, start, given, threshold_px=50.0)
+    assert scale == pytest.approx(1.05, abs=0.005) and med < 0.5
+    assert rotation_error_deg(np.linalg.inv(w2c), truth_c2w) < 0.05
+    # the pose alone cannot make up for the focal length
+    _, one, med_fixed = fit_pose_and_focal(X, x, start, given, 50.0, max_log_focal=0.0)
+    assert one == 1.0 and med_fixed > 2 * med
+    assert fit_pose_and_focal(X[:5], x[:5], start, given, 50.0) is None  # too few
+
+
+def test_a_localization_with_the_focal_length_free_finds_it(demo, xfeat):
+    """The demo query given 4 % too short a focal length, localized from 10 deg off."""
+    from icomma_plugin.localization.refine import RefineConfig
+    from icomma_plugin.localization.robust import RobustConfig
+    from icomma_plugin.localize import localize
+
+    scene, model, q, cams = demo
+    i = scene.intrinsics
+    wrong = Intrinsics(i.width, i.height, i.fx * 0.96, i.fy * 0.96, i.cx, i.cy)
+    init = perturb_pose(scene.gt_c2w, 10.0, 0.05, 7, pivot="camera")
+    res = {}
+    for focal in (False, True):
+        res[focal] = localize(model, Query(q, wrong), matcher=xfeat, init_c2w=init,
+                              gt_c2w=scene.gt_c2w, cameras=cams, cache_dir=False,
+                              config=RobustConfig(refine=RefineConfig(focal=focal)))
+    free = res[True]
+    assert free.details["focal_scale"] == pytest.approx(1 / 0.96, abs=0.01)
+    assert free.intrinsics.fx == pytest.approx(i.fx, rel=0.01)
+    assert "focal_scale" not in res[False].details and res[False].intrinsics == wrong
+    assert free.rot_err_deg < 0.1 and free.rot_err_deg < 0.5 * res[False].rot_err_deg, \
+        (free.rot_err_deg, res[False].rot_err_deg)
