@@ -162,7 +162,7 @@ def _motion(w2c_a: np.ndarray, w2c_b: np.ndarray):
 
 
 def render_correspondences(state: LocalizationState, obs: Observation, cfg: GeometricConfig,
-                            subpixel: bool) -> Tuple[np.ndarray, np.ndarray]:
+                           subpixel: bool) -> Tuple[np.ndarray, np.ndarray]:
     """(world points, query pixels) of the matches of ``obs``, lifted with its rendered depth."""
     m = obs.matches
     if m is None or len(m) < cfg.min_pnp_inliers:

@@ -418,7 +418,8 @@ def _focal_from_matches(state: LocalizationState, cfg: RobustConfig,
     """The refinement's start with the focal length free, from the best render's matches.
 
     The pose and focal scale that best reproject them (``geometry.fit_pose_and_focal``; sets
-    ``state.focal_scale``), or ``g``'s pose as it is when too few matches agree.
+    ``state.focal_scale``) when that fit is ``FOCAL_FIT_GAIN`` better than the pose's alone;
+    else ``g``'s pose as it is (too few matches, or none asking for another focal length).
 
     The photometric steps along the valley where the focal length trades against the camera's
     distance are short; the matches' reprojection gets there in a few milliseconds.
@@ -435,7 +436,7 @@ def _focal_from_matches(state: LocalizationState, cfg: RobustConfig,
         args = (pts, pix, g.w2c, state.intrinsics_at(obs.scale), 3.0 * cfg.geometric.ransac_px)
         free, fixed = fit_pose_and_focal(*args), fit_pose_and_focal(*args, max_log_focal=0.0)
     if free is None or fixed is None or free[2] > FOCAL_FIT_GAIN * fixed[2]:
-        return g.w2c  # the matches do not ask for another focal length: the photometric steps
+        return g.w2c  # left to the photometric steps
     w2c, state.focal_scale, _ = free
     return w2c
 
