@@ -85,7 +85,7 @@ def result_document(problem: Problem, result: LocalizationResult, *, backend: st
     """The content of ``result.json``: the one row (docs/CONTRACTS.md) and the run's context."""
     from ..io.cameras_json import CameraEntry
 
-    intr = problem.query.intrinsics
+    intr = result.intrinsics or problem.query.intrinsics  # estimated, with refine.focal
     entry = CameraEntry(id=0, img_name=problem.name, width=intr.width, height=intr.height,
                         c2w=result.c2w, fx=float(intr.fx), fy=float(intr.fy))
     doc = result.to_json(include_trace=False, scene_scale=problem.scene_scale)
@@ -159,7 +159,7 @@ def write_outputs(
     start_c2w = result.init_c2w
     try:
         if opt.overlays or opt.match_lines:
-            final_img = _render_rgb(problem, result.c2w, backend)
+            final_img = _render_rgb(problem, result.c2w, backend, result.intrinsics)
             init_img = None if start_c2w is None else _render_rgb(problem, start_c2w, backend)
             if opt.overlays:
                 if init_img is not None:

@@ -60,6 +60,21 @@ def test_every_row_has_the_fields_with_the_same_values(result):
     assert set(CSV_COLUMNS) - {"index", "relocalized"} <= set(ROW_FIELDS)
 
 
+def test_an_estimated_focal_length_is_what_result_json_records(result):
+    """With ``refine.focal`` the camera entry holds the estimated focal lengths, not the given."""
+    import dataclasses
+
+    scene, q, res = result
+    problem = Problem(model=None, query=q, init_c2w=res.init_c2w, gt_c2w=scene.gt_c2w,
+                      bg=None, scene_scale=2.0)
+    i = q.intrinsics
+    est = dataclasses.replace(res, intrinsics=dataclasses.replace(i, fx=i.fx * 1.03,
+                                                                 fy=i.fy * 1.03))
+    doc = result_document(problem, est, backend="cpu", config={}, seconds_total=1.0)
+    assert doc["camera_entry"]["fx"] == pytest.approx(i.fx * 1.03)
+    assert doc["intrinsics"]["fx"] == pytest.approx(i.fx * 1.03)
+
+
 def test_intrinsics_have_one_encoding():
     intr = Intrinsics(64, 48, 50.0, 51.0)
     j = intr.to_json()

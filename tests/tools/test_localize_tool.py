@@ -301,3 +301,17 @@ def test_model_folder_query_from_dataset_view(small_demo, tmp_path):
     assert np.allclose(res["gt_c2w"], scene.gt_c2w, atol=1e-6)
     assert abs(res["intrinsics"]["fx"] - scene.intrinsics.fx) < 1e-6
     assert res["name"] == "r_0"
+
+
+def test_the_focal_length_free_is_in_result_json_and_the_summary(small_demo, tmp_path):
+    """``optimizer.refine.focal=true``: the estimate is recorded and said (the demo's is right)."""
+    tool = localize_tool()
+    cfg = compose(_demo_overrides(small_demo) + ["optimizer.refine.focal=true",
+                                                 "output.progress=false", "output.gif=false"])
+    out = tmp_path / "out"
+    res = tool.run(cfg, out)
+    j = json.loads((out / "result.json").read_text())
+    scale = j["details"]["focal_scale"]
+    assert scale == pytest.approx(1.0, abs=0.02)
+    assert j["camera_entry"]["fx"] == pytest.approx(j["intrinsics"]["fx"])
+    assert "focal length" in tool.summary(res, out)
