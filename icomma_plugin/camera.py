@@ -68,6 +68,10 @@ class Intrinsics:
         return self.resized_to(max(1, int(round(self.width * scale))),
                                max(1, int(round(self.height * scale))))
 
+    def with_focal_scale(self, scale: float) -> "Intrinsics":
+        """The same image seen through both focal lengths times ``scale`` (principal point kept)."""
+        return self if scale == 1.0 else replace(self, fx=self.fx * scale, fy=self.fy * scale)
+
     def resized_to(self, width: int, height: int) -> "Intrinsics":
         """Intrinsics of the image resized to ``width x height`` (each axis by its own ratio).
 

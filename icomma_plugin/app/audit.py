@@ -42,7 +42,7 @@ import json
 import logging
 import os
 import zlib
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
 
@@ -538,9 +538,8 @@ def _control_query(localizer, view, recorded: np.ndarray, scale: float) -> Query
 
 def _focal_query(query: Query, scale: float) -> Query:
     """``query`` with its focal lengths scaled by ``scale`` (the same pixels)."""
-    i = query.intrinsics
-    intr = replace(i, fx=i.fx * scale, fy=i.fy * scale)
-    return Query(query.rgb, intr, query.alpha, query.valid, query.name)
+    return Query(query.rgb, query.intrinsics.with_focal_scale(scale), query.alpha, query.valid,
+                 query.name)
 
 
 def _document(settings, rows, controls, cameras, rule, status: str,

@@ -252,18 +252,13 @@ def fit_pose_and_focal(points_world: np.ndarray, pixels: np.ndarray, w2c: np.nda
     if int(use.sum()) < 12:
         return None
     X, x = X[use], x[use]
-    cx, cy = intrinsics.cx_px, intrinsics.cy_px
 
     def pose(p: np.ndarray) -> np.ndarray:
         return se3_exp(torch.as_tensor(p[:6], dtype=torch.float64)).numpy() @ w2c
 
-    def residual(p: np.ndarray) -> np.ndarray:
-        f = float(np.exp(p[6]))
-        pc = X @ pose(p)[:3, :3].T + pose(p)[:3, 3]
-        zs = np.where(np.abs(pc[:, 2]) < 1e-12, 1e-12, pc[:, 2])
-        u = intrinsics.fx * f * pc[:, 0] / zs + cx
-        v = intrinsics.fy * f * pc[:, 1] / zs + cy
-        return np.concatenate([u - x[:, 0], v - x[:, 1]])
+    def residual(p: np.ndarray) -> np.ndarray:  # u residuals, then v residuals
+        d = project(X, pose(p), intrinsics.with_focal_scale(float(np.exp(p[6]))))[0] - x
+        return np.concatenate([d[:, 0], d[:, 1]])
 
     p, lam = np.zeros(7), 1e-3
     r = residual(p)

@@ -9,7 +9,6 @@ returned explicitly (``w2c``, float64 numpy), so that a stage can be run and tes
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -236,10 +235,7 @@ class LocalizationState:
         """The query's intrinsics at working ``scale`` (its focal lengths x ``focal_scale``)."""
         intr = self.query.intrinsics
         intr = intr if scale == 1.0 else intr.scaled(scale)
-        if self.focal_scale != 1.0:
-            intr = dataclasses.replace(intr, fx=intr.fx * self.focal_scale,
-                                       fy=intr.fy * self.focal_scale)
-        return intr
+        return intr.with_focal_scale(self.focal_scale)
 
     def query_at(self, scale: float) -> Query:
         """The query resized to ``scale``.

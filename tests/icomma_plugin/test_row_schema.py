@@ -81,5 +81,9 @@ def test_intrinsics_have_one_encoding():
     assert j == {"width": 64, "height": 48, "fx": 50.0, "fy": 51.0, "cx": 31.5, "cy": 23.5}
     back = Intrinsics.from_json(j)
     assert (back.cx_px, back.cy_px, back.fx) == (31.5, 23.5, 50.0)
+    longer = intr.with_focal_scale(1.1)  # the focal lengths only: the same image's pixels
+    assert (longer.fx, longer.fy) == pytest.approx((55.0, 56.1))
+    assert (longer.cx_px, longer.cy_px, longer.width, longer.height) == (31.5, 23.5, 64, 48)
+    assert intr.with_focal_scale(1.0) is intr
     with pytest.raises(ValueError, match="lacks"):
         Intrinsics.from_json({"width": 1})
