@@ -22,15 +22,22 @@ import torch
 
 from ..checks import check_bool, check_choice, check_int, check_real
 from ..pose.convert import invert_rigid, rotation_error_deg
-from .geometry import PnPResult, lift_keypoints, median_depth, solve_pnp
+from .geometry import (
+    FocalFit,
+    PnPResult,
+    fit_pose_and_focal,
+    lift_keypoints,
+    median_depth,
+    solve_pnp,
+)
 from .state import LocalizationState, Observation
 from .types import Stage
 from .verify import PoseScore, score_observation
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ANCHORS", "GeometricConfig", "GeometricOutcome", "pnp_from_observation",
-           "run_geometric"]
+__all__ = ["ANCHORS", "GeometricConfig", "GeometricOutcome", "focal_fits", "pnp_from_observation",
+           "render_correspondences", "run_geometric"]
 
 #: Where the geometric stage's 2D-3D correspondences come from (``GeometricConfig.anchors``).
 ANCHORS = ("renders", "photos", "both")
@@ -186,6 +193,24 @@ def render_correspondences(state: LocalizationState, obs: Observation, cfg: Geom
         pts, keep = lift_keypoints(kpts0, obs.depth, obs.alpha, intr, torch.as_tensor(c2w),
                                    cfg.min_alpha, cfg.max_depth_jump)
         return pts.cpu().numpy(), kpts1[keep].double().cpu().numpy()
+
+
+def focal_fits(state: LocalizationState, obs: Observation,
+               cfg: GeometricConfig) -> Optional[Tuple[FocalFit, FocalFit]]:
+    """The matches of ``obs`` fitted by their reprojection with the focal length free and fixed.
+
+    ``(free, fixed)``, each a ``geometry.FocalFit``, from ``obs``'s pose and the focal length the
+    state holds (its ``focal_scale``), on the matches within 3 RANSAC thresholds (a focal length
+    a few % off moves the keypoints near the edges by several pixels more than the pose can make
+    up for); None with too few matches.
+    No render: a few milliseconds.
+    """
+    pts, pix = render_correspondences(state, obs, cfg, subpixel=False)
+    if len(pts) == 0:
+        return None
+    args = (pts, pix, obs.w2c, state.intrinsics_at(obs.scale), 3.0 * cfg.ransac_px)
+    free, fixed = fit_pose_and_focal(*args), fit_pose_and_focal(*args, max_log_focal=0.0)
+    return None if free is None or fixed is None else (free, fixed)
 
 
 def pnp_from_observation(state: LocalizationState, obs: Observation, cfg: GeometricConfig,

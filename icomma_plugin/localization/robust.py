@@ -30,17 +30,12 @@ from ..camera import Intrinsics
 from ..checks import check_bool, check_choice, check_int, check_real, config_from_dict
 from ..pose.convert import invert_rigid, rotation_error_deg
 from .candidates import CandidateConfig, usable
-from .geometric import (
-    GeometricConfig,
-    GeometricOutcome,
-    render_correspondences,
-    run_geometric,
-)
-from .geometry import fit_pose_and_focal, median_depth
+from .geometric import GeometricConfig, GeometricOutcome, focal_fits, run_geometric
+from .geometry import median_depth
 from .refine import RefineConfig, refine_photometric
-from .state import LocalizationState
+from .state import LocalizationState, Observation
 from .types import MethodOutcome, Stage, TraceRecord
-from .verify import PoseScore, VerdictConfig, decide, score_pose
+from .verify import PoseScore, VerdictConfig, decide, observe_and_score
 
 logger = logging.getLogger(__name__)
 
@@ -381,7 +376,7 @@ class _Search:
         if w2c is None:  # no start and no candidate view: nothing to report but the identity
             w2c = np.eye(4)
         score = None if best is None else _full_model_score(self.state, best, self.scale,
-                                                             self.cfg.verdict.inlier_px)
+                                                             self.cfg.verdict.inlier_px)[0]
         verdict = decide(score, self.cfg.verdict, converged=None,
                          extra={"start_render_empty": self.empty_start,
                                 "hypotheses": len(self.hyps)})
@@ -399,12 +394,12 @@ def _on_reduced(state: LocalizationState, stage: str) -> bool:
 
 
 def _full_model_score(state: LocalizationState, g: GeometricOutcome, scale: float,
-                      inlier_px: float) -> Optional[PoseScore]:
-    """``g``'s score, measured again on the full model when a reduced one rendered it."""
+                      inlier_px: float) -> Tuple[Optional[PoseScore], Optional[Observation]]:
+    """``g``'s score and the render it scores, measured again on the full model if reduced."""
     if g.score is None or not _on_reduced(state, "geometric"):
-        return g.score
+        return g.score, g.observation
     with state.serving("verify"):
-        return score_pose(state, g.w2c, scale, inlier_px)
+        return observe_and_score(state, g.w2c, scale, inlier_px)
 
 
 #: The matches' fit of the focal length is taken only when it reprojects them this much better
@@ -417,7 +412,7 @@ def _focal_from_matches(state: LocalizationState, cfg: RobustConfig,
                         g: GeometricOutcome) -> np.ndarray:
     """The refinement's start with the focal length free, from the best render's matches.
 
-    The pose and focal scale that best reproject them (``geometry.fit_pose_and_focal``; sets
+    The pose and focal scale that best reproject them (``geometric.focal_fits``; sets
     ``state.focal_scale``) when that fit is ``FOCAL_FIT_GAIN`` better than the pose's alone;
     else ``g``'s pose as it is (too few matches, or none asking for another focal length).
 
@@ -427,18 +422,32 @@ def _focal_from_matches(state: LocalizationState, cfg: RobustConfig,
     obs = g.observation
     if obs is None or obs.matches is None:
         return g.w2c
-    pts, pix = render_correspondences(state, obs, cfg.geometric, subpixel=False)
-    if len(pts) == 0:
-        return g.w2c
     with state.timed("pnp"):
-        # the matches within 3 RANSAC thresholds: a focal length a few % off moves the edges'
-        # keypoints by several pixels more than the pose can make up for
-        args = (pts, pix, g.w2c, state.intrinsics_at(obs.scale), 3.0 * cfg.geometric.ransac_px)
-        free, fixed = fit_pose_and_focal(*args), fit_pose_and_focal(*args, max_log_focal=0.0)
-    if free is None or fixed is None or free[2] > FOCAL_FIT_GAIN * fixed[2]:
+        fits = focal_fits(state, obs, cfg.geometric)
+    if fits is None or fits[0].median_px > FOCAL_FIT_GAIN * fits[1].median_px:
         return g.w2c  # left to the photometric steps
-    w2c, state.focal_scale, _ = free
-    return w2c
+    state.focal_scale = fits[0].focal_scale
+    return fits[0].w2c
+
+
+def _focal_signal(state: LocalizationState, cfg: RobustConfig,
+                  obs: Optional[Observation]) -> Optional[Dict[str, float]]:
+    """The verdict's intrinsics check at the final pose (``VerdictConfig.ok_focal_scale``).
+
+    The final render's matches fitted with the focal length free: ``scale`` (of the focal length
+    the pose holds with), ``rms_px`` and ``rms_px_given`` (the pose alone), the root mean square
+    reprojection errors that the fits minimise (a median of a detector's integer keypoints can
+    miss the gain). None when the check is off or there are too few matches.
+    """
+    if cfg.verdict.ok_focal_scale is None or obs is None or obs.matches is None:
+        return None
+    with state.timed("verify"):
+        fits = focal_fits(state, obs, cfg.geometric)
+    if fits is None:
+        return None
+    free, fixed = fits
+    return {"scale": round(free.focal_scale, 5), "rms_px": round(free.rms_px, 4),
+            "rms_px_given": round(fixed.rms_px, 4)}
 
 
 def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float,
@@ -456,11 +465,11 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
     reuse = (cfg.verify_geometric and ref.iterations == 0 and best.converged
              and not _on_reduced(state, "geometric"))
     if reuse:  # the PnP step that ended the geometric stage was below its stop: judged there
-        sc = geo
+        sc, judged = geo, best.observation
     else:  # the refinement's last render is judged when it is of the full model
         last = None if _on_reduced(state, "refine") else ref.observation
         with state.serving("verify"):
-            sc = score_pose(state, ref.w2c, scale, cfg.verdict.inlier_px, last)
+            sc, judged = observe_and_score(state, ref.w2c, scale, cfg.verdict.inlier_px, last)
     keep = (sc.inliers >= cfg.rollback_inliers * geo.inliers
             and sc.median_px <= geo.median_px + cfg.rollback_median_px)
     state.record(state.new_record(Stage.VERIFY, ref.w2c, matches=sc.matches, inliers=sc.inliers,
@@ -472,7 +481,8 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
             "photometric refinement rolled back: %d -> %d agreeing matches", geo.inliers, sc.inliers
         )
         state.focal_scale = 1.0  # the geometric pose's (the recorded focal length)
-        w2c, score = best.w2c, _full_model_score(state, best, scale, cfg.verdict.inlier_px)
+        w2c = best.w2c
+        score, judged = _full_model_score(state, best, scale, cfg.verdict.inlier_px)
     extra = {
         "start_render_empty": search.empty_start,
         "hypotheses": len(search.hyps),
@@ -482,6 +492,9 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
         "refine_iterations": ref.iterations,
         "refine_loss": [ref.loss_start, ref.loss_end],
     }
+    focal = _focal_signal(state, cfg, judged)
+    if focal is not None:
+        extra["focal"] = focal
     # Whether the pose stopped moving is said by the last stage that moved it: the refinement, or
     # the geometric stage when the refinement took no step or was rolled back.
     converged = (ref.converged if ref.iterations > 0 else best.converged) or not keep

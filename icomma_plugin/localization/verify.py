@@ -32,6 +32,8 @@ __all__ = [
     "can_match",
     "coverage_mask",
     "decide",
+    "focal_disagrees",
+    "observe_and_score",
     "score_observation",
     "score_pose",
     "verify_pose",
@@ -155,6 +157,14 @@ class VerdictConfig:
     fail_inliers: fewer inliers than this is ``failed``; fail_coverage: a render covering less of
         the photo than this is ``failed`` (the pose sees almost none of the scene).
     inlier_px: displacement below which a match is an inlier [px at the working resolution].
+    ok_focal_scale / ok_focal_gain: the intrinsics check (the default method's). The final
+        render's matches are fitted by their reprojection with the focal length free; when that
+        fit finds a focal length further than ``ok_focal_scale`` (a share) from the one the pose
+        holds with AND reprojects them with a root mean square error at most ``ok_focal_gain``
+        times the pose's alone, the pose is ``uncertain``: the photo's intrinsics are likely off,
+        and a wrong focal length is made up for by a wrong distance (4 % -> 0.05 scene radii on
+        fox).
+        None: not checked.
     """
 
     inlier_px: float = 2.0
@@ -166,10 +176,15 @@ class VerdictConfig:
     ok_coverage: float = 0.1
     fail_inliers: int = 8
     fail_coverage: float = 0.02
+    ok_focal_scale: Optional[float] = 0.03
+    ok_focal_gain: float = 0.9
 
     def __post_init__(self):
         for name in ("inlier_px", "ok_median_px", "ok_mean_px"):
             check_real(getattr(self, name), f"VerdictConfig.{name}", 0.0, lo_open=True)
+        check_real(self.ok_focal_scale, "VerdictConfig.ok_focal_scale", 0.0, lo_open=True,
+                   optional=True)
+        check_real(self.ok_focal_gain, "VerdictConfig.ok_focal_gain", 0.0, 1.0, lo_open=True)
         for name in ("ok_ratio", "ok_spread", "ok_coverage", "fail_coverage"):
             check_real(getattr(self, name), f"VerdictConfig.{name}", 0.0, 1.0)
         for name in ("ok_inliers", "fail_inliers"):
@@ -228,6 +243,13 @@ def decide(score: Optional[PoseScore], cfg: VerdictConfig, converged: Optional[b
                         f"{100 * cfg.ok_coverage:.0f}%)")
     if converged is False:
         problems.append("the optimisation had not stopped moving")
+    if focal_disagrees(signals.get("focal"), cfg):
+        f = signals["focal"]
+        problems.append(
+            f"the matches fit a focal length {f['scale']:.3f}x the one used better (rms "
+            f"{f['rms_px']:.2f} against {f['rms_px_given']:.2f} px): the photo's intrinsics "
+            "look off, and the distance with them; check them, or localize with the focal length "
+            "free (refine.focal=true)")
     rival = signals.get("rival")
     if signals.get("ambiguous") and rival:
         problems.append(f"a rival pose {rival['rot_deg_apart']:.0f} deg away agrees almost as well "
@@ -244,23 +266,42 @@ def decide(score: Optional[PoseScore], cfg: VerdictConfig, converged: Optional[b
     )
 
 
+def focal_disagrees(focal: Optional[Dict[str, Any]], cfg: VerdictConfig) -> bool:
+    """Whether the intrinsics check's fit (the ``focal`` signal) makes a pose uncertain."""
+    if not focal or cfg.ok_focal_scale is None:
+        return False
+    try:
+        scale, err, err_given = (float(focal[k]) for k in ("scale", "rms_px", "rms_px_given"))
+    except (KeyError, TypeError, ValueError):
+        return False
+    return abs(scale - 1.0) > cfg.ok_focal_scale and err <= cfg.ok_focal_gain * err_given
+
+
 def can_match(matcher) -> bool:
     """Whether ``matcher`` finds matches at all (None and the ``none`` matcher do not)."""
     return matcher is not None and getattr(matcher, "name", None) != "none"
 
 
-def score_pose(state: LocalizationState, w2c: np.ndarray, scale: float, inlier_px: float,
-               observation: Optional[Observation] = None) -> PoseScore:
+def observe_and_score(state: LocalizationState, w2c: np.ndarray, scale: float, inlier_px: float,
+                      observation: Optional[Observation] = None
+                      ) -> Tuple[PoseScore, Observation]:
     """Render at ``w2c`` (or reuse ``observation``, a render there), match, score (timed verify).
 
-    The one render-and-match that checks a final pose, for every method.
+    The one render-and-match that checks a final pose, for every method; returns the score and
+    the render it scored, with its matches.
     """
     with state.timed("verify"):
         obs = observation
         if obs is None or obs.scale != scale:
             obs = state.observe(w2c, scale, match=False)
         obs.matches = state.match(obs.color, scale)
-        return score_observation(obs, state, inlier_px)
+        return score_observation(obs, state, inlier_px), obs
+
+
+def score_pose(state: LocalizationState, w2c: np.ndarray, scale: float, inlier_px: float,
+               observation: Optional[Observation] = None) -> PoseScore:
+    """:func:`observe_and_score`'s score alone."""
+    return observe_and_score(state, w2c, scale, inlier_px, observation)[0]
 
 
 def verify_pose(state: LocalizationState, w2c: np.ndarray, scale: float, cfg: "VerdictConfig",

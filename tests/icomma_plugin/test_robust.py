@@ -554,6 +554,87 @@ def test_verdict_is_failed_or_uncertain_for_a_wrong_pose_and_ok_for_the_truth(de
     assert v_right.signals["inliers"] >= 30 and "inlier_ratio" in v_right.signals
 
 
+def _good_score():
+    from icomma_plugin.localization.verify import PoseScore
+
+    return PoseScore(matches=300, inliers=280, median_px=0.5, mean_px=0.5, spread=0.5,
+                     coverage=0.6, photometric_rmse=0.05)
+
+
+@pytest.mark.parametrize("focal, status", [
+    ({"scale": 1.07, "rms_px": 0.8, "rms_px_given": 1.1}, "uncertain"),  # off, and explains
+    ({"scale": 0.93, "rms_px": 0.8, "rms_px_given": 1.1}, "uncertain"),
+    ({"scale": 1.02, "rms_px": 0.5, "rms_px_given": 1.1}, "ok"),  # within the tolerance
+    ({"scale": 1.07, "rms_px": 1.05, "rms_px_given": 1.1}, "ok"),  # explains little more
+    (None, "ok"),  # not measured (too few matches, or another method)
+    ({"scale": None, "rms_px": 0.8, "rms_px_given": 1.1}, "ok"),  # unreadable: not a verdict
+])
+def test_the_intrinsics_check_makes_a_pose_uncertain_only_when_another_focal_explains_it(
+        focal, status):
+    v = decide(_good_score(), VerdictConfig(), converged=True, extra={"focal": focal})
+    assert v.status == status, v.reason
+    if status == "uncertain":
+        assert f"focal length {focal['scale']:.3f}x" in v.reason and "refine.focal" in v.reason
+        assert v.signals["focal"] == focal
+    # off: never
+    off = decide(_good_score(), VerdictConfig(ok_focal_scale=None), converged=True,
+                 extra={"focal": focal})
+    assert off.status == "ok"
+
+
+def test_the_intrinsics_check_is_kept_by_a_calibration_and_redecided_from_signals():
+    """A recorded row's verdict decided again (calibration) still sees the focal signal."""
+    from icomma_plugin.localization.calibration import redecide
+
+    v = decide(_good_score(), VerdictConfig(), converged=True,
+               extra={"focal": {"scale": 1.07, "rms_px": 0.8, "rms_px_given": 1.1}})
+    again = redecide(v.to_json()["signals"], VerdictConfig(ok_inliers=10))
+    assert again.status == "uncertain" and "focal length" in again.reason
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"ok_focal_scale": -0.1}, "ok_focal_scale"), ({"ok_focal_gain": 0.0}, "ok_focal_gain"),
+    ({"ok_focal_gain": 1.5}, "ok_focal_gain"), ({"ok_focal_scale": "x"}, "ok_focal_scale"),
+])
+def test_a_bad_intrinsics_check_setting_names_it(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        VerdictConfig(**kwargs)
+
+
+@pytest.fixture(scope="module")
+def demo200(tmp_path_factory):
+    """The demo scene at 200x200: a 4 % focal error moves its edges by 4 px."""
+    from icomma_plugin.app.demo_scene import build_demo_scene
+    from icomma_plugin.io.cameras_json import read_cameras_json
+
+    scene = build_demo_scene(tmp_path_factory.mktemp("demo200") / "scene", seed=0,
+                             width=200, height=200)
+    cams = [e.c2w for e in read_cameras_json(scene.path / "cameras.json")]
+    return scene, scene.load_model(), scene.load_query(), cams
+
+
+def test_a_pose_found_with_a_wrong_focal_length_is_uncertain_and_says_which(demo200, xfeat):
+    """Given 8 % too short a focal length, the distance makes up for it: not ``ok``."""
+    from icomma_plugin.localize import localize
+
+    scene, model, q, cams = demo200
+    i = scene.intrinsics
+    init = perturb_pose(scene.gt_c2w, 10.0, 0.05, 7, pivot="camera")
+    res = {}
+    for s in (1.0, 0.92):
+        given = Intrinsics(i.width, i.height, i.fx * s, i.fy * s, i.cx, i.cy)
+        res[s] = localize(model, Query(q, given), matcher=xfeat, init_c2w=init,
+                          gt_c2w=scene.gt_c2w, cameras=cams, cache_dir=False)
+    right, wrong = res[1.0], res[0.92]
+    assert right.verdict.status == "ok", right.verdict.reason
+    assert right.verdict.signals["focal"]["scale"] == pytest.approx(1.0, abs=0.01)
+    # the distance took up the focal length: a wrong pose by the benchmark's measure
+    assert wrong.trans_err > 3 * right.trans_err + 0.05 * scene.scene_scale
+    assert wrong.verdict.status == "uncertain", wrong.verdict.reason
+    assert "focal length" in wrong.verdict.reason
+    assert wrong.verdict.signals["focal"]["scale"] == pytest.approx(1 / 0.92, abs=0.03)
+
+
 def test_empty_start_is_reported_with_what_to_do(demo, xfeat):
     """A start that looks away from the scene: relocalized from the candidates, and said so."""
     from icomma_plugin.localize import localize
@@ -1095,13 +1176,54 @@ def test_the_matches_reprojection_recovers_a_known_focal_length():
     x, _ = project(X, np.linalg.inv(truth_c2w), true_intr)
     x = x + rng.normal(0.0, 0.2, x.shape)
     start = np.linalg.inv(perturb_pose(truth_c2w, 0.5, 0.02, 5, pivot="camera"))
-    w2c, scale, med = fit_pose_and_focal(X, x, start, given, threshold_px=50.0)
-    assert scale == pytest.approx(1.05, abs=0.005) and med < 0.5
-    assert rotation_error_deg(np.linalg.inv(w2c), truth_c2w) < 0.05
-    # the pose alone cannot make up for the focal length
-    _, one, med_fixed = fit_pose_and_focal(X, x, start, given, 50.0, max_log_focal=0.0)
-    assert one == 1.0 and med_fixed > 2 * med
+    free = fit_pose_and_focal(X, x, start, given, threshold_px=50.0)
+    assert free.focal_scale == pytest.approx(1.05, abs=0.005) and free.median_px < 0.5
+    assert free.rms_px < 0.5
+    assert rotation_error_deg(np.linalg.inv(free.w2c), truth_c2w) < 0.05
+    # the pose alone makes up for the focal length only in part, with a wrong distance
+    fixed = fit_pose_and_focal(X, x, start, given, 50.0, max_log_focal=0.0)
+    assert fixed.focal_scale == 1.0 and fixed.median_px > 1.3 * free.median_px
+    assert fixed.rms_px > 1.3 * free.rms_px
+    w2c_fixed = fixed.w2c
+    distance = np.linalg.norm(truth_c2w[:3, 3])
+    assert np.linalg.norm(np.linalg.inv(w2c_fixed)[:3, 3] - truth_c2w[:3, 3]) > 0.03 * distance
     assert fit_pose_and_focal(X[:5], x[:5], start, given, 50.0) is None  # too few
+
+
+def test_the_focal_fit_ends_where_the_reprojection_error_is_stationary():
+    """Finite differences of the cost the fit minimises vanish at its result (Jacobian check)."""
+    import torch
+
+    from icomma_plugin.localization.geometry import fit_pose_and_focal, project
+    from icomma_plugin.pose.se3 import se3_exp
+
+    rng = np.random.default_rng(4)
+    X = rng.uniform(-1.0, 1.0, (200, 3))
+    truth_c2w = look_at_c2w(np.array([-1.0, -3.0, 1.5]), np.zeros(3))
+    given = Intrinsics(160, 120, 150.0, 150.0)
+    x, _ = project(X, np.linalg.inv(truth_c2w), given.with_focal_scale(0.96))
+    x = x + rng.normal(0.0, 0.3, x.shape)
+    start = np.linalg.inv(perturb_pose(truth_c2w, 1.0, 0.05, 8, pivot="camera"))
+
+    def cost(w2c, p):  # a camera-frame twist and a log focal step from (w2c, scale)
+        T = se3_exp(torch.as_tensor(p[:6], dtype=torch.float64)).numpy() @ w2c
+        return float(((project(X, T, given.with_focal_scale(s * np.exp(p[6])))[0] - x) ** 2).sum())
+
+    def grad(w2c):
+        g = np.empty(7)
+        for k in range(7):
+            e = np.zeros(7)
+            e[k] = 1e-6
+            g[k] = (cost(w2c, e) - cost(w2c, -e)) / 2e-6
+        return g
+
+    s = 1.0
+    g_start = grad(start)
+    fit = fit_pose_and_focal(X, x, start, given, threshold_px=1e3)
+    s = fit.focal_scale
+    g_end = grad(fit.w2c)
+    assert np.abs(g_end).max() < 1e-4 * np.abs(g_start).max(), (g_start, g_end)
+    assert fit.focal_scale == pytest.approx(0.96, abs=0.005)
 
 
 def test_a_localization_with_the_focal_length_free_finds_it(demo, xfeat):
