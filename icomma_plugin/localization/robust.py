@@ -31,11 +31,11 @@ from ..checks import check_bool, check_choice, check_int, check_real, config_fro
 from ..pose.convert import invert_rigid, rotation_error_deg
 from .candidates import CandidateConfig, usable
 from .geometric import GeometricConfig, GeometricOutcome, focal_fits, run_geometric
-from .geometry import median_depth
+from .geometry import FocalFit, median_depth
 from .refine import RefineConfig, refine_photometric
 from .state import LocalizationState, Observation
 from .types import MethodOutcome, Stage, TraceRecord
-from .verify import PoseScore, VerdictConfig, decide, observe_and_score
+from .verify import PoseScore, VerdictConfig, decide, focal_disagrees, observe_and_score
 
 logger = logging.getLogger(__name__)
 
@@ -57,6 +57,14 @@ class RobustConfig:
     rollback_inliers: the refined pose is kept only if it keeps this share of the agreeing
         matches of the geometric pose (and its median displacement grows by less than
         ``rollback_median_px``).
+    focal_retry: when the verdict's intrinsics check (``verdict.ok_focal_scale``) finds the final
+        render's matches asking for another focal length, refine once more with the focal length
+        free (as ``refine.focal``, from the matches' fit) and keep that pose when it passes the
+        roll-back test and the check; ``details["focal_scale"]`` then says the estimate and the
+        result's intrinsics are the estimated ones. It costs time only on such photos (none of
+        the real captures' right ones): fox's held-out photos given a focal length 4-8 % off,
+        0.43-0.92 deg -> about 0.03-0.07 (docs/LOCALIZATION.md). Needs the refinement's
+        defaults (``RefineConfig.focal``'s requirements); otherwise not tried.
     verify_geometric: when the refinement takes no step (``refine.iterations`` 0) and the geometric
         stage converged, the verdict is decided on the geometric stage's last render-and-match
         (at most ``geometric.stop_rot_deg`` from the returned pose, the PnP step that ended the
@@ -113,6 +121,7 @@ class RobustConfig:
     rollback_inliers: float = 0.9
     rollback_median_px: float = 0.5
     verify_geometric: bool = False
+    focal_retry: bool = True
     refine_reduced: bool = False
     refine_model_side: bool = True
     mutual_nn: Optional[float] = None
@@ -153,7 +162,7 @@ class RobustConfig:
         if self.sh_degree is not None:
             check_choice(self.sh_degree, n + "sh_degree", (0, 1, 2, 3))
         for name in ("use_candidates", "antialiasing", "record_trace", "verify_geometric",
-                     "refine_reduced", "refine_model_side"):
+                     "focal_retry", "refine_reduced", "refine_model_side"):
             check_bool(getattr(self, name), n + name)
 
     @classmethod
@@ -430,24 +439,67 @@ def _focal_from_matches(state: LocalizationState, cfg: RobustConfig,
     return fits[0].w2c
 
 
-def _focal_signal(state: LocalizationState, cfg: RobustConfig,
-                  obs: Optional[Observation]) -> Optional[Dict[str, float]]:
+def _focal_signal(state: LocalizationState, cfg: RobustConfig, obs: Optional[Observation]
+                  ) -> Tuple[Optional[Dict[str, float]], Optional[FocalFit]]:
     """The verdict's intrinsics check at the final pose (``VerdictConfig.ok_focal_scale``).
 
     The final render's matches fitted with the focal length free: ``scale`` (of the focal length
     the pose holds with), ``rms_px`` and ``rms_px_given`` (the pose alone), the root mean square
     reprojection errors that the fits minimise (a median of a detector's integer keypoints can
-    miss the gain). None when the check is off or there are too few matches.
+    miss the gain); and that free fit. ``(None, None)`` when the check is off or there are too
+    few matches.
     """
     if cfg.verdict.ok_focal_scale is None or obs is None or obs.matches is None:
-        return None
+        return None, None
     with state.timed("verify"):
         fits = focal_fits(state, obs, cfg.geometric)
     if fits is None:
-        return None
+        return None, None
     free, fixed = fits
     return {"scale": round(free.focal_scale, 5), "rms_px": round(free.rms_px, 4),
-            "rms_px_given": round(fixed.rms_px, 4)}
+            "rms_px_given": round(fixed.rms_px, 4)}, free
+
+
+def _can_free_focal(refine: RefineConfig) -> bool:
+    """Whether ``refine`` can take the focal length as a 7th parameter (its requirements)."""
+    return (refine.hessian == "finite_difference" and refine.hessian_scale == 1.0
+            and refine.robust == "none")
+
+
+def _passes_rollback(sc: PoseScore, geo: PoseScore, cfg: RobustConfig) -> bool:
+    """Whether a refined pose's score keeps the geometric one's agreement (else rolled back)."""
+    return (sc.inliers >= cfg.rollback_inliers * geo.inliers
+            and sc.median_px <= geo.median_px + cfg.rollback_median_px)
+
+
+def _retry_focal_free(state: LocalizationState, cfg: RobustConfig, scale: float, free: FocalFit,
+                      depth: float, geo: PoseScore):
+    """The refinement again with the focal length free, from the matches' fit ``free``.
+
+    ``(refinement, score, judged render, focal signal)`` when its pose passes the roll-back test
+    against the geometric stage's score ``geo`` and the intrinsics check; None otherwise (the
+    state's focal length restored).
+    """
+    f0 = state.focal_scale
+    state.focal_scale = f0 * free.focal_scale
+    rcfg = dataclasses.replace(cfg.refine, focal=True)
+    with state.serving("refine", reduced=cfg.refine_reduced):
+        ref = refine_photometric(state, free.w2c, rcfg, base_scale=scale, scene_depth=depth)
+    last = None if _on_reduced(state, "refine") else ref.observation
+    with state.serving("verify"):
+        sc, judged = observe_and_score(state, ref.w2c, scale, cfg.verdict.inlier_px, last)
+    signal, _ = _focal_signal(state, cfg, judged)
+    keep = _passes_rollback(sc, geo, cfg) and not focal_disagrees(signal, cfg.verdict)
+    state.record(state.new_record(Stage.VERIFY, ref.w2c, matches=sc.matches, inliers=sc.inliers,
+                                  accepted=keep, scale=scale))
+    if not keep:
+        logger.info("refinement with the focal length free not kept (%d agreeing matches)",
+                    sc.inliers)
+        state.focal_scale = f0
+        return None
+    logger.info("focal length estimated at %.4f x the given one (the verdict's check asked)",
+                state.focal_scale)
+    return ref, sc, judged, signal
 
 
 def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float,
@@ -470,8 +522,7 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
         last = None if _on_reduced(state, "refine") else ref.observation
         with state.serving("verify"):
             sc, judged = observe_and_score(state, ref.w2c, scale, cfg.verdict.inlier_px, last)
-    keep = (sc.inliers >= cfg.rollback_inliers * geo.inliers
-            and sc.median_px <= geo.median_px + cfg.rollback_median_px)
+    keep = _passes_rollback(sc, geo, cfg)
     state.record(state.new_record(Stage.VERIFY, ref.w2c, matches=sc.matches, inliers=sc.inliers,
                                   accepted=keep, scale=scale))
     if keep:
@@ -483,6 +534,16 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
         state.focal_scale = 1.0  # the geometric pose's (the recorded focal length)
         w2c = best.w2c
         score, judged = _full_model_score(state, best, scale, cfg.verdict.inlier_px)
+    focal, free = _focal_signal(state, cfg, judged)
+    retry = None  # what became of the intrinsics check's request for another focal length
+    if free is not None and not cfg.refine.focal and focal_disagrees(focal, cfg.verdict):
+        retry = "off"
+        if cfg.focal_retry and _can_free_focal(cfg.refine):
+            retried = _retry_focal_free(state, cfg, scale, free, depth, geo)
+            retry = "not kept" if retried is None else "kept"
+            if retried is not None:
+                ref, score, judged, focal = retried
+                w2c, keep = ref.w2c, True
     extra = {
         "start_render_empty": search.empty_start,
         "hypotheses": len(search.hyps),
@@ -492,7 +553,6 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
         "refine_iterations": ref.iterations,
         "refine_loss": [ref.loss_start, ref.loss_end],
     }
-    focal = _focal_signal(state, cfg, judged)
     if focal is not None:
         extra["focal"] = focal
     # Whether the pose stopped moving is said by the last stage that moved it: the refinement, or
@@ -507,7 +567,9 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
     details = {"hypotheses": search.summaries(), "rival": search.rival, "rolled_back": not keep,
                "refine_iterations": ref.iterations, "refine_loss": [ref.loss_start, ref.loss_end],
                "start_render_empty": search.empty_start,
-               "verified_on": "geometric" if reuse else "final"}
-    if cfg.refine.focal:  # the focal lengths' scale the pose holds with (1: as given)
+               "verified_on": "geometric" if reuse and retry != "kept" else "final"}
+    if cfg.refine.focal or retry == "kept":  # the focal lengths' scale the pose holds with
         details["focal_scale"] = state.focal_scale
+    if retry is not None:
+        details["focal_retry"] = retry
     return MethodOutcome(np.asarray(w2c, np.float64), verdict, score, state.steps, stop, details)

@@ -613,26 +613,42 @@ def demo200(tmp_path_factory):
     return scene, scene.load_model(), scene.load_query(), cams
 
 
-def test_a_pose_found_with_a_wrong_focal_length_is_uncertain_and_says_which(demo200, xfeat):
-    """Given 8 % too short a focal length, the distance makes up for it: not ``ok``."""
+def test_a_pose_found_with_a_wrong_focal_length_is_uncertain_or_found_with_it_free(demo200, xfeat):
+    """Given 8 % too short a focal length, the distance makes up for it: not ``ok``.
+
+    With the check's retry (the default) the focal length is estimated and the pose is right.
+    """
+    import dataclasses
+
+    from icomma_plugin.localization.robust import RobustConfig
     from icomma_plugin.localize import localize
 
     scene, model, q, cams = demo200
     i = scene.intrinsics
     init = perturb_pose(scene.gt_c2w, 10.0, 0.05, 7, pivot="camera")
+    given = Intrinsics(i.width, i.height, i.fx * 0.92, i.fy * 0.92, i.cx, i.cy)
     res = {}
-    for s in (1.0, 0.92):
-        given = Intrinsics(i.width, i.height, i.fx * s, i.fy * s, i.cx, i.cy)
-        res[s] = localize(model, Query(q, given), matcher=xfeat, init_c2w=init,
-                          gt_c2w=scene.gt_c2w, cameras=cams, cache_dir=False)
-    right, wrong = res[1.0], res[0.92]
+    for name, intr, retry in (("right", i, True), ("held", given, False), ("retried", given, True)):
+        method = dataclasses.replace(RobustConfig(), focal_retry=retry)
+        res[name] = localize(model, Query(q, intr), matcher=xfeat, init_c2w=init,
+                             gt_c2w=scene.gt_c2w, cameras=cams, cache_dir=False, config=method)
+    right, held, retried = res["right"], res["held"], res["retried"]
     assert right.verdict.status == "ok", right.verdict.reason
     assert right.verdict.signals["focal"]["scale"] == pytest.approx(1.0, abs=0.01)
+    assert "focal_retry" not in right.details and "focal_scale" not in right.details
     # the distance took up the focal length: a wrong pose by the benchmark's measure
-    assert wrong.trans_err > 3 * right.trans_err + 0.05 * scene.scene_scale
-    assert wrong.verdict.status == "uncertain", wrong.verdict.reason
-    assert "focal length" in wrong.verdict.reason
-    assert wrong.verdict.signals["focal"]["scale"] == pytest.approx(1 / 0.92, abs=0.03)
+    assert held.trans_err > 3 * right.trans_err + 0.05 * scene.scene_scale
+    assert held.verdict.status == "uncertain", held.verdict.reason
+    assert "focal length" in held.verdict.reason
+    assert held.verdict.signals["focal"]["scale"] == pytest.approx(1 / 0.92, abs=0.03)
+    assert held.details["focal_retry"] == "off"
+    # the retry estimates the focal length and finds the pose
+    assert retried.details["focal_retry"] == "kept", retried.verdict.reason
+    assert retried.details["focal_scale"] == pytest.approx(1 / 0.92, abs=0.01)
+    assert retried.intrinsics.fx == pytest.approx(i.fx, rel=0.01)
+    assert retried.rot_err_deg < 0.2
+    assert retried.trans_err < 2 * right.trans_err + 0.005 * scene.scene_scale
+    assert retried.verdict.status == "ok", retried.verdict.reason
 
 
 def test_empty_start_is_reported_with_what_to_do(demo, xfeat):
