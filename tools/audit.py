@@ -104,10 +104,18 @@ def _photos_to_audit(cfg: DictConfig, mf, white: bool):
 
 
 def _localizer(cfg: DictConfig, mf, white: bool, views, backend: str):
-    """The Localizer the audit runs: the method's own (global) verdict, never a calibration."""
+    """The Localizer the audit runs: the method's own (global) verdict, never a calibration.
+
+    The photos are localized with their recorded intrinsics as given (``focal_retry`` off): the
+    audit judges the records, and its focal check compares losses at focal lengths it sets.
+    """
+    import dataclasses
+
     from icomma_plugin.localization.localizer import Localizer
 
     method = common.build_optimizer(cfg.optimizer)
+    if getattr(method, "focal_retry", False):
+        method = dataclasses.replace(method, focal_retry=False)
     matcher, _ = common.build_matcher(cfg.get("matcher"))
     problem = method.needs(matcher)
     if problem:

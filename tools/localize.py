@@ -402,10 +402,12 @@ def summary(res: Dict[str, Any], output_dir: Path) -> str:
             ),
             f"  success (< 0.5 deg, < 1% scale): {res['success']}",
         ]
-    focal = (res.get("details") or {}).get("focal_scale")
+    details = res.get("details") or {}
+    focal = details.get("focal_scale")
     if focal is not None:
-        lines.append(f"  focal length {focal:.4f} x the given one (estimated; "
-                     "optimizer.refine.focal)")
+        why = ("the verdict found the given one off" if details.get("focal_retry") == "kept"
+               else "optimizer.refine.focal")
+        lines.append(f"  focal length {focal:.4f} x the given one (estimated; {why})")
     c = np.asarray(res["c2w"])
     lines.append("  estimated camera-to-world (OpenCV axes):")
     lines += ["    " + " ".join(f"{x:9.5f}" for x in row) for row in c[:3]]
