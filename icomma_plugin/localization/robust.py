@@ -62,9 +62,10 @@ class RobustConfig:
         free (as ``refine.focal``, from the matches' fit) and keep that pose when it passes the
         roll-back test and the check; ``details["focal_scale"]`` then says the estimate and the
         result's intrinsics are the estimated ones. It costs time only on such photos (none of
-        the real captures' right ones): fox's held-out photos given a focal length 4-8 % off,
-        0.43-0.92 deg -> about 0.03-0.07 (docs/LOCALIZATION.md). Needs the refinement's
-        defaults (``RefineConfig.focal``'s requirements); otherwise not tried.
+        the real captures' right ones): fox's held-out photos given a focal length 8 % off,
+        0.71-0.92 deg -> 0.03-0.08 (median); of those 4 % off, the 6 of 14 the check asks for
+        (docs/LOCALIZATION.md). Needs the refinement's defaults (``RefineConfig.focal``'s
+        requirements); otherwise not tried.
     verify_geometric: when the refinement takes no step (``refine.iterations`` 0) and the geometric
         stage converged, the verdict is decided on the geometric stage's last render-and-match
         (at most ``geometric.stop_rot_deg`` from the returned pose, the PnP step that ended the
