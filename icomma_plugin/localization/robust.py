@@ -515,8 +515,9 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
         ref = refine_photometric(state, start, cfg.refine, base_scale=scale,
                                  scene_depth=depth)
     geo = best.score
+    # (not when the matches' focal fit moved the pose and focal length off that render's)
     reuse = (cfg.verify_geometric and ref.iterations == 0 and best.converged
-             and not _on_reduced(state, "geometric"))
+             and start is best.w2c and not _on_reduced(state, "geometric"))
     if reuse:  # the PnP step that ended the geometric stage was below its stop: judged there
         sc, judged = geo, best.observation
     else:  # the refinement's last render is judged when it is of the full model

@@ -1242,6 +1242,35 @@ def test_the_focal_fit_ends_where_the_reprojection_error_is_stationary():
     assert fit.focal_scale == pytest.approx(0.96, abs=0.005)
 
 
+def test_a_pose_moved_by_the_focal_fit_is_judged_on_its_own_render(demo200, xfeat):
+    """``verify_geometric`` with no refinement step: the geometric render is reused if its pose.
+
+    Not when the matches' focal fit moved the pose and the focal length off that render's.
+    """
+    from icomma_plugin.localization.refine import RefineConfig
+    from icomma_plugin.localization.robust import RobustConfig
+    from icomma_plugin.localize import localize
+
+    scene, model, q, cams = demo200
+    i = scene.intrinsics
+    init = perturb_pose(scene.gt_c2w, 10.0, 0.05, 7, pivot="camera")
+    wrong = Intrinsics(i.width, i.height, i.fx * 0.92, i.fy * 0.92, i.cx, i.cy)
+    res = {}
+    for name, intr in (("right", i), ("wrong", wrong)):
+        cfg = RobustConfig(verify_geometric=True, focal_retry=False,
+                           refine=RefineConfig(focal=True, iterations=(0,)))
+        res[name] = localize(model, Query(q, intr), matcher=xfeat, init_c2w=init,
+                             gt_c2w=scene.gt_c2w, cameras=cams, cache_dir=False, config=cfg)
+    right, moved = res["right"], res["wrong"]
+    assert right.details["refine_iterations"] == 0 and right.details["focal_scale"] == 1.0
+    assert right.details["verified_on"] == "geometric"  # the fit was not taken: reused
+    assert moved.details["focal_scale"] > 1.03  # the matches' fit was taken
+    assert moved.details["verified_on"] == "final", moved.details
+    # judged at the fitted focal length: its matches ask for the rest of the way to the truth
+    found = moved.verdict.signals["focal"]["scale"] * moved.details["focal_scale"]
+    assert found == pytest.approx(1 / 0.92, abs=0.02)
+
+
 def test_a_localization_with_the_focal_length_free_finds_it(demo, xfeat):
     """The demo query given 4 % too short a focal length, localized from 10 deg off."""
     from icomma_plugin.localization.refine import RefineConfig
@@ -1256,7 +1285,8 @@ def test_a_localization_with_the_focal_length_free_finds_it(demo, xfeat):
     for focal in (False, True):
         res[focal] = localize(model, Query(q, wrong), matcher=xfeat, init_c2w=init,
                               gt_c2w=scene.gt_c2w, cameras=cams, cache_dir=False,
-                              config=RobustConfig(refine=RefineConfig(focal=focal)))
+                              config=RobustConfig(refine=RefineConfig(focal=focal),
+                                                  focal_retry=False))
     free = res[True]
     assert free.details["focal_scale"] == pytest.approx(1 / 0.96, abs=0.01)
     assert free.intrinsics.fx == pytest.approx(i.fx, rel=0.01)
