@@ -163,7 +163,9 @@ class VerdictConfig:
         holds with AND reprojects them with a root mean square error at most ``ok_focal_gain``
         times the pose's alone, the pose is ``uncertain``: the photo's intrinsics are likely off,
         and a wrong focal length is made up for by a wrong distance (4 % -> 0.05 scene radii on
-        fox).
+        fox). The default method first tries again with the focal length free
+        (``RobustConfig.focal_retry``). On object-centred captures the matches seldom tell a
+        focal length from a distance, and the check seldom asks (docs/LOCALIZATION.md).
         None: not checked.
     """
 
