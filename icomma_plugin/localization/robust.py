@@ -557,6 +557,8 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
     }
     if focal is not None:
         extra["focal"] = focal
+    if retry is not None:
+        extra["focal_retry"] = retry
     # Whether the pose stopped moving is said by the last stage that moved it: the refinement, or
     # the geometric stage when the refinement took no step or was rolled back.
     converged = (ref.converged if ref.iterations > 0 else best.converged) or not keep

@@ -247,11 +247,13 @@ def decide(score: Optional[PoseScore], cfg: VerdictConfig, converged: Optional[b
         problems.append("the optimisation had not stopped moving")
     if focal_disagrees(signals.get("focal"), cfg):
         f = signals["focal"]
+        todo = ("a localization with the focal length free did not pass either: check them"
+                if signals.get("focal_retry") == "not kept" else
+                "check them, or localize with the focal length free (refine.focal=true)")
         problems.append(
             f"the matches fit a focal length {f['scale']:.3f}x the one used better (rms "
             f"{f['rms_px']:.2f} against {f['rms_px_given']:.2f} px): the photo's intrinsics "
-            "look off, and the distance with them; check them, or localize with the focal length "
-            "free (refine.focal=true)")
+            f"look off, and the distance with them; {todo}")
     rival = signals.get("rival")
     if signals.get("ambiguous") and rival:
         problems.append(f"a rival pose {rival['rot_deg_apart']:.0f} deg away agrees almost as well "

@@ -582,6 +582,14 @@ def test_the_intrinsics_check_makes_a_pose_uncertain_only_when_another_focal_exp
     assert off.status == "ok"
 
 
+def test_the_intrinsics_check_says_when_the_retry_did_not_pass():
+    focal = {"scale": 1.07, "rms_px": 0.8, "rms_px_given": 1.1}
+    v = decide(_good_score(), VerdictConfig(), converged=True,
+               extra={"focal": focal, "focal_retry": "not kept"})
+    assert v.status == "uncertain" and v.signals["focal_retry"] == "not kept"
+    assert "did not pass either" in v.reason and "refine.focal" not in v.reason
+
+
 def test_the_intrinsics_check_is_kept_by_a_calibration_and_redecided_from_signals():
     """A recorded row's verdict decided again (calibration) still sees the focal signal."""
     from icomma_plugin.localization.calibration import redecide
