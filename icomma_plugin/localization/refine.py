@@ -205,12 +205,16 @@ class RefineConfig:
                      "stop_focal"):
             check_real(getattr(self, name), f"RefineConfig.{name}", 0.0)
         check_bool(self.focal, "RefineConfig.focal")
-        if self.focal and (self.hessian != "finite_difference" or self.hessian_scale != 1.0
-                           or self.robust != "none"):
+        if self.focal and not self.can_estimate_focal:
             raise ValueError("RefineConfig.focal needs hessian='finite_difference', "
                              f"hessian_scale=1 and robust='none', got {self.hessian!r}, "
                              f"{self.hessian_scale} and {self.robust!r}")
 
+    @property
+    def can_estimate_focal(self) -> bool:
+        """Whether the focal length can be a 7th parameter here (``focal``'s requirements)."""
+        return (self.hessian == "finite_difference" and self.hessian_scale == 1.0
+                and self.robust == "none")
 
     @property
     def fitted_gain_range(self) -> Optional[Tuple[float, float]]:

@@ -64,8 +64,8 @@ class RobustConfig:
         result's intrinsics are the estimated ones. It costs time only on such photos (none of
         the real captures' right ones): fox's held-out photos given a focal length 8 % off,
         0.71-0.92 deg -> 0.03-0.08 (median); of those 4 % off, the 6 of 14 the check asks for
-        (docs/LOCALIZATION.md). Needs the refinement's defaults (``RefineConfig.focal``'s
-        requirements); otherwise not tried.
+        (docs/LOCALIZATION.md). Tried only where ``refine.can_estimate_focal`` (the refinement's
+        defaults).
     verify_geometric: when the refinement takes no step (``refine.iterations`` 0) and the geometric
         stage converged, the verdict is decided on the geometric stage's last render-and-match
         (at most ``geometric.stop_rot_deg`` from the returned pose, the PnP step that ended the
@@ -461,12 +461,6 @@ def _focal_signal(state: LocalizationState, cfg: RobustConfig, obs: Optional[Obs
             "rms_px_given": round(fixed.rms_px, 4)}, free
 
 
-def _can_free_focal(refine: RefineConfig) -> bool:
-    """Whether ``refine`` can take the focal length as a 7th parameter (its requirements)."""
-    return (refine.hessian == "finite_difference" and refine.hessian_scale == 1.0
-            and refine.robust == "none")
-
-
 def _passes_rollback(sc: PoseScore, geo: PoseScore, cfg: RobustConfig) -> bool:
     """Whether a refined pose's score keeps the geometric one's agreement (else rolled back)."""
     return (sc.inliers >= cfg.rollback_inliers * geo.inliers
@@ -540,7 +534,7 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
     retry = None  # what became of the intrinsics check's request for another focal length
     if free is not None and not cfg.refine.focal and focal_disagrees(focal, cfg.verdict):
         retry = "off"
-        if cfg.focal_retry and _can_free_focal(cfg.refine):
+        if cfg.focal_retry and cfg.refine.can_estimate_focal:
             retried = _retry_focal_free(state, cfg, scale, free, depth, geo)
             retry = "not kept" if retried is None else "kept"
             if retried is not None:
