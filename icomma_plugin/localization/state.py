@@ -72,7 +72,9 @@ class Observation:
 
     w2c: the pose rendered. scale: working scale of the render (its intrinsics are
     ``state.intrinsics_at(scale)``). color/depth/alpha: the render. matches: render (kpts0) vs
-    query (kpts1) at that scale, or None if not matched.
+    query (kpts1) at that scale, or None if not matched. subpixel: the render's keypoints
+    refined against the query (``geometric.render_correspondences``), by Newton iterations, so
+    that the PnP and the verdict's focal refit of one render refine them once.
     """
 
     w2c: np.ndarray
@@ -81,6 +83,7 @@ class Observation:
     depth: torch.Tensor
     alpha: torch.Tensor
     matches: Any = None
+    subpixel: Dict[int, torch.Tensor] = field(default_factory=dict)
 
 
 @dataclass

@@ -299,6 +299,7 @@ def observe_and_score(state: LocalizationState, w2c: np.ndarray, scale: float, i
         if obs is None or obs.scale != scale:
             obs = state.observe(w2c, scale, match=False)
         obs.matches = state.match(obs.color, scale)
+        obs.subpixel.clear()  # refined for other matches
         return score_observation(obs, state, inlier_px), obs
 
 

@@ -648,7 +648,11 @@ def test_a_pose_found_with_a_wrong_focal_length_is_uncertain_or_found_with_it_fr
     assert held.trans_err > 3 * right.trans_err + 0.05 * scene.scene_scale
     assert held.verdict.status == "uncertain", held.verdict.reason
     assert "focal length" in held.verdict.reason
-    assert held.verdict.signals["focal"]["scale"] == pytest.approx(1 / 0.92, abs=0.03)
+    # the matches' refit finds the focal length (sub-pixel render keypoints: whole pixels left
+    # a quarter of the error, 1.062) and explains them far better with it
+    focal = held.verdict.signals["focal"]
+    assert focal["scale"] == pytest.approx(1 / 0.92, abs=0.01)
+    assert focal["rms_px"] < 0.5 * focal["rms_px_given"]
     assert held.details["focal_retry"] == "off"
     # the retry estimates the focal length and finds the pose
     assert retried.details["focal_retry"] == "kept", retried.verdict.reason
