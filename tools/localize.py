@@ -323,7 +323,8 @@ def _run_sequence(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, An
     return {"kind": "sequence", "done_now": summ.done_now, "skipped": summ.skipped,
             "frames_per_second": summ.frames_per_second, "seconds": summ.seconds,
             "relocalized": summ.relocalized, "fast_ok": summ.fast_ok, "files": files,
-            "rows": rows}
+            "focal_scale": summ.focal_scale, "focal_adoptions": summ.focal_adoptions,
+            "redone": summ.redone, "rows": rows}
 
 
 def _tracking_line(s: Dict[str, Any], rows: List[Dict[str, Any]]) -> str:
@@ -336,6 +337,11 @@ def _tracking_line(s: Dict[str, Any], rows: List[Dict[str, Any]]) -> str:
     if matched or fell_back:
         line += (f"; patch search matched {matched} renders, left {fell_back} to the "
                  "descriptors")
+    scale = s.get("focal_scale") or 1.0
+    if scale != 1.0:
+        line += (f"\n  focal length {scale:.4f} x the given one, estimated from the frames "
+                 f"(adopted {s.get('focal_adoptions', 0)} times this run; {s.get('redone', 0)} "
+                 "frames localized again with it)")
     return line
 
 

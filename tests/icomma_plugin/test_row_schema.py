@@ -75,6 +75,23 @@ def test_an_estimated_focal_length_is_what_result_json_records(result):
     assert doc["intrinsics"]["fx"] == pytest.approx(i.fx * 1.03)
 
 
+def test_a_batch_row_holds_the_estimated_focal_length_at_the_photos_size(result):
+    """A batch row's intrinsics are at the photo file's size, with the focal length estimated.
+
+    Exports (COLMAP, nerfstudio) read them: the pose holds with the estimated focal length.
+    """
+    import dataclasses
+
+    scene, q, res = result
+    photo = q.intrinsics.scaled(2.0)  # the file was resized to the query's size
+    task = PhotoTask(0, "query", "query.png", intrinsics=photo)
+    assert result_row(task, res, 2.0, 1.0)["intrinsics"] == photo.to_json()
+    est = dataclasses.replace(res, details={**res.details, "focal_scale": 1.03})
+    row = result_row(task, est, 2.0, 1.0)
+    assert row["intrinsics"] == photo.with_focal_scale(1.03).to_json()
+    assert row["intrinsics"]["width"] == photo.width
+
+
 def test_intrinsics_have_one_encoding():
     intr = Intrinsics(64, 48, 50.0, 51.0)
     j = intr.to_json()

@@ -224,6 +224,7 @@ def path_scene(tmp_path_factory):
         "mp4": mp4,
         "scale": s.scene_scale,
         "gts": gts,
+        "fx": s.intrinsics.fx,
     }
 
 
@@ -421,3 +422,127 @@ def test_a_video_of_a_portrait_camera_is_tracked(portrait_scene, tmp_path):
         intr = r["intrinsics"]
         assert (intr["width"], intr["height"]) == PORTRAIT
         assert intr["fx"] == pytest.approx(ps["fx"]) and intr["fy"] == pytest.approx(ps["fx"])
+
+
+# ----------------------------------------------------------- the focal length from the frames
+
+
+def test_pooled_focal_scale_needs_frames_that_agree():
+    from icomma_plugin.app.tracking import pooled_focal_scale
+
+    rng = np.random.default_rng(0)
+    right = 1.0 + 0.006 * rng.standard_normal(10)  # the lego path's scatter, given the right one
+    assert pooled_focal_scale(right) is None
+    off = 1.04 + 0.006 * rng.standard_normal(10)
+    assert pooled_focal_scale(off) == pytest.approx(float(np.median(off)))
+    # relative to the focal length the sequence holds now
+    assert pooled_focal_scale(off, current=1.04) is None
+    assert pooled_focal_scale(off, current=1.02) == pytest.approx(float(np.median(off)))
+    # a median off but frames on both sides: not adopted
+    split = np.array([1.05, 1.05, 1.05, 1.05, 1.05, 1.05, 0.97, 0.97, 0.97, 0.97])
+    assert pooled_focal_scale(split, agree=0.8) is None
+    assert pooled_focal_scale(split, agree=0.6) == pytest.approx(1.05)
+    # within min_change: not adopted; frames without the signal are left out
+    assert pooled_focal_scale([1.008] * 10, min_change=0.01) is None
+    assert pooled_focal_scale([None, float("nan"), 1.03, 1.03, 1.03]) == pytest.approx(1.03)
+    assert pooled_focal_scale([None, None]) is None
+
+
+def test_a_frames_focal_scale_is_of_the_given_focal_length():
+    from icomma_plugin.app.tracking import frame_focal_scale
+
+    row = {"status": "ok", "c2w": np.eye(4).tolist(), "signals": {"focal": {"scale": 1.01}},
+           "details": {"focal_scale": 1.05}, "sequence_focal_scale": 0.98}
+    assert frame_focal_scale(row) == pytest.approx(0.98 * 1.05 * 1.01)
+    assert frame_focal_scale({**row, "details": {}, "sequence_focal_scale": None}) == \
+        pytest.approx(1.01)
+    assert frame_focal_scale({**row, "status": "failed"}) is None
+    assert frame_focal_scale({**row, "signals": {"focal": None}}) is None
+
+
+class _LensWorker(_FakeWorker):
+    """Every frame `ok`; its matches prefer the lens's focal length (``f_true``) to the query's."""
+
+    f_true = 8.8
+
+    def result(self, query, init_c2w, fast):
+        res = super().result(query, init_c2w, fast)
+        res.verdict.signals["focal"] = {"scale": self.f_true / query.intrinsics.fx,
+                                        "rms_px": 0.5, "rms_px_given": 0.6}
+        self.calls[-1] += (round(query.intrinsics.fx, 6),)
+        return res
+
+
+def test_an_adopted_focal_length_relocalizes_the_window_and_survives_a_resume(tmp_path):
+    from icomma_plugin.camera import Intrinsics
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    truth = {}
+    for i in range(6):
+        Image.new("RGB", (8, 8)).save(folder / f"g{i}.png")
+        truth[f"g{i}.png"] = np.eye(4)
+    cfg = TrackingConfig(focal_window=3)
+    w = _LensWorker(truth)
+    ledger = PosesLedger(tmp_path / "out", {"kind": "sequence"}, 6)
+    summ = track(w, FrameSource.open(str(folder), limit=4), ledger,
+                 lambda s: Intrinsics(8, 8, 8.0, 8.0), init_c2w=np.eye(4), cfg=cfg)
+    # three frames at the given 8.0 agree on 8.8: adopted, and those three localized again
+    assert [(c[0], c[3]) for c in w.calls] == [
+        ("g0.png", 8.0), ("g1.png", 8.0), ("g2.png", 8.0),
+        ("g0.png", 8.8), ("g1.png", 8.8), ("g2.png", 8.8), ("g3.png", 8.8)]
+    assert summ.focal_scale == pytest.approx(1.1) and summ.focal_adoptions == 1
+    assert summ.redone == 3 and summ.done_now == 4 and summ.fast_ok == 4
+    rows = ledger.all_rows()
+    assert [r["sequence_focal_scale"] for r in rows] == pytest.approx([1.1] * 4)
+    assert [r["intrinsics"]["fx"] for r in rows] == pytest.approx([8.8] * 4)
+    # a resumed run goes on with the focal length adopted
+    w2 = _LensWorker(truth)
+    summ2 = track(w2, FrameSource.open(str(folder)),
+                  PosesLedger(tmp_path / "out", {"kind": "sequence"}, 6),
+                  lambda s: Intrinsics(8, 8, 8.0, 8.0), init_c2w=np.eye(4), cfg=cfg)
+    assert [(c[0], c[3]) for c in w2.calls] == [("g4.png", 8.8), ("g5.png", 8.8)]
+    assert summ2.focal_scale == pytest.approx(1.1) and summ2.focal_adoptions == 0
+    # off: the given focal length throughout
+    w3 = _LensWorker(truth)
+    track(w3, FrameSource.open(str(folder)), PosesLedger(tmp_path / "out3", {"kind": "sequence"},
+          6), lambda s: Intrinsics(8, 8, 8.0, 8.0), init_c2w=np.eye(4),
+          cfg=TrackingConfig(focal_window=3, focal_from_frames=False))
+    assert {c[3] for c in w3.calls} == {8.0} and len(w3.calls) == 6
+
+
+def test_tracking_config_names_bad_focal_settings():
+    with pytest.raises(ValueError, match="tracking.focal_window"):
+        TrackingConfig(focal_window=1)
+    with pytest.raises(ValueError, match="tracking.focal_agree"):
+        TrackingConfig(focal_agree=0.3)
+    with pytest.raises(ValueError, match="tracking.focal_settle"):
+        TrackingConfig(focal_settle=0.05, focal_min_change=0.01)
+
+
+def test_a_sequence_given_a_wrong_focal_length_finds_it_from_its_frames(path_scene, tmp_path):
+    """Given 8 % too short a focal length, the frames agree on it and the sequence adopts it.
+
+    One frame's check alone does not ask (the tracking mode's frames are judged on their geometric
+    render), so without the estimate every frame is `ok` with the distance off; with it the
+    frames are localized again with the focal length found.
+    """
+    fx = path_scene["fx"] * 0.92
+    docs = {}
+    for on in (False, True):
+        out = tmp_path / f"out_{on}"
+        docs[on] = localize_tool().run(compose(_args(
+            path_scene, out, f"data.sequence={path_scene['frames']}", "output.video=false",
+            "output.trajectory_plot=false", "data.intrinsics.camera=null",
+            f"data.intrinsics.fx={fx}", f"data.intrinsics.fy={fx}",
+            f"tracking.focal_from_frames={str(on).lower()}", "tracking.focal_window=3")), out)
+    held, found = docs[False]["photos"], docs[True]["photos"]
+    assert all(r["sequence_focal_scale"] == 1.0 for r in held)
+    assert docs[True]["summary"]["focal_adoptions"] >= 1
+    for r in found:
+        assert r["status"] != "failed", r["reason"]
+        assert r["sequence_focal_scale"] == pytest.approx(1 / 0.92, rel=0.015), r
+        assert r["intrinsics"]["fx"] == pytest.approx(path_scene["fx"], rel=0.015), r
+    trans = [np.median([r["trans_err_rel"] for r in rows]) for rows in (held, found)]
+    assert trans[1] < 0.25 * trans[0], trans
+    assert "estimated from the frames" in localize_tool().many_summary(docs[True])

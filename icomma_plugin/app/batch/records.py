@@ -51,12 +51,20 @@ def failure_row(
 def result_row(task: PhotoTask, result: LocalizationResult, scene_scale: Optional[float],
                seconds: float, folder: Optional[str] = None, thumb: Optional[str] = None
                ) -> Dict[str, Any]:
-    """The poses.json row of one localized photo (``seconds``: all its work, pictures too)."""
+    """The poses.json row of one localized photo (``seconds``: all its work, pictures too).
+
+    Its ``intrinsics`` are those the pose holds with, at the photo file's size: the task's, with
+    the focal length the method estimated when it did (``details["focal_scale"]``).
+    """
     intr = result.intrinsics
+    held = task.intrinsics
+    focal = result.details.get("focal_scale")
+    if held is not None and focal is not None:
+        held = held.with_focal_scale(float(focal))
     return result.row(
         scene_scale, index=task.index, image=task.path, seconds=seconds,
         localize_seconds=result.seconds,
-        intrinsics=None if task.intrinsics is None else task.intrinsics.to_json(),
+        intrinsics=None if held is None else held.to_json(),
         work_size=None if intr is None else [intr.width, intr.height], folder=folder,
         thumb=thumb, worker=os.getpid(),
     )
