@@ -60,12 +60,13 @@ class RobustConfig:
     focal_retry: when the verdict's intrinsics check (``verdict.ok_focal_scale``) finds the final
         render's matches asking for another focal length, refine once more with the focal length
         free (as ``refine.focal``, from the matches' fit) and keep that pose when it passes the
-        roll-back test and the check; ``details["focal_scale"]`` then says the estimate and the
-        result's intrinsics are the estimated ones. It costs time only on such photos (none of
-        the real captures' right ones): fox's held-out photos given a focal length 8 % off,
-        0.71-0.92 deg -> 0.03-0.08 (median); of those 4 % off, the 6 of 14 the check asks for
-        (docs/LOCALIZATION.md). Tried only where ``refine.can_estimate_focal`` (the refinement's
-        defaults).
+        roll-back test and the check, and its render compares with the photo better than the
+        first pose's (``details["focal_retry_loss"]``: the two photometric losses);
+        ``details["focal_scale"]`` then says the estimate and the result's intrinsics are the
+        estimated ones. It costs time only on such photos (none of the real captures' right
+        ones): fox's held-out photos given a focal length 4 or 8 % off, 0.15-0.92 deg ->
+        0.02-0.04 (median; docs/LOCALIZATION.md). Tried only where
+        ``refine.can_estimate_focal`` (the refinement's defaults).
     verify_geometric: when the refinement takes no step (``refine.iterations`` 0) and the geometric
         stage converged, the verdict is decided on the geometric stage's last render-and-match
         (at most ``geometric.stop_rot_deg`` from the returned pose, the PnP step that ended the
@@ -112,7 +113,8 @@ class RobustConfig:
         (docs/SPEED.md).
 
     Its results' ``details``: ``hypotheses`` (one summary per start tried), ``rolled_back``,
-    ``refine_iterations``, ``refine_loss`` ([before, after]) and ``start_render_empty``.
+    ``refine_iterations``, ``refine_loss`` ([before, after]) and ``start_render_empty``; with
+    the intrinsics check's retry ``focal_retry``, ``focal_retry_loss`` and ``focal_scale``.
     """
 
     work_side: Optional[int] = None
@@ -468,12 +470,18 @@ def _passes_rollback(sc: PoseScore, geo: PoseScore, cfg: RobustConfig) -> bool:
 
 
 def _retry_focal_free(state: LocalizationState, cfg: RobustConfig, scale: float, free: FocalFit,
-                      depth: float, geo: PoseScore):
+                      depth: float, geo: PoseScore, loss: Optional[float]):
     """The refinement again with the focal length free, from the matches' fit ``free``.
 
-    ``(refinement, score, judged render, focal signal)`` when its pose passes the roll-back test
-    against the geometric stage's score ``geo`` and the intrinsics check; None otherwise (the
-    state's focal length restored).
+    ``((refinement, score, judged render, focal signal), its loss)``; the first is None (and
+    the state's focal length restored) unless its pose passes the roll-back test against the
+    geometric stage's score ``geo`` and the intrinsics check, and its render compares with the
+    photo better than the first pose's did (``loss``, the photometric loss there; None: not
+    asked). The last test
+    is what tells a focal length that is off from a refit that trades it against the distance
+    on an object in the middle of the frame: on bird's training photos, whose model was fitted
+    at their recorded focal lengths, the matches asked for 1.04x and the pose moved 0.05 -> 0.56
+    deg off its record with the loss 1 % higher.
     """
     f0 = state.focal_scale
     state.focal_scale = f0 * free.focal_scale
@@ -484,17 +492,18 @@ def _retry_focal_free(state: LocalizationState, cfg: RobustConfig, scale: float,
     with state.serving("verify"):
         sc, judged = observe_and_score(state, ref.w2c, scale, cfg.verdict.inlier_px, last)
     signal, _ = _focal_signal(state, cfg, judged)
-    keep = _passes_rollback(sc, geo, cfg) and not focal_disagrees(signal, cfg.verdict)
+    better = loss is None or (ref.loss_end is not None and ref.loss_end < loss)
+    keep = better and _passes_rollback(sc, geo, cfg) and not focal_disagrees(signal, cfg.verdict)
     state.record(state.new_record(Stage.VERIFY, ref.w2c, matches=sc.matches, inliers=sc.inliers,
                                   accepted=keep, scale=scale))
     if not keep:
-        logger.info("refinement with the focal length free not kept (%d agreeing matches)",
-                    sc.inliers)
+        logger.info("refinement with the focal length free not kept (%d agreeing matches, "
+                    "loss %s against %s)", sc.inliers, ref.loss_end, loss)
         state.focal_scale = f0
-        return None
+        return None, ref.loss_end
     logger.info("focal length estimated at %.4f x the given one (the verdict's check asked)",
                 state.focal_scale)
-    return ref, sc, judged, signal
+    return (ref, sc, judged, signal), ref.loss_end
 
 
 def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float,
@@ -532,10 +541,14 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
         score, judged = _full_model_score(state, best, scale, cfg.verdict.inlier_px)
     focal, free = _focal_signal(state, cfg, judged)
     retry = None  # what became of the intrinsics check's request for another focal length
+    retry_loss = None  # [the first pose's photometric loss, the retry's]
     if free is not None and not cfg.refine.focal and focal_disagrees(focal, cfg.verdict):
         retry = "off"
         if cfg.focal_retry and cfg.refine.can_estimate_focal:
-            retried = _retry_focal_free(state, cfg, scale, free, depth, geo)
+            first_loss = ref.loss_end if keep else ref.loss_start
+            retried, retried_loss = _retry_focal_free(state, cfg, scale, free, depth, geo,
+                                                      first_loss)
+            retry_loss = [first_loss, retried_loss]
             retry = "not kept" if retried is None else "kept"
             if retried is not None:
                 ref, score, judged, focal = retried
@@ -570,4 +583,6 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
         details["focal_scale"] = state.focal_scale
     if retry is not None:
         details["focal_retry"] = retry
+    if retry_loss is not None:
+        details["focal_retry_loss"] = retry_loss
     return MethodOutcome(np.asarray(w2c, np.float64), verdict, score, state.steps, stop, details)

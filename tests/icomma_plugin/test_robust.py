@@ -656,11 +656,46 @@ def test_a_pose_found_with_a_wrong_focal_length_is_uncertain_or_found_with_it_fr
     assert held.details["focal_retry"] == "off"
     # the retry estimates the focal length and finds the pose
     assert retried.details["focal_retry"] == "kept", retried.verdict.reason
+    first_loss, retried_loss = retried.details["focal_retry_loss"]
+    assert retried_loss < first_loss  # the photo agrees better with the focal length found
     assert retried.details["focal_scale"] == pytest.approx(1 / 0.92, abs=0.01)
     assert retried.intrinsics.fx == pytest.approx(i.fx, rel=0.01)
     assert retried.rot_err_deg < 0.2
     assert retried.trans_err < 2 * right.trans_err + 0.005 * scene.scene_scale
     assert retried.verdict.status == "ok", retried.verdict.reason
+
+
+def test_a_retry_that_compares_no_better_with_the_photo_is_not_kept(demo200, xfeat,
+                                                                   monkeypatch):
+    """The retry's pose must also compare with the photo better than the first pose.
+
+    A refit that trades the focal length against the distance (bird's training photos) asks
+    for another focal length without one being better; its retry is then not kept.
+    """
+    import dataclasses
+
+    from icomma_plugin.localization import robust
+    from icomma_plugin.localization.robust import RobustConfig
+    from icomma_plugin.localize import localize
+
+    real = robust.refine_photometric
+
+    def no_better_with_the_focal_free(state, start, cfg, **kw):
+        out = real(state, start, cfg, **kw)
+        return dataclasses.replace(out, loss_end=1.0) if cfg.focal else out
+
+    monkeypatch.setattr(robust, "refine_photometric", no_better_with_the_focal_free)
+    scene, model, q, cams = demo200
+    i = scene.intrinsics
+    init = perturb_pose(scene.gt_c2w, 10.0, 0.05, 7, pivot="camera")
+    given = Intrinsics(i.width, i.height, i.fx * 0.92, i.fy * 0.92, i.cx, i.cy)
+    res = localize(model, Query(q, given), matcher=xfeat, init_c2w=init, gt_c2w=scene.gt_c2w,
+                   cameras=cams, cache_dir=False, config=RobustConfig())
+    assert res.details["focal_retry"] == "not kept"
+    first, retried = res.details["focal_retry_loss"]
+    assert retried == 1.0 and 0 < first < 1.0
+    assert "focal_scale" not in res.details
+    assert res.verdict.status == "uncertain" and "did not pass either" in res.verdict.reason
 
 
 def test_empty_start_is_reported_with_what_to_do(demo, xfeat):
