@@ -86,15 +86,17 @@ class TrackingConfig:
         look_ahead: that thread also makes each frame's query and the matcher's features of it
             (``Localizer.prepare``) while the frame before is localized (needs ``prefetch``).
         focal_from_frames: estimate the camera's focal length from the frames together: when the
-            last ``focal_window`` frames' verdicts refit their matches best with a focal length
-            whose median is more than ``focal_min_change`` (a share) off the one used, and at
-            least ``focal_agree`` of them lie on its side, the sequence takes that median and
-            localizes those frames again with it, at most ``focal_rounds`` times in a row; once
-            it has adopted one, a median more than ``focal_settle`` off suffices (a frame's
-            refit finds most of the error, not all: its pose had taken up the rest). Every later
-            frame is localized with the focal length adopted (``sequence_focal_scale`` in its
-            row, the share of the given one; the row's ``intrinsics`` are those its pose holds
-            with). Off: every frame with the given intrinsics.
+            frames' verdicts refit their matches best with a focal length whose median (over
+            the frames since the last adoption, at least ``focal_window`` and at most
+            ``focal_history`` of them) is more than ``focal_min_change`` (a share) off the one
+            used, and at least ``focal_agree`` of them lie on its side, the sequence takes that
+            median and localizes the last ``focal_window`` frames again with it, at most
+            ``focal_rounds`` times in a row; once it has adopted one, a median more than
+            ``focal_settle`` off suffices (a frame's refit finds most of the error, not all: its
+            pose had taken up the rest). Every later frame is localized with the focal length
+            adopted (``sequence_focal_scale`` in its row, the share of the given one; the row's
+            ``intrinsics`` are those its pose holds with). Off: every frame with the given
+            intrinsics.
     """
 
     velocity: bool = True
@@ -117,6 +119,7 @@ class TrackingConfig:
     focal_agree: float = 0.8
     focal_rounds: int = 3
     focal_settle: float = 0.005
+    focal_history: int = 100
 
     def __post_init__(self):
         from ..checks import check_bool, check_int, check_real
@@ -139,6 +142,7 @@ class TrackingConfig:
         check_real(self.focal_agree, "tracking.focal_agree", 0.5, 1.0)
         check_int(self.focal_rounds, "tracking.focal_rounds", 1)
         check_real(self.focal_settle, "tracking.focal_settle", 0.0, self.focal_min_change)
+        check_int(self.focal_history, "tracking.focal_history", self.focal_window)
 
     def fast_method(self, method, side: int, matcher=None):
         """The cheap config of the default ``method`` for the tracking mode (None: not used).
@@ -418,6 +422,8 @@ class _Tracker:
         scales = [r["sequence_focal_scale"] for r in done if r.get("sequence_focal_scale")]
         self.focal_scale = float(scales[-1]) if scales and cfg.focal_from_frames else 1.0
         self.window: deque = deque(maxlen=cfg.focal_window)  # of _Held
+        # the frames' focal scales since the last adoption (the next one is decided on them)
+        self.since: deque = deque(maxlen=cfg.focal_history)
         self.focal_adoptions = 0
         self.redone = 0
         self.relocalized = 0
@@ -520,14 +526,19 @@ class _Tracker:
                      ) -> List[Dict[str, Any]]:
         """Add a frame to the focal length's window; the rows of the frames localized again.
 
-        When the window's frames agree that the focal length is off (``pooled_focal_scale``),
-        the sequence adopts their median and localizes each of them again from its own pose,
-        until they agree it is right or ``focal_rounds`` adoptions were made.
+        When the frames since the last adoption (at most ``focal_history``) agree that the
+        focal length is off (``pooled_focal_scale``), the sequence adopts their median and
+        localizes the last ``focal_window`` of them again from their own poses, until those
+        agree it is right or ``focal_rounds`` adoptions were made. Deciding on every frame since
+        the last adoption, not the last few, keeps a bias that changes along the path (goldcape's
+        orbit: steps of 0.5-0.7 % between windows of 10 frames) from walking the estimate.
         """
         cfg = self.cfg
-        if not cfg.focal_from_frames or frame_focal_scale(row) is None:
+        scale = frame_focal_scale(row)
+        if not cfg.focal_from_frames or scale is None:
             return []
         self.window.append(_Held(index, name, rgb, row))
+        self.since.append(scale)
         if len(self.window) < cfg.focal_window:
             return []
         redone: Dict[str, Dict[str, Any]] = {}
@@ -535,7 +546,7 @@ class _Tracker:
             # the first adoption asks for a larger change than the ones that refine it: the
             # refit finds most of the error, the frames localized again the rest
             scale = pooled_focal_scale(
-                [frame_focal_scale(h.row) for h in self.window], self.focal_scale,
+                list(self.since), self.focal_scale,
                 cfg.focal_settle if self.focal_adoptions else cfg.focal_min_change,
                 cfg.focal_agree)
             if scale is None:
@@ -550,6 +561,10 @@ class _Tracker:
                     continue
                 h.row = self.frame(h.index, h.name, h.rgb, start=np.asarray(h.row["c2w"]))
                 redone[h.name] = h.row
+            # what the frames say now: the window's, localized with the focal length adopted
+            self.since.clear()
+            self.since.extend(x for x in map(frame_focal_scale, (h.row for h in self.window))
+                              if x is not None)
         self.redone += len(redone)
         return list(redone.values())
 

@@ -511,6 +511,36 @@ def test_an_adopted_focal_length_relocalizes_the_window_and_survives_a_resume(tm
     assert {c[3] for c in w3.calls} == {8.0} and len(w3.calls) == 6
 
 
+class _DriftingLensWorker(_LensWorker):
+    """The refits of the frames after the 10th prefer 0.6 % more: a bias along the path."""
+
+    def result(self, query, init_c2w, fast):
+        self.f_true = 8.8 * (1.006 if int(query.name[1:].split(".")[0]) >= 10 else 1.0)
+        return super().result(query, init_c2w, fast)
+
+
+@pytest.mark.parametrize("history, adoptions", [(100, 1), (3, 2)])
+def test_the_frames_since_the_last_adoption_decide_the_next(tmp_path, history, adoptions):
+    """A bias in a stretch of the path does not move the estimate.
+
+    The frames since the last adoption decide; the last few alone would follow the bias.
+    """
+    from icomma_plugin.camera import Intrinsics
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    truth = {}
+    for i in range(16):
+        Image.new("RGB", (8, 8)).save(folder / f"g{i}.png")
+        truth[f"g{i}.png"] = np.eye(4)
+    summ = track(_DriftingLensWorker(truth), FrameSource.open(str(folder)),
+                 PosesLedger(tmp_path / "out", {"kind": "sequence"}, 16),
+                 lambda s: Intrinsics(8, 8, 8.0, 8.0), init_c2w=np.eye(4),
+                 cfg=TrackingConfig(focal_window=3, focal_history=history))
+    assert summ.focal_adoptions == adoptions
+    assert summ.focal_scale == pytest.approx(1.1 if adoptions == 1 else 1.1 * 1.006)
+
+
 def test_tracking_config_names_bad_focal_settings():
     with pytest.raises(ValueError, match="tracking.focal_window"):
         TrackingConfig(focal_window=1)
@@ -518,6 +548,8 @@ def test_tracking_config_names_bad_focal_settings():
         TrackingConfig(focal_agree=0.3)
     with pytest.raises(ValueError, match="tracking.focal_settle"):
         TrackingConfig(focal_settle=0.05, focal_min_change=0.01)
+    with pytest.raises(ValueError, match="tracking.focal_history"):
+        TrackingConfig(focal_window=10, focal_history=5)
 
 
 def test_a_sequence_given_a_wrong_focal_length_finds_it_from_its_frames(path_scene, tmp_path):
