@@ -477,11 +477,10 @@ def _retry_focal_free(state: LocalizationState, cfg: RobustConfig, scale: float,
     the state's focal length restored) unless its pose passes the roll-back test against the
     geometric stage's score ``geo`` and the intrinsics check, and its render compares with the
     photo better than the first pose's did (``loss``, the photometric loss there; None: not
-    asked). The last test
-    is what tells a focal length that is off from a refit that trades it against the distance
-    on an object in the middle of the frame: on bird's training photos, whose model was fitted
-    at their recorded focal lengths, the matches asked for 1.04x and the pose moved 0.05 -> 0.56
-    deg off its record with the loss 1 % higher.
+    asked). The last test tells a focal length that is off from a refit that trades it against
+    the distance on an object in the middle of the frame: on bird's training photo 002.jpg,
+    whose model was fitted at its recorded focal length, the matches asked for 1.04x and the
+    pose moved 0.05 -> 0.56 deg off its record with the loss 1 % higher.
     """
     f0 = state.focal_scale
     state.focal_scale = f0 * free.focal_scale
