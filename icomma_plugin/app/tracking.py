@@ -9,9 +9,9 @@ the first frame it had not finished, with the same predictions.
 
 One camera films the whole sequence, so its focal length is estimated from the frames together
 (``TrackingConfig.focal_from_frames``): each frame's verdict refits its matches with the focal
-length free (``signals.focal``), too weakly to be decided on one frame; when the last
-``focal_window`` frames agree that it is off, the sequence adopts their median and those frames are
-localized again with it (``pooled_focal_scale``).
+length free (``signals.focal``), too weakly to be decided on one frame; when the frames since the
+last adoption agree that it is off, the sequence adopts their median and the last
+``focal_window`` frames are localized again with it (``pooled_focal_scale``).
 
     source = FrameSource.open("walk.mp4", every=2)
     summary = track(worker, source, ledger, intrinsics_of=..., init_c2w=None)
@@ -49,6 +49,7 @@ __all__ = [
     "TrackingConfig",
     "TrackingSummary",
     "first_frame_start",
+    "frame_focal_scale",
     "pooled_focal_scale",
     "predict_c2w",
     "prefetched",
@@ -516,10 +517,13 @@ class _Tracker:
             msg = str(e).splitlines()[0] if str(e) else type(e).__name__
             row = failure_row(task, f"bad input: {msg}", msg, time.perf_counter() - t_frame)
         row["sequence_focal_scale"] = self.focal_scale
-        self.history = [(i, c) for i, c in self.history if i != index]
+        again = bool(self.history) and self.history[-1][0] >= index
+        if again:  # a frame localized again (``settle_focal``): its new pose replaces the old
+            self.history = [h for h in self.history if h[0] != index]
         if row["status"] != "failed" and row["c2w"] is not None:
             self.history.append((index, np.asarray(row["c2w"], np.float64)))
-            self.history.sort(key=lambda h: h[0])
+            if again:
+                self.history.sort(key=lambda h: h[0])
         return row
 
     def settle_focal(self, index: int, name: str, rgb: np.ndarray, row: Dict[str, Any]
@@ -551,9 +555,9 @@ class _Tracker:
                 cfg.focal_agree)
             if scale is None:
                 break
-            logger.info("the last %d frames agree on a focal length %.4f x the given one (%.4f "
-                        "x the one used): the sequence takes it, and localizes them again",
-                        len(self.window), scale, scale / self.focal_scale)
+            logger.info("%d frames agree on a focal length %.4f x the given one (%.4f x the "
+                        "one used): the sequence takes it, and localizes the last %d again",
+                        len(self.since), scale, scale / self.focal_scale, len(self.window))
             self.focal_scale = scale
             self.focal_adoptions += 1
             for h in self.window:
@@ -563,8 +567,7 @@ class _Tracker:
                 redone[h.name] = h.row
             # what the frames say now: the window's, localized with the focal length adopted
             self.since.clear()
-            self.since.extend(x for x in map(frame_focal_scale, (h.row for h in self.window))
-                              if x is not None)
+            self.since.extend(frame_focal_scale(h.row) for h in self.window)
         self.redone += len(redone)
         return list(redone.values())
 
