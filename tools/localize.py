@@ -173,6 +173,10 @@ class _Bar:
             self.bar = tqdm(
                 total=ev.get("todo"), desc="localize", unit=self.unit, dynamic_ncols=True
             )
+        elif ev.get("row") is None and ev.get("focal_scale", 1.0) != 1.0:
+            # a batch localizing its photos again with the focal length they agree on
+            self.bar.reset(total=ev.get("todo"))
+            self.bar.set_description(f"localize (focal x{ev['focal_scale']:.4f})")
         if ev.get("row") is not None:
             self.bar.update(1)
         self.bar.set_postfix(ev["counts"], refresh=True)
@@ -262,10 +266,13 @@ def _run_many(cfg: DictConfig, out: Path) -> Dict[str, Any]:
 
 def _run_batch(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, Any]:
     from icomma_plugin.app.batch import plan_batch, run_batch, run_identity
+    from icomma_plugin.app.focal import BatchFocalConfig
     from icomma_plugin.app.ledger import PosesLedger
+    from icomma_plugin.checks import config_from_dict
 
     workers = int(cfg.get("workers") or 1)
     plan, _ = plan_batch(data, mf)
+    focal = config_from_dict(BatchFocalConfig, common.container(cfg.get("batch")), "batch")
     ledger = PosesLedger(
         out, {**run_identity("batch", data, setup.model_path), "config": common.container(cfg)},
         len(plan.tasks), int(data.get("shard") or 0), int(data.get("num_shards") or 1),
@@ -274,7 +281,7 @@ def _run_batch(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, Any]:
                      threads_per_worker=int(cfg.get("threads") or 1),
                      retry_failed=bool(cfg.output.get("retry_failed")), progress=bar,
                      model_folder=mf if workers == 1 else None,
-                     matcher=matcher if workers == 1 else None)
+                     matcher=matcher if workers == 1 else None, focal=focal)
     rows = ledger.all_rows()
     if setup.thumbs and rows:
         from icomma_plugin.pictures import contact_sheet
@@ -284,7 +291,9 @@ def _run_batch(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, Any]:
         except Exception as e:  # noqa: BLE001 - a picture never fails the run
             log.warning("no contact sheet: %s: %s", type(e).__name__, e)
     return {"kind": "batch", "done_now": summ.done_now, "skipped": summ.skipped,
-            "photos_per_minute": summ.photos_per_minute, "seconds": summ.seconds, "rows": rows}
+            "photos_per_minute": summ.photos_per_minute, "seconds": summ.seconds,
+            "focal_scale": summ.focal_scale, "focal_adoptions": summ.focal_adoptions,
+            "redone": summ.redone, "rows": rows}
 
 
 def _run_sequence(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, Any]:
@@ -337,12 +346,17 @@ def _tracking_line(s: Dict[str, Any], rows: List[Dict[str, Any]]) -> str:
     if matched or fell_back:
         line += (f"; patch search matched {matched} renders, left {fell_back} to the "
                  "descriptors")
+    return line + _focal_line(s, "frames")
+
+
+def _focal_line(s: Dict[str, Any], what: str) -> str:
+    """The focal length a batch or a sequence estimated from its photos, when not the given one."""
     scale = s.get("focal_scale") or 1.0
-    if scale != 1.0:
-        line += (f"\n  focal length {scale:.4f} x the given one, estimated from the frames "
-                 f"(adopted {s.get('focal_adoptions', 0)} times this run; {s.get('redone', 0)} "
-                 "frames localized again with it)")
-    return line
+    if scale == 1.0:
+        return ""
+    return (f"\n  focal length {scale:.4f} x the given one, estimated from the {what} "
+            f"(adopted {s.get('focal_adoptions', 0)} times this run; {s.get('redone', 0)} "
+            f"{what} localized again with it)")
 
 
 def many_summary(doc: Dict[str, Any]) -> str:
@@ -375,6 +389,8 @@ def many_summary(doc: Dict[str, Any]) -> str:
         )
     if s.get("kind") == "sequence":
         lines.append(_tracking_line(s, rows))
+    elif _focal_line(s, "photos"):
+        lines.append(_focal_line(s, "photos").lstrip("\n"))
     for f, paths in (s.get("exports") or {}).items():
         lines.append(f"  export {f}: {', '.join(paths)}")
     lines.append(f"  outputs in {s.get('output_dir')} (poses.json, poses.csv)")

@@ -47,11 +47,11 @@ logger = logging.getLogger(__name__)
 __all__ = ["CSV_COLUMNS", "LedgerError", "PosesLedger", "counts_of", "read_poses_json"]
 
 #: Columns of poses.csv: the photo's index, the scalar fields of the one row schema
-#: (``localization.types.ROW_FIELDS``; errors are blank when the truth is unknown), and whether a
-#: video frame was relocalized.
+#: (``localization.types.ROW_FIELDS``; errors are blank when the truth is unknown), whether a
+#: video frame was relocalized, and the focal length it was localized with (``app/focal.py``).
 CSV_COLUMNS = ("index",) + tuple(
     f for f in ROW_FIELDS if f not in ("c2w", "init_c2w", "gt_c2w", "intrinsics")
-) + ("relocalized",)
+) + ("relocalized", "camera_focal_scale")
 
 #: Keys of ``run`` that must agree between a run and the poses.json it resumes.
 RUN_IDENTITY = ("kind", "model_path", "queries", "sequence")

@@ -11,7 +11,7 @@ One camera films the whole sequence, so its focal length is estimated from the f
 (``TrackingConfig.focal_from_frames``): each frame's verdict refits its matches with the focal
 length free (``signals.focal``), too weakly to be decided on one frame; when the frames since the
 last adoption agree that it is off, the sequence adopts their median and the last
-``focal_window`` frames are localized again with it (``pooled_focal_scale``).
+``focal_window`` frames are localized again with it (``focal.pooled_focal_scale``).
 
     source = FrameSource.open("walk.mp4", every=2)
     summary = track(worker, source, ledger, intrinsics_of=..., init_c2w=None)
@@ -38,6 +38,7 @@ from ..localization.types import Query
 from ..pose.convert import invert_rigid
 from ..pose.se3 import se3_exp, se3_log
 from .batch import BatchWorker, PhotoTask, failure_row, result_row
+from .focal import CAMERA_FOCAL_KEY, photo_focal_scale, pooled_focal_scale
 from .inputs import ProblemError, list_photos, start_poses
 from .ledger import PosesLedger
 from .problem import warn_if_rotated
@@ -49,8 +50,6 @@ __all__ = [
     "TrackingConfig",
     "TrackingSummary",
     "first_frame_start",
-    "frame_focal_scale",
-    "pooled_focal_scale",
     "predict_c2w",
     "prefetched",
     "sequence_pictures",
@@ -95,7 +94,7 @@ class TrackingConfig:
             ``focal_rounds`` times in a row; once it has adopted one, a median more than
             ``focal_settle`` off suffices (a frame's refit finds most of the error, not all: its
             pose had taken up the rest). Every later frame is localized with the focal length
-            adopted (``sequence_focal_scale`` in its row, the share of the given one; the row's
+            adopted (``camera_focal_scale`` in its row, the share of the given one; the row's
             ``intrinsics`` are those its pose holds with). Off: every frame with the given
             intrinsics.
     """
@@ -199,44 +198,6 @@ def predict_c2w(
     out = Cj @ se3_exp(xi * float(index - j)).numpy()
     out[3] = (0.0, 0.0, 0.0, 1.0)
     return out
-
-
-def pooled_focal_scale(scales: Sequence[float], current: float = 1.0, min_change: float = 0.01,
-                       agree: float = 0.8) -> Optional[float]:
-    """The focal scale frames agree on, or None when they do not say ``current`` is off.
-
-    ``scales``: per frame, the focal length its matches prefer as a share of the given one
-    (``frame_focal_scale``); ``current``: the share the sequence holds now. Their median when it
-    is more than ``min_change`` (relative) from ``current`` and at least ``agree`` of them lie on
-    its side of ``current``. Given the right focal length, the lego path video's frames scatter
-    about it with a standard deviation of 0.6 % (medians of 10 frames within 0.3 %); given one 4 %
-    off, every frame lies on one side.
-    """
-    s = np.asarray([x for x in scales if x is not None and np.isfinite(x) and x > 0], np.float64)
-    if s.size == 0:
-        return None
-    m = float(np.median(s))
-    if abs(m / current - 1.0) <= min_change:
-        return None
-    same_side = float(np.mean((s > current) == (m > current)))
-    return m if same_side >= agree else None
-
-
-def frame_focal_scale(row: Dict[str, Any]) -> Optional[float]:
-    """The focal length a frame's matches prefer, as a share of the given one.
-
-    The verdict's refit (``signals.focal.scale``, of the focal length the frame was localized
-    with) times the frame's own estimate when its method made one (``details["focal_scale"]``)
-    times the sequence's when the frame was localized (``sequence_focal_scale``); None for a
-    failed frame or one without the signal.
-    """
-    if row.get("status") == "failed" or row.get("c2w") is None:
-        return None
-    scale = ((row.get("signals") or {}).get("focal") or {}).get("scale")
-    if scale is None:
-        return None
-    own = (row.get("details") or {}).get("focal_scale") or 1.0
-    return float(row.get("sequence_focal_scale") or 1.0) * float(own) * float(scale)
 
 
 @dataclass
@@ -420,7 +381,7 @@ class _Tracker:
             for r in done if r.get("status") != "failed" and r.get("c2w") is not None
         ]
         # the sequence's focal length as a share of the given one (a resumed run: its last row's)
-        scales = [r["sequence_focal_scale"] for r in done if r.get("sequence_focal_scale")]
+        scales = [r[CAMERA_FOCAL_KEY] for r in done if r.get(CAMERA_FOCAL_KEY)]
         self.focal_scale = float(scales[-1]) if scales and cfg.focal_from_frames else 1.0
         self.window: deque = deque(maxlen=cfg.focal_window)  # of _Held
         # the frames' focal scales since the last adoption (the next one is decided on them)
@@ -516,7 +477,7 @@ class _Tracker:
         except (ValueError, FileNotFoundError) as e:
             msg = str(e).splitlines()[0] if str(e) else type(e).__name__
             row = failure_row(task, f"bad input: {msg}", msg, time.perf_counter() - t_frame)
-        row["sequence_focal_scale"] = self.focal_scale
+        row[CAMERA_FOCAL_KEY] = self.focal_scale
         again = bool(self.history) and self.history[-1][0] >= index
         if again:  # a frame localized again (``settle_focal``): its new pose replaces the old
             self.history = [h for h in self.history if h[0] != index]
@@ -538,7 +499,7 @@ class _Tracker:
         orbit: steps of 0.5-0.7 % between windows of 10 frames) from walking the estimate.
         """
         cfg = self.cfg
-        scale = frame_focal_scale(row)
+        scale = photo_focal_scale(row)
         if not cfg.focal_from_frames or scale is None:
             return []
         self.window.append(_Held(index, name, rgb, row))
@@ -567,7 +528,7 @@ class _Tracker:
                 redone[h.name] = h.row
             # what the frames say now: the window's, localized with the focal length adopted
             self.since.clear()
-            self.since.extend(frame_focal_scale(h.row) for h in self.window)
+            self.since.extend(photo_focal_scale(h.row) for h in self.window)
         self.redone += len(redone)
         return list(redone.values())
 

@@ -57,7 +57,7 @@ def test_every_row_has_the_fields_with_the_same_values(result):
     # rows without a localization still have every field
     for r in (failure_row(task, "bad input", "bad"), blank_row(), _error_record(ValueError("x"))):
         assert set(ROW_FIELDS) <= set(r)
-    assert set(CSV_COLUMNS) - {"index", "relocalized"} <= set(ROW_FIELDS)
+    assert set(CSV_COLUMNS) - {"index", "relocalized", "camera_focal_scale"} <= set(ROW_FIELDS)
 
 
 def test_an_estimated_focal_length_is_what_result_json_records(result):

@@ -427,39 +427,6 @@ def test_a_video_of_a_portrait_camera_is_tracked(portrait_scene, tmp_path):
 # ----------------------------------------------------------- the focal length from the frames
 
 
-def test_pooled_focal_scale_needs_frames_that_agree():
-    from icomma_plugin.app.tracking import pooled_focal_scale
-
-    rng = np.random.default_rng(0)
-    right = 1.0 + 0.006 * rng.standard_normal(10)  # the lego path's scatter, given the right one
-    assert pooled_focal_scale(right) is None
-    off = 1.04 + 0.006 * rng.standard_normal(10)
-    assert pooled_focal_scale(off) == pytest.approx(float(np.median(off)))
-    # relative to the focal length the sequence holds now
-    assert pooled_focal_scale(off, current=1.04) is None
-    assert pooled_focal_scale(off, current=1.02) == pytest.approx(float(np.median(off)))
-    # a median off but frames on both sides: not adopted
-    split = np.array([1.05, 1.05, 1.05, 1.05, 1.05, 1.05, 0.97, 0.97, 0.97, 0.97])
-    assert pooled_focal_scale(split, agree=0.8) is None
-    assert pooled_focal_scale(split, agree=0.6) == pytest.approx(1.05)
-    # within min_change: not adopted; frames without the signal are left out
-    assert pooled_focal_scale([1.008] * 10, min_change=0.01) is None
-    assert pooled_focal_scale([None, float("nan"), 1.03, 1.03, 1.03]) == pytest.approx(1.03)
-    assert pooled_focal_scale([None, None]) is None
-
-
-def test_a_frames_focal_scale_is_of_the_given_focal_length():
-    from icomma_plugin.app.tracking import frame_focal_scale
-
-    row = {"status": "ok", "c2w": np.eye(4).tolist(), "signals": {"focal": {"scale": 1.01}},
-           "details": {"focal_scale": 1.05}, "sequence_focal_scale": 0.98}
-    assert frame_focal_scale(row) == pytest.approx(0.98 * 1.05 * 1.01)
-    assert frame_focal_scale({**row, "details": {}, "sequence_focal_scale": None}) == \
-        pytest.approx(1.01)
-    assert frame_focal_scale({**row, "status": "failed"}) is None
-    assert frame_focal_scale({**row, "signals": {"focal": None}}) is None
-
-
 class _LensWorker(_FakeWorker):
     """Every frame `ok`; its matches prefer the lens's focal length (``f_true``) to the query's."""
 
@@ -494,7 +461,7 @@ def test_an_adopted_focal_length_relocalizes_the_window_and_survives_a_resume(tm
     assert summ.focal_scale == pytest.approx(1.1) and summ.focal_adoptions == 1
     assert summ.redone == 3 and summ.done_now == 4 and summ.fast_ok == 4
     rows = ledger.all_rows()
-    assert [r["sequence_focal_scale"] for r in rows] == pytest.approx([1.1] * 4)
+    assert [r["camera_focal_scale"] for r in rows] == pytest.approx([1.1] * 4)
     assert [r["intrinsics"]["fx"] for r in rows] == pytest.approx([8.8] * 4)
     # a resumed run goes on with the focal length adopted
     w2 = _LensWorker(truth)
@@ -569,11 +536,11 @@ def test_a_sequence_given_a_wrong_focal_length_finds_it_from_its_frames(path_sce
             f"data.intrinsics.fx={fx}", f"data.intrinsics.fy={fx}",
             f"tracking.focal_from_frames={str(on).lower()}", "tracking.focal_window=3")), out)
     held, found = docs[False]["photos"], docs[True]["photos"]
-    assert all(r["sequence_focal_scale"] == 1.0 for r in held)
+    assert all(r["camera_focal_scale"] == 1.0 for r in held)
     assert docs[True]["summary"]["focal_adoptions"] >= 1
     for r in found:
         assert r["status"] != "failed", r["reason"]
-        assert r["sequence_focal_scale"] == pytest.approx(1 / 0.92, rel=0.015), r
+        assert r["camera_focal_scale"] == pytest.approx(1 / 0.92, rel=0.015), r
         assert r["intrinsics"]["fx"] == pytest.approx(path_scene["fx"], rel=0.015), r
     trans = [np.median([r["trans_err_rel"] for r in rows]) for rows in (held, found)]
     assert trans[1] < 0.25 * trans[0], trans

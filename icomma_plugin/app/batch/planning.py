@@ -9,7 +9,7 @@ configuration (no photos, an unreadable poses file, no intrinsics) raises ``Prob
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
@@ -35,9 +35,11 @@ __all__ = ["BatchPlan", "PhotoTask", "plan_batch", "run_identity", "select"]
 class PhotoTask:
     """One photo of a batch (picklable: it travels to the worker processes).
 
-    intrinsics: at the image file's size (None when ``error`` is set). init_c2w: the start pose,
-    or None (candidate views). gt_c2w: the truth when known (errors only). error: bad input
-    found while planning: the photo is recorded as failed with this reason.
+    intrinsics: at the image file's size (None when ``error`` is set), with the batch's focal
+    length. init_c2w: the start pose, or None (candidate views). gt_c2w: the truth when known
+    (errors only). error: bad input found while planning: the photo is recorded as failed with
+    this reason. focal_scale: the focal length of ``intrinsics`` as a share of the one given
+    (``focal.BatchFocalConfig``; ``with_focal_scale``).
     """
 
     index: int
@@ -48,6 +50,15 @@ class PhotoTask:
     init_c2w: Optional[np.ndarray] = None
     gt_c2w: Optional[np.ndarray] = None
     error: Optional[str] = None
+    focal_scale: float = 1.0
+
+    def with_focal_scale(self, scale: float, init_c2w: Optional[np.ndarray]) -> "PhotoTask":
+        """This photo with ``scale`` x the given focal length, started from ``init_c2w``."""
+        if self.intrinsics is None:
+            return replace(self, init_c2w=init_c2w, focal_scale=scale)
+        given = self.intrinsics.with_focal_scale(1.0 / self.focal_scale)
+        return replace(self, intrinsics=given.with_focal_scale(scale), init_c2w=init_c2w,
+                       focal_scale=scale)
 
 
 @dataclass

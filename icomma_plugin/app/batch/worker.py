@@ -14,6 +14,7 @@ becomes a ``failed`` row whose ``error`` says why; the batch goes on.
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import multiprocessing
 import time
@@ -27,7 +28,9 @@ import torch
 from ...localization.localizer import Localizer
 from ...localization.types import LocalizationResult, Query
 from ...matchers import matcher_from_config
+from ...io.atomic import write_json_atomic
 from ...pose.convert import cameras_extent
+from ..focal import CAMERA_FOCAL_KEY, BatchFocalConfig
 from ..inputs import ProblemError
 from ..ledger import PosesLedger
 from ..problem import Problem, read_query_image
@@ -179,7 +182,9 @@ class BatchWorker:
         """Localize one photo; always returns a row (a failed one for bad input or a crash)."""
         t0 = time.perf_counter()
         if task.error:
-            return failure_row(task, f"bad input: {task.error}", task.error)
+            row = failure_row(task, f"bad input: {task.error}", task.error)
+            row[CAMERA_FOCAL_KEY] = task.focal_scale
+            return row
         try:
             with _seeded(None if self.setup.seed is None else self.setup.seed + task.index):
                 problem = self.problem(task, self.load_query(task))
@@ -188,14 +193,15 @@ class BatchWorker:
             row = result_row(task, result, self.scene_scale, time.perf_counter() - t0, folder,
                              thumb)
             row["own_camera_left_out"] = len(self.localizer.own_cameras(task.gt_c2w, task.name))
-            return row
         except (ValueError, FileNotFoundError) as e:
             msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-            return failure_row(task, f"bad input: {msg}", msg, time.perf_counter() - t0)
+            row = failure_row(task, f"bad input: {msg}", msg, time.perf_counter() - t0)
         except Exception as e:  # noqa: BLE001 - one photo must not stop the batch
             logger.exception("photo %s failed", task.name)
             msg = f"internal error: {type(e).__name__}: {e}"
-            return failure_row(task, msg, msg, time.perf_counter() - t0)
+            row = failure_row(task, msg, msg, time.perf_counter() - t0)
+        row[CAMERA_FOCAL_KEY] = task.focal_scale
+        return row
 
 
 # ---------------------------------------------------------------------------------- processes
@@ -228,6 +234,9 @@ class BatchSummary:
     todo: int
     seconds: float
     rows: List[Dict[str, Any]]
+    focal_scale: float = 1.0  # the batch's focal length at the end, a share of the given one
+    focal_adoptions: int = 0  # times this call adopted a focal length from the photos
+    redone: int = 0  # photos localized again with an adopted focal length
 
     @property
     def photos_per_minute(self) -> Optional[float]:
@@ -237,18 +246,71 @@ class BatchSummary:
         )
 
 
-def _todo(plan: BatchPlan, ledger: PosesLedger, retry_failed: bool) -> Tuple[List[PhotoTask], int]:
-    """(this shard's photos without a row, how many of its photos have one)."""
-    mine = [t for t in plan.tasks if t.index % ledger.num_shards == ledger.shard]
+def _todo(mine: List[PhotoTask], ledger: PosesLedger, retry_failed: bool, scale: float
+          ) -> Tuple[List[PhotoTask], int]:
+    """(the photos of ``mine`` without a row at the focal ``scale``, how many have one)."""
     done = ledger.finished()
     if retry_failed:
         ledger.forget([t.name for t in mine if done.get(t.name, {}).get("status") == "failed"])
         done = ledger.finished()
-    todo = [t for t in mine if t.name not in done]
+
+    def held(t: PhotoTask) -> bool:
+        row = done.get(t.name)
+        return row is not None and abs(float(row.get(CAMERA_FOCAL_KEY) or 1.0) - scale) < 1e-9
+
+    todo = [t for t in mine if not held(t)]
     if len(mine) > len(todo):
         logger.info("resuming: %d of %d photos of this shard already done", len(mine) - len(todo),
                     len(mine))
     return todo, len(mine) - len(todo)
+
+
+@contextlib.contextmanager
+def _executor(setup: WorkerSetup, workers: int, threads_per_worker: int, most: int,
+              model_folder, matcher) -> Iterator[Callable[[List[PhotoTask]], Iterator[dict]]]:
+    """A function that localizes tasks (rows as they finish), kept for every pass of a batch.
+
+    ``workers`` 1 (or a single photo): this process; more: a pool of at most ``most`` spawned
+    processes, started at the first call that needs it.
+    """
+    held: Dict[str, Any] = {}
+
+    def run(tasks: List[PhotoTask]) -> Iterator[dict]:
+        if workers == 1 or (len(tasks) == 1 and "pool" not in held):
+            if "worker" not in held:
+                held["worker"] = BatchWorker(setup, model_folder, matcher)
+            for t in tasks:
+                yield held["worker"].run(t)
+            return
+        if "pool" not in held:
+            ctx = multiprocessing.get_context("spawn")
+            held["pool"] = ctx.Pool(min(workers, most), initializer=_init_worker,
+                                    initargs=(setup, threads_per_worker))
+        yield from held["pool"].imap_unordered(_work, tasks, chunksize=1)
+
+    try:
+        yield run
+    finally:
+        if "pool" in held:
+            held["pool"].terminate()
+            held["pool"].join()
+
+
+def _focal_state_path(ledger: PosesLedger) -> Path:
+    """The batch's adopted focal length (``poses.focal.json``; a shard's beside its part)."""
+    j = ledger.journal_path
+    return j.with_name(j.stem + ".focal.json")
+
+
+def _read_focal_state(path: Path) -> Dict[str, Any]:
+    try:
+        state = json.loads(path.read_text())
+        return {"scale": float(state["scale"]), "adoptions": int(state["adoptions"])}
+    except FileNotFoundError:
+        return {"scale": 1.0, "adoptions": 0}
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ProblemError(f"cannot read the batch's focal length {path} ({e}); move it away to "
+                           "decide it again") from None
 
 
 def run_batch(
@@ -262,6 +324,7 @@ def run_batch(
     progress: Optional[Callable[[Dict[str, Any]], Any]] = None,
     model_folder=None,
     matcher=None,
+    focal: Optional[BatchFocalConfig] = None,
 ) -> BatchSummary:
     """Localize this shard's unfinished photos of ``plan``, recording each in ``ledger``.
 
@@ -274,36 +337,71 @@ def run_batch(
             those processes only) and its own model and Localizer.
         threads_per_worker: torch threads of each worker process.
         retry_failed: redo photos recorded as failed.
-        progress: called after each photo with ``{"row", "counts", "done", "todo"}``.
+        progress: called after each photo with ``{"row", "counts", "done", "todo"}``, and with
+            ``row`` None when a pass starts (``todo``: its photos; ``focal_scale``).
         model_folder: reuse the caller's loaded model folder (``workers == 1`` only).
         matcher: reuse the caller's matcher (``workers == 1`` only).
+        focal: the focal length from the photos (``focal.BatchFocalConfig``; None: off). Used
+            for photo files given one camera; a dataset folder's views keep their own. The
+            adopted one is kept in ``poses.focal.json`` for a resumed run.
     """
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers must be a positive int, got {workers!r}")
-    todo, skipped = _todo(plan, ledger, retry_failed)
+    mine = [t for t in plan.tasks if t.index % ledger.num_shards == ledger.shard]
+    pooling = (focal is not None and focal.focal_from_photos and bool(mine)
+               and all(t.view is None for t in mine))
+    state_path = _focal_state_path(ledger)
+    state = _read_focal_state(state_path) if pooling else {"scale": 1.0, "adoptions": 0}
     t0 = time.perf_counter()
     rows: List[Dict[str, Any]] = []
-    if progress is not None:
-        progress({"row": None, "counts": ledger.counts(), "done": 0, "todo": len(todo),
-                  "skipped": skipped})
-
-    def take(row):
-        ledger.record(row)
-        rows.append(row)
-        if progress is not None:
-            progress({"row": row, "counts": ledger.counts(), "done": len(rows), "todo": len(todo)})
-
-    if todo and (workers == 1 or len(todo) == 1):
-        w = BatchWorker(setup, model_folder, matcher)
-        for t in todo:
-            take(w.run(t))
-    elif todo:
-        ctx = multiprocessing.get_context("spawn")
-        with ctx.Pool(min(workers, len(todo)), initializer=_init_worker,
-                      initargs=(setup, threads_per_worker)) as pool:
-            for row in pool.imap_unordered(_work, todo, chunksize=1):
-                take(row)
+    redone: set = set()
+    skipped = None
+    with _executor(setup, workers, threads_per_worker, len(mine), model_folder,
+                   matcher) as localize:
+        adopted_now = 0
+        while True:
+            scale = state["scale"]
+            todo, held = _todo(mine, ledger, retry_failed and skipped is None, scale)
+            skipped = held if skipped is None else skipped
+            done = ledger.finished()
+            # a photo localized again with a new focal length starts from its first pose
+            tasks = [t if scale == 1.0 and t.name not in done else t.with_focal_scale(
+                scale, _start_of(done.get(t.name), t)) for t in todo]
+            if progress is not None:
+                progress({"row": None, "counts": ledger.counts(), "done": 0, "todo": len(tasks),
+                          "skipped": held, "focal_scale": scale})
+            n = 0
+            for row in localize(tasks):
+                ledger.record(row)
+                rows.append(row)
+                n += 1
+                if row["name"] in done:
+                    redone.add(row["name"])
+                if progress is not None:
+                    progress({"row": row, "counts": ledger.counts(), "done": n,
+                              "todo": len(tasks)})
+            if not pooling or adopted_now >= focal.focal_rounds:
+                break
+            now = ledger.finished()
+            new = focal.adopt([now[t.name] for t in mine if t.name in now], scale,
+                              state["adoptions"] > 0)
+            if new is None:
+                break
+            logger.info("%d photos agree on a focal length %.4f x the given one (%.4f x the one "
+                        "used): the batch takes it, and localizes them again",
+                        len(mine), new, new / scale)
+            state = {"scale": new, "adoptions": state["adoptions"] + 1}
+            write_json_atomic(state_path, state)
+            adopted_now += 1
     ledger.flush()
     return BatchSummary(
-        ledger.counts(), len(rows), skipped, len(todo), time.perf_counter() - t0, rows
+        ledger.counts(), len(rows), skipped or 0, len(rows), time.perf_counter() - t0, rows,
+        focal_scale=state["scale"], focal_adoptions=adopted_now, redone=len(redone),
     )
+
+
+def _start_of(row: Optional[Dict[str, Any]], task: PhotoTask) -> Optional[np.ndarray]:
+    """Where a photo starts when localized again: its last pose, or its own start if it failed."""
+    if row is None or row.get("status") == "failed" or row.get("c2w") is None:
+        return task.init_c2w
+    return np.asarray(row["c2w"], np.float64)
