@@ -100,12 +100,13 @@ def _plan(n=6, view=None):
     return BatchPlan(tasks, "model", None, False, None, "none")
 
 
-def _run(tmp_path, monkeypatch, plan=None, focal=BatchFocalConfig(), stop_after=None, out="out"):
+def _run(tmp_path, monkeypatch, plan=None, focal=BatchFocalConfig(), stop_after=None, out="out",
+         shard=(0, 1)):
     monkeypatch.setattr(batch_worker, "BatchWorker", _LensWorker)
     monkeypatch.setattr(_LensWorker, "calls", [])
     monkeypatch.setattr(_LensWorker, "stop_after", stop_after)
     plan = plan or _plan()
-    ledger = PosesLedger(tmp_path / out, {"kind": "batch"}, len(plan.tasks))
+    ledger = PosesLedger(tmp_path / out, {"kind": "batch"}, len(plan.tasks), *shard)
     setup = WorkerSetup(model_path="model", method=None, matcher=None, out_dir=str(tmp_path / out))
     summ = run_batch(plan, setup, ledger, focal=focal)
     return summ, ledger, list(_LensWorker.calls)
@@ -139,6 +140,16 @@ def test_a_batch_killed_while_localizing_again_resumes_with_the_adopted_focal_le
     assert [c[:2] for c in calls] == [(f"p{i}.png", 8.8) for i in range(2, 6)]
     assert summ.focal_adoptions == 0 and summ.focal_scale == pytest.approx(1.1)
     assert [r["camera_focal_scale"] for r in ledger.all_rows()] == pytest.approx([1.1] * 6)
+
+
+def test_a_shard_decides_on_its_own_photos(tmp_path, monkeypatch):
+    summ, ledger, calls = _run(tmp_path, monkeypatch, plan=_plan(8), shard=(1, 2),
+                               focal=BatchFocalConfig(focal_min_photos=4))
+    assert [c[:2] for c in calls] == [(f"p{i}.png", 8.0) for i in (1, 3, 5, 7)] + \
+        [(f"p{i}.png", 8.8) for i in (1, 3, 5, 7)]
+    state = tmp_path / "out" / "parts" / "shard-001-of-002.focal.json"
+    assert json.loads(state.read_text())["scale"] == pytest.approx(1.1)
+    assert not (tmp_path / "out" / "poses.focal.json").exists()
 
 
 @pytest.mark.parametrize("case", ["off", "too_few", "dataset_views", "right_focal"])
@@ -209,3 +220,12 @@ def test_a_batch_given_a_wrong_focal_length_finds_it_from_its_photos(photos_scen
     trans = [np.median([r["trans_err_rel"] for r in rows]) for rows in (held, found)]
     assert trans[1] < 0.25 * trans[0], trans
     assert "estimated from the photos" in localize_tool().many_summary(docs[True])
+
+
+def test_an_unreadable_focal_state_is_named(tmp_path, monkeypatch):
+    from icomma_plugin.app.inputs import ProblemError
+
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "poses.focal.json").write_text("{not json")
+    with pytest.raises(ProblemError, match="poses.focal.json"):
+        _run(tmp_path, monkeypatch)
