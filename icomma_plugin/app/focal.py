@@ -17,7 +17,8 @@ import numpy as np
 
 from ..checks import check_bool, check_int, check_real
 
-__all__ = ["CAMERA_FOCAL_KEY", "BatchFocalConfig", "photo_focal_scale", "pooled_focal_scale"]
+__all__ = ["CAMERA_FOCAL_KEY", "BatchFocalConfig", "check_pooling", "photo_focal_scale",
+           "pooled_focal_scale"]
 
 #: a row's field: the focal length its photo was localized with, a share of the given one
 CAMERA_FOCAL_KEY = "camera_focal_scale"
@@ -61,6 +62,14 @@ def photo_focal_scale(row: Dict[str, Any]) -> Optional[float]:
     return float(row.get(CAMERA_FOCAL_KEY) or 1.0) * float(own) * float(scale)
 
 
+def check_pooling(cfg: Any, group: str) -> None:
+    """The pooling settings shared by a batch's and a sequence's config (``focal_*``)."""
+    check_real(cfg.focal_min_change, f"{group}.focal_min_change", 0.0, 0.5)
+    check_real(cfg.focal_agree, f"{group}.focal_agree", 0.5, 1.0)
+    check_int(cfg.focal_rounds, f"{group}.focal_rounds", 1)
+    check_real(cfg.focal_settle, f"{group}.focal_settle", 0.0, cfg.focal_min_change)
+
+
 @dataclass
 class BatchFocalConfig:
     """A batch's focal length from its photos (the tool's ``batch`` group).
@@ -83,10 +92,7 @@ class BatchFocalConfig:
     def __post_init__(self):
         check_bool(self.focal_from_photos, "batch.focal_from_photos")
         check_int(self.focal_min_photos, "batch.focal_min_photos", 2)
-        check_real(self.focal_min_change, "batch.focal_min_change", 0.0, 0.5)
-        check_real(self.focal_agree, "batch.focal_agree", 0.5, 1.0)
-        check_int(self.focal_rounds, "batch.focal_rounds", 1)
-        check_real(self.focal_settle, "batch.focal_settle", 0.0, self.focal_min_change)
+        check_pooling(self, "batch")
 
     def adopt(self, rows: Sequence[Dict[str, Any]], current: float, adopted_before: bool
               ) -> Optional[float]:

@@ -38,7 +38,7 @@ from ..localization.types import Query
 from ..pose.convert import invert_rigid
 from ..pose.se3 import se3_exp, se3_log
 from .batch import BatchWorker, PhotoTask, failure_row, result_row
-from .focal import CAMERA_FOCAL_KEY, photo_focal_scale, pooled_focal_scale
+from .focal import CAMERA_FOCAL_KEY, check_pooling, photo_focal_scale, pooled_focal_scale
 from .inputs import ProblemError, list_photos, start_poses
 from .ledger import PosesLedger
 from .problem import warn_if_rotated
@@ -138,10 +138,7 @@ class TrackingConfig:
         check_int(self.fast_subpixel_iterations, "tracking.fast_subpixel_iterations", 0)
         check_int(self.prefetch, "tracking.prefetch", 0)
         check_int(self.focal_window, "tracking.focal_window", 3)
-        check_real(self.focal_min_change, "tracking.focal_min_change", 0.0, 0.5)
-        check_real(self.focal_agree, "tracking.focal_agree", 0.5, 1.0)
-        check_int(self.focal_rounds, "tracking.focal_rounds", 1)
-        check_real(self.focal_settle, "tracking.focal_settle", 0.0, self.focal_min_change)
+        check_pooling(self, "tracking")
         check_int(self.focal_history, "tracking.focal_history", self.focal_window)
 
     def fast_method(self, method, side: int, matcher=None):
