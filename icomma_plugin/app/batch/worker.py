@@ -226,7 +226,11 @@ def _work(task: PhotoTask) -> Dict[str, Any]:
 
 @dataclass
 class BatchSummary:
-    """What a :func:`run_batch` call did. ``photos_per_minute`` counts the photos it localized."""
+    """What a :func:`run_batch` call did.
+
+    ``done_now``: the photos it localized, each counted once (also when localized again with an
+    adopted focal length: ``redone``); ``photos_per_minute`` counts them.
+    """
 
     counts: Dict[str, int]
     done_now: int
@@ -394,8 +398,9 @@ def run_batch(
             write_json_atomic(state_path, state)
             adopted_now += 1
     ledger.flush()
+    latest = list({r["name"]: r for r in rows}.values())  # a photo localized again: its last row
     return BatchSummary(
-        ledger.counts(), len(rows), skipped or 0, len(rows), time.perf_counter() - t0, rows,
+        ledger.counts(), len(latest), skipped or 0, len(latest), time.perf_counter() - t0, latest,
         focal_scale=state["scale"], focal_adoptions=adopted_now, redone=len(redone),
     )
 
