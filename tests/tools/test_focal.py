@@ -101,8 +101,8 @@ def _plan(n=6, view=None):
 
 
 def _run(tmp_path, monkeypatch, plan=None, focal=BatchFocalConfig(), stop_after=None, out="out",
-         shard=(0, 1)):
-    monkeypatch.setattr(batch_worker, "BatchWorker", _LensWorker)
+         shard=(0, 1), lens=None):
+    monkeypatch.setattr(batch_worker, "BatchWorker", lens or _LensWorker)
     monkeypatch.setattr(_LensWorker, "calls", [])
     monkeypatch.setattr(_LensWorker, "stop_after", stop_after)
     plan = plan or _plan()
@@ -229,3 +229,21 @@ def test_an_unreadable_focal_state_is_named(tmp_path, monkeypatch):
     (tmp_path / "out" / "poses.focal.json").write_text("{not json")
     with pytest.raises(ProblemError, match="poses.focal.json"):
         _run(tmp_path, monkeypatch)
+
+
+class _RunawayLens(_LensWorker):
+    """Every refit asks for 10 % more than the focal length it was given: never satisfied."""
+
+    def run(self, task: PhotoTask):
+        row = super().run(task)
+        row["signals"]["focal"]["scale"] = 1.1
+        return row
+
+
+def test_the_adoptions_are_capped_across_resumed_runs(tmp_path, monkeypatch):
+    focal = BatchFocalConfig(focal_rounds=2)
+    summ, _, calls = _run(tmp_path, monkeypatch, focal=focal, lens=_RunawayLens)
+    assert summ.focal_adoptions == 2 and len(calls) == 18
+    assert summ.focal_scale == pytest.approx(1.21)
+    summ2, _, calls2 = _run(tmp_path, monkeypatch, focal=focal, lens=_RunawayLens)
+    assert calls2 == [] and summ2.focal_adoptions == 0 and summ2.focal_scale == pytest.approx(1.21)

@@ -30,7 +30,7 @@ from ...localization.types import LocalizationResult, Query
 from ...matchers import matcher_from_config
 from ...io.atomic import write_json_atomic
 from ...pose.convert import cameras_extent
-from ..focal import CAMERA_FOCAL_KEY, BatchFocalConfig
+from ..focal import CAMERA_FOCAL_KEY, BatchFocalConfig, photo_focal_scale
 from ..inputs import ProblemError
 from ..ledger import PosesLedger
 from ..problem import Problem, read_query_image
@@ -384,16 +384,16 @@ def run_batch(
                 if progress is not None:
                     progress({"row": row, "counts": ledger.counts(), "done": n,
                               "todo": len(tasks)})
-            if not pooling or adopted_now >= focal.focal_rounds:
+            if not pooling or state["adoptions"] >= focal.focal_rounds:
                 break
-            now = ledger.finished()
-            new = focal.adopt([now[t.name] for t in mine if t.name in now], scale,
-                              state["adoptions"] > 0)
+            now = [ledger.finished().get(t.name) for t in mine]
+            now = [r for r in now if r is not None]
+            new = focal.adopt(now, scale, state["adoptions"] > 0)
             if new is None:
                 break
-            logger.info("%d photos agree on a focal length %.4f x the given one (%.4f x the one "
-                        "used): the batch takes it, and localizes them again",
-                        len(mine), new, new / scale)
+            logger.info("the photos' refits (%d) agree on a focal length %.4f x the given one "
+                        "(%.4f x the one used): the batch takes it, and localizes them again",
+                        sum(photo_focal_scale(r) is not None for r in now), new, new / scale)
             state = {"scale": new, "adoptions": state["adoptions"] + 1}
             write_json_atomic(state_path, state)
             adopted_now += 1
