@@ -283,6 +283,14 @@ def _run_batch(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, Any]:
                      model_folder=mf if workers == 1 else None,
                      matcher=matcher if workers == 1 else None, focal=focal)
     rows = ledger.all_rows()
+    if summ.focal_passes and cfg.output.get("focal_plot"):
+        from icomma_plugin.pictures import plot_focal_passes
+
+        try:
+            plot_focal_passes(out / "focal.png", summ.focal_passes,
+                              f"{len(plan.tasks)} photos of {data.get('queries')}")
+        except Exception as e:  # noqa: BLE001 - a picture never fails the run
+            log.warning("no focal.png: %s: %s", type(e).__name__, e)
     if setup.thumbs and rows:
         from icomma_plugin.pictures import contact_sheet
 

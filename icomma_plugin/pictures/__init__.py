@@ -21,7 +21,13 @@ from .images import (
     save_overlay,
     save_video,
 )
-from .plots import plot_convergence, plot_curves_vs_paper, plot_trajectory, save_figure
+from .plots import (
+    plot_convergence,
+    plot_curves_vs_paper,
+    plot_focal_passes,
+    plot_trajectory,
+    save_figure,
+)
 from .sheets import contact_sheet, save_thumbnail
 
 __all__ = [
@@ -31,6 +37,7 @@ __all__ = [
     "overlay_panel",
     "plot_convergence",
     "plot_curves_vs_paper",
+    "plot_focal_passes",
     "plot_trajectory",
     "save_figure",
     "save_gif",

@@ -120,6 +120,37 @@ def save_figure(fig, path: PathLike, tight: bool = False) -> Path:
 
 
 
+def plot_focal_passes(path: PathLike, passes: Sequence[Dict[str, Any]],
+                      title: Optional[str] = None) -> Path:
+    """Each photo's preferred focal length, pass after pass, and the one each pass used.
+
+    ``passes``: ``{"used": share of the given focal length, "estimates": {photo: share or
+    None}}`` in order (a batch's ``poses.focal.json``); the photos in the order of the first pass.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    names = list(passes[0]["estimates"]) if passes else []
+    x = {n: i for i, n in enumerate(names)}
+    fig, ax = plt.subplots(figsize=(7.5, 3.8))
+    ax.axhline(1.0, color="0.6", lw=1, ls=":", label="given")
+    for k, p in enumerate(passes):
+        colour = f"C{k % 10}"
+        pts = [(x.get(n, len(x)), v) for n, v in p["estimates"].items() if v is not None]
+        if pts:
+            xs, ys = zip(*pts)
+            ax.plot(xs, ys, "o", ms=4, color=colour, alpha=0.8,
+                    label=f"pass {k + 1}: localized at {p['used']:.4f}")
+        ax.axhline(p["used"], color=colour, lw=1.2)
+    ax.set_xlabel("photo")
+    ax.set_ylabel("focal length its matches prefer\n(share of the given one)")
+    ax.legend(fontsize=7, loc="best")
+    ax.set_title(title or "the batch's focal length from its photos", fontsize=9)
+    return save_figure(fig, path, tight=True)
+
+
 def plot_trajectory(
     path: PathLike,
     est_c2w: Sequence[Optional[np.ndarray]],

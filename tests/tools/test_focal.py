@@ -126,6 +126,11 @@ def test_a_batch_adopts_the_focal_length_its_photos_agree_on(tmp_path, monkeypat
     assert [r["intrinsics"]["fx"] for r in rows] == pytest.approx([8.8] * 6)
     state = json.loads((tmp_path / "out" / "poses.focal.json").read_text())
     assert state["scale"] == pytest.approx(1.1) and state["adoptions"] == 1
+    # the record of the passes: at the given focal length every photo asked for 1.1, then 1.0
+    assert [p["used"] for p in state["passes"]] == pytest.approx([1.0, 1.1])
+    assert list(state["passes"][0]["estimates"].values()) == pytest.approx([1.1] * 6)
+    assert list(state["passes"][1]["estimates"].values()) == pytest.approx([1.1] * 6)
+    assert summ.focal_passes == state["passes"]
     # run again in the same folder: nothing to do, the focal length kept
     summ2, _, calls2 = _run(tmp_path, monkeypatch)
     assert calls2 == [] and summ2.focal_scale == pytest.approx(1.1)
@@ -220,6 +225,8 @@ def test_a_batch_given_a_wrong_focal_length_finds_it_from_its_photos(photos_scen
     trans = [np.median([r["trans_err_rel"] for r in rows]) for rows in (held, found)]
     assert trans[1] < 0.25 * trans[0], trans
     assert "estimated from the photos" in localize_tool().many_summary(docs[True])
+    assert (tmp_path / "out_True" / "focal.png").is_file()
+    assert not (tmp_path / "out_False" / "focal.png").exists()
 
 
 def test_an_unreadable_focal_state_is_named(tmp_path, monkeypatch):

@@ -241,6 +241,7 @@ class BatchSummary:
     focal_scale: float = 1.0  # the batch's focal length at the end, a share of the given one
     focal_adoptions: int = 0  # times this call adopted a focal length from the photos
     redone: int = 0  # photos localized again with an adopted focal length
+    focal_passes: List[Dict[str, Any]] = field(default_factory=list)  # poses.focal.json's passes
 
     @property
     def photos_per_minute(self) -> Optional[float]:
@@ -307,11 +308,13 @@ def _focal_state_path(ledger: PosesLedger) -> Path:
 
 
 def _read_focal_state(path: Path) -> Dict[str, Any]:
+    """``{"scale", "adoptions", "passes"}`` of a batch (``poses.focal.json``; none yet: 1.0)."""
     try:
         state = json.loads(path.read_text())
-        return {"scale": float(state["scale"]), "adoptions": int(state["adoptions"])}
+        return {"scale": float(state["scale"]), "adoptions": int(state["adoptions"]),
+                "passes": list(state.get("passes") or [])}
     except FileNotFoundError:
-        return {"scale": 1.0, "adoptions": 0}
+        return {"scale": 1.0, "adoptions": 0, "passes": []}
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise ProblemError(f"cannot read the batch's focal length {path} ({e}); move it away to "
                            "decide it again") from None
@@ -355,7 +358,8 @@ def run_batch(
     pooling = (focal is not None and focal.focal_from_photos and bool(mine)
                and all(t.view is None for t in mine))
     state_path = _focal_state_path(ledger)
-    state = _read_focal_state(state_path) if pooling else {"scale": 1.0, "adoptions": 0}
+    state = _read_focal_state(state_path) if pooling else {"scale": 1.0, "adoptions": 0,
+                                                           "passes": []}
     t0 = time.perf_counter()
     rows: List[Dict[str, Any]] = []
     redone: set = set()
@@ -384,17 +388,23 @@ def run_batch(
                 if progress is not None:
                     progress({"row": row, "counts": ledger.counts(), "done": n,
                               "todo": len(tasks)})
-            if not pooling or state["adoptions"] >= focal.focal_rounds:
+            if not pooling:
                 break
             now = [ledger.finished().get(t.name) for t in mine]
             now = [r for r in now if r is not None]
+            if state["adoptions"]:  # the record of the passes (focal.png) gets this one
+                _record_pass(state, scale, now)
+                write_json_atomic(state_path, state)
+            if state["adoptions"] >= focal.focal_rounds:
+                break
             new = focal.adopt(now, scale, state["adoptions"] > 0)
             if new is None:
                 break
             logger.info("the photos' refits (%d) agree on a focal length %.4f x the given one "
                         "(%.4f x the one used): the batch takes it, and localizes them again",
                         sum(photo_focal_scale(r) is not None for r in now), new, new / scale)
-            state = {"scale": new, "adoptions": state["adoptions"] + 1}
+            _record_pass(state, scale, now)
+            state.update(scale=new, adoptions=state["adoptions"] + 1)
             write_json_atomic(state_path, state)
             adopted_now += 1
     ledger.flush()
@@ -402,7 +412,18 @@ def run_batch(
     return BatchSummary(
         ledger.counts(), len(latest), skipped or 0, len(latest), time.perf_counter() - t0, latest,
         focal_scale=state["scale"], focal_adoptions=adopted_now, redone=len(redone),
+        focal_passes=state["passes"],
     )
+
+
+def _record_pass(state: Dict[str, Any], scale: float, rows: List[Dict[str, Any]]) -> None:
+    """Add (or replace) the pass at focal ``scale`` in ``state["passes"]``: each photo's refit."""
+    entry = {"used": scale, "estimates": {r["name"]: photo_focal_scale(r) for r in rows}}
+    passes = state["passes"]
+    if passes and abs(passes[-1]["used"] - scale) < 1e-12:
+        passes[-1] = entry  # the same pass again (a resumed run that finished it)
+    else:
+        passes.append(entry)
 
 
 def _start_of(row: Optional[Dict[str, Any]], task: PhotoTask) -> Optional[np.ndarray]:
