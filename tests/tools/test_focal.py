@@ -21,6 +21,7 @@ from icomma_plugin.app.focal import BatchFocalConfig, photo_focal_scale, pooled_
 from icomma_plugin.app.ledger import PosesLedger
 from icomma_plugin.camera import Intrinsics
 from tests.helpers.demo import demo_model, photo
+from tests.helpers.focal import check_focal_found
 from tests.helpers.tools import compose, localize_tool
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
@@ -215,16 +216,7 @@ def test_a_batch_given_a_wrong_focal_length_finds_it_from_its_photos(photos_scen
             "optimizer.focal_retry=false", f"batch.focal_from_photos={str(on).lower()}",
             f"output.dir={out}", "output.progress=false", "output.contact_sheet=false",
             "threads=1"]), out)
-    held, found = docs[False]["photos"], docs[True]["photos"]
-    assert all(r["camera_focal_scale"] == 1.0 for r in held)
-    assert docs[True]["summary"]["focal_adoptions"] >= 1
-    for r in found:
-        assert r["status"] != "failed", r["reason"]
-        assert r["camera_focal_scale"] == pytest.approx(1 / 0.92, rel=0.015), r
-        assert r["intrinsics"]["fx"] == pytest.approx(ps["fx"], rel=0.015), r
-    trans = [np.median([r["trans_err_rel"] for r in rows]) for rows in (held, found)]
-    assert trans[1] < 0.25 * trans[0], trans
-    assert "estimated from the photos" in localize_tool().many_summary(docs[True])
+    check_focal_found(docs, ps["fx"], 0.92, "photos")
     assert (tmp_path / "out_True" / "focal.png").is_file()
     assert not (tmp_path / "out_False" / "focal.png").exists()
 
