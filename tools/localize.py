@@ -28,7 +28,8 @@ Many photos, or a video, against one model (docs/BATCHES.md):
         data.shard=0,1,2,3 data.num_shards=4          # one SLURM array task per shard
 
 write poses.json / poses.csv (every photo journalled at once: rerun with the same output.dir to
-resume), contact_sheet.png (batch), trajectory.png and tracking.mp4 (sequence), exports/.
+resume), contact_sheet.png (batch), trajectory.png and tracking.mp4 (sequence), focal.png
+(a focal length estimated from the photos or frames), exports/.
 
 Configuration: conf/localize.yaml (groups data, matcher, optimizer, renderer).
 """

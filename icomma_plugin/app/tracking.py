@@ -651,9 +651,20 @@ def sequence_truths(data: Dict[str, Any]) -> Optional[Callable[[str], Optional[n
 
 def sequence_pictures(out: Path, worker: BatchWorker, source: FrameSource, rows, intrinsics_of,
                       options: Dict[str, Any], title: str) -> List[str]:
-    """trajectory.png and tracking.mp4, as ``options`` (the tool's output group) ask."""
+    """trajectory.png, tracking.mp4 and focal.png, as ``options`` (the tool's output group) ask.
+
+    focal.png only when the sequence adopted a focal length from its frames.
+    """
     files = []
     try:
+        if options.get("focal_plot") and any(
+                (r.get(CAMERA_FOCAL_KEY) or 1.0) != 1.0 for r in rows):
+            from ..pictures import plot_focal_frames
+
+            plot_focal_frames(out / "focal.png", [int(r.get("index", 0)) for r in rows],
+                              [float(r.get(CAMERA_FOCAL_KEY) or 1.0) for r in rows],
+                              [photo_focal_scale(r) for r in rows], title)
+            files.append("focal.png")
         if options.get("trajectory_plot") and rows:
             from ..pictures import plot_trajectory
 

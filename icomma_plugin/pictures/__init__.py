@@ -24,6 +24,7 @@ from .images import (
 from .plots import (
     plot_convergence,
     plot_curves_vs_paper,
+    plot_focal_frames,
     plot_focal_passes,
     plot_trajectory,
     save_figure,
@@ -37,6 +38,7 @@ __all__ = [
     "overlay_panel",
     "plot_convergence",
     "plot_curves_vs_paper",
+    "plot_focal_frames",
     "plot_focal_passes",
     "plot_trajectory",
     "save_figure",

@@ -151,6 +151,33 @@ def plot_focal_passes(path: PathLike, passes: Sequence[Dict[str, Any]],
     return save_figure(fig, path, tight=True)
 
 
+def plot_focal_frames(path: PathLike, frames: Sequence[int], used: Sequence[float],
+                      preferred: Sequence[Optional[float]], title: Optional[str] = None) -> Path:
+    """A sequence's focal length frame by frame, as shares of the given one.
+
+    ``used``: the one each frame was localized with (a line); ``preferred``: the one its
+    matches prefer (dots; None: no refit).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 3.8))
+    ax.axhline(1.0, color="0.6", lw=1, ls=":", label="given")
+    pts = [(i, v) for i, v in zip(frames, preferred) if v is not None]
+    if pts:
+        xs, ys = zip(*pts)
+        ax.plot(xs, ys, "o", ms=3, color="C0", alpha=0.7, label="the frame's matches prefer")
+    ax.step(list(frames), list(used), where="mid", color="C3", lw=1.5,
+            label="the frame was localized with")
+    ax.set_xlabel("frame")
+    ax.set_ylabel("focal length\n(share of the given one)")
+    ax.legend(fontsize=7, loc="best")
+    ax.set_title(title or "the sequence's focal length from its frames", fontsize=9)
+    return save_figure(fig, path, tight=True)
+
+
 def plot_trajectory(
     path: PathLike,
     est_c2w: Sequence[Optional[np.ndarray]],

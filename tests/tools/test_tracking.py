@@ -537,3 +537,5 @@ def test_a_sequence_given_a_wrong_focal_length_finds_it_from_its_frames(path_sce
             f"data.intrinsics.fx={fx}", f"data.intrinsics.fy={fx}",
             f"tracking.focal_from_frames={str(on).lower()}", "tracking.focal_window=3")), out)
     check_focal_found(docs, path_scene["fx"], 0.92, "frames")
+    assert (tmp_path / "out_True" / "focal.png").is_file()
+    assert not (tmp_path / "out_False" / "focal.png").exists()
