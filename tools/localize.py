@@ -355,15 +355,16 @@ def _tracking_line(s: Dict[str, Any], rows: List[Dict[str, Any]]) -> str:
     if matched or fell_back:
         line += (f"; patch search matched {matched} renders, left {fell_back} to the "
                  "descriptors")
-    return line + _focal_line(s, "frames")
+    focal = _focal_line(s, "frames")
+    return line + ("\n" + focal if focal else "")
 
 
 def _focal_line(s: Dict[str, Any], what: str) -> str:
-    """The focal length a batch or a sequence estimated from its photos, when not the given one."""
+    """The focal length a batch or a sequence estimated from its photos ("": the given one)."""
     scale = s.get("focal_scale") or 1.0
     if scale == 1.0:
         return ""
-    return (f"\n  focal length {scale:.4f} x the given one, estimated from the {what} "
+    return (f"  focal length {scale:.4f} x the given one, estimated from the {what} "
             f"(adopted {s.get('focal_adoptions', 0)} times this run; {s.get('redone', 0)} "
             f"{what} localized again with it)")
 
@@ -398,8 +399,8 @@ def many_summary(doc: Dict[str, Any]) -> str:
         )
     if s.get("kind") == "sequence":
         lines.append(_tracking_line(s, rows))
-    elif _focal_line(s, "photos"):
-        lines.append(_focal_line(s, "photos").lstrip("\n"))
+    elif s.get("kind") == "batch" and _focal_line(s, "photos"):
+        lines.append(_focal_line(s, "photos"))
     for f, paths in (s.get("exports") or {}).items():
         lines.append(f"  export {f}: {', '.join(paths)}")
     lines.append(f"  outputs in {s.get('output_dir')} (poses.json, poses.csv)")

@@ -390,20 +390,19 @@ def run_batch(
                               "todo": len(tasks)})
             if not pooling:
                 break
-            now = [ledger.finished().get(t.name) for t in mine]
-            now = [r for r in now if r is not None]
-            if state["adoptions"]:  # the record of the passes (focal.png) gets this one
+            finished = ledger.finished()
+            now = [finished[t.name] for t in mine if t.name in finished]
+            new = None if state["adoptions"] >= focal.focal_rounds else focal.adopt(
+                now, scale, state["adoptions"] > 0)
+            if state["adoptions"] or new is not None:  # the record of the passes (focal.png)
                 _record_pass(state, scale, now)
-                write_json_atomic(state_path, state)
-            if state["adoptions"] >= focal.focal_rounds:
-                break
-            new = focal.adopt(now, scale, state["adoptions"] > 0)
             if new is None:
+                if state["adoptions"]:
+                    write_json_atomic(state_path, state)
                 break
             logger.info("the photos' refits (%d) agree on a focal length %.4f x the given one "
                         "(%.4f x the one used): the batch takes it, and localizes them again",
                         sum(photo_focal_scale(r) is not None for r in now), new, new / scale)
-            _record_pass(state, scale, now)
             state.update(scale=new, adoptions=state["adoptions"] + 1)
             write_json_atomic(state_path, state)
             adopted_now += 1
