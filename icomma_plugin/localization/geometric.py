@@ -6,10 +6,11 @@ camera. Repeated from the new pose while it gets better.
 
 Each round renders and matches at a pose, which both scores that pose
 (``verify.score_observation``: how many matches agree with it) and proposes the next one (PnP). A
-proposal is accepted only when its own render scores better than the pose it came from;
-otherwise the stage keeps the better pose and stops. It also stops when a proposal barely moves
-the pose (then that last, tiny step is taken: the photometric refinement and the final
-verification that follow check it).
+proposal is accepted only when its own render scores better than the best pose so far;
+otherwise the stage keeps the best pose and stops, or, ``patience`` rounds in a row at most, goes
+on from that render's own proposal (a score can dip on the way to the right pose). It also stops
+when a proposal barely moves the pose (then that last, tiny step is taken: the photometric
+refinement and the final verification that follow check it).
 """
 from __future__ import annotations
 
@@ -75,6 +76,14 @@ class GeometricConfig:
         centre motion relative to the scene depth) ends the stage. 0.25 deg: the rounds after it
         moved lego poses by 0.03-0.08 deg, back and forth, and the refinement gets there anyway
         (0.05 deg took 13 steps where 0.25 takes 8, same accuracy; docs/SPEED.md).
+    patience: a proposal whose render agrees with fewer matches than the best pose so far does
+        not end the stage at once: the rounds go on from that render's own PnP proposal, up to
+        this many such rounds in a row, and the stage keeps the best-scored pose unless a later
+        render beats it. On a foggy fit the score can dip on the way from a pose off along a
+        narrow lens's rotation-translation ambiguity to the right one: goldcape's IMG_5937 went
+        1.36 deg (244 agreeing matches) -> 0.85 (210) -> 0.53 (200) -> 0.05 deg (327), where the
+        stage had stopped at 1.36 (docs/LOCALIZATION.md, "A dip in the score"). 0: stop at the
+        first such proposal.
     anchors: which 2D-3D correspondences the PnP takes: ``renders`` (the render at the current
         pose matched to the query), ``photos`` (the model's source photos nearest the current pose
         matched to the query, lifted with the model's depth at their cameras: ``anchors.py``) or
@@ -107,6 +116,7 @@ class GeometricConfig:
     accept_tie: float = 0.02
     stop_rot_deg: float = 0.25
     stop_trans_rel: float = 5e-3
+    patience: int = 2
     anchors: str = "renders"
     anchor_photos: int = 2
     anchor_max_angle_deg: float = 60.0
@@ -127,6 +137,7 @@ class GeometricConfig:
         check_int(self.min_pnp_inliers, n + "min_pnp_inliers", 6)
         check_int(self.subpixel_inliers, n + "subpixel_inliers", 0)
         check_int(self.subpixel_iterations, n + "subpixel_iterations", 0)
+        check_int(self.patience, n + "patience", 0)
         for name in ("ransac_px", "inlier_px"):
             check_real(getattr(self, name), n + name, 0.0, lo_open=True)
         check_real(self.min_alpha, n + "min_alpha", 0.0, 1.0)
@@ -249,6 +260,17 @@ def pnp_from_observation(state: LocalizationState, obs: Observation, cfg: Geomet
                          min_inliers=cfg.min_pnp_inliers, seed=seed)
 
 
+def _below_stop(cfg: GeometricConfig, w2c: np.ndarray, proposal: np.ndarray,
+                scene_depth: Optional[float], obs: Observation) -> bool:
+    """Whether ``proposal`` moves ``w2c`` by less than the stage's stop.
+
+    ``stop_rot_deg``, and ``stop_trans_rel`` of the scene depth (else of the render's median).
+    """
+    drot, dtrans = _motion(w2c, proposal)
+    depth = scene_depth if scene_depth else median_depth(obs.depth, obs.alpha)
+    return drot < cfg.stop_rot_deg and dtrans < cfg.stop_trans_rel * depth
+
+
 def run_geometric(state: LocalizationState, w2c_start: np.ndarray, cfg: GeometricConfig,
                   scale: float = 1.0, scene_depth: Optional[float] = None,
                   hypothesis: Optional[int] = None) -> GeometricOutcome:
@@ -262,7 +284,7 @@ def run_geometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Geometri
     best_w2c, best_obs, best_score = w2c, None, None
     first_inliers, start_cov, converged = 0, 0.0, False
     inliers_per_round: List[int] = []
-    rounds = 0
+    rounds, dips = 0, 0  # dips: rounds in a row whose render scored below the best
     level = cfg.first_scale(scale)
     for r in range(cfg.max_rounds):
         rounds = r + 1
@@ -281,12 +303,15 @@ def run_geometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Geometri
             hypothesis=hypothesis,
             scale=level,
         )
-        if not accepted:
+        dip = not accepted
+        if dip and (dips >= cfg.patience or r + 1 >= cfg.max_rounds):
             state.record(rec)
-            logger.debug("geometric round %d: %d inliers, worse than %d: keep the previous pose", r,
+            logger.debug("geometric round %d: %d inliers, worse than %d: keep the best pose", r,
                          sc.inliers, best_score.inliers)
             break
-        best_w2c, best_obs, best_score = w2c, obs, sc
+        if not dip:
+            dips = 0
+            best_w2c, best_obs, best_score = w2c, obs, sc
         pnp = pnp_from_observation(state, obs, cfg, seed=r,
                                    subpixel=cfg.subpixel and sc.inliers >= cfg.subpixel_inliers,
                                    inliers=sc.inliers)
@@ -298,14 +323,22 @@ def run_geometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Geometri
             first_inliers = n_pnp
         if pnp is None:
             break
-        drot, dtrans = _motion(w2c, pnp.w2c)
-        depth = scene_depth if scene_depth else median_depth(obs.depth, obs.alpha)
+        drot, _ = _motion(w2c, pnp.w2c)
+        small = _below_stop(cfg, w2c, pnp.w2c, scene_depth, obs)
+        if dip:  # (``patience``) on from its proposal, unless the pose is PnP's own fixed point
+            if small:
+                break
+            dips += 1
+            logger.debug("geometric round %d: %d inliers, below the best %d: on from its PnP", r,
+                         sc.inliers, best_score.inliers)
+            w2c = pnp.w2c
+            continue
         w2c = pnp.w2c
         if level != scale:
             if drot < cfg.coarse_until_deg:
                 level = scale  # near enough: the next rounds at the working resolution
             continue
-        if drot < cfg.stop_rot_deg and dtrans < cfg.stop_trans_rel * depth:
+        if small:
             converged = True
             best_w2c = w2c  # the last, tiny step (checked by the refinement and verification)
             break

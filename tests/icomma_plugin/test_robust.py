@@ -172,6 +172,43 @@ def test_a_worse_geometric_proposal_is_rejected_and_the_pose_kept(demo, xfeat, m
     assert [r.accepted for r in recs] == [True, False]
 
 
+@pytest.mark.parametrize("patience", [0, 1, 2])
+def test_a_dip_in_the_score_is_crossed_within_the_patience(demo, xfeat, monkeypatch, patience):
+    """Proposals scoring below the best go on from their own PnP, ``patience`` in a row at most.
+
+    The scores of goldcape's IMG_5937: 244 agreeing matches, then 210 and 200 on the way, then
+    327 at the right pose; the stage keeps the best-scored pose it saw.
+    """
+    from icomma_plugin.localization import geometric
+    from icomma_plugin.localization.verify import PoseScore
+
+    scene, _, _, _ = demo
+    poses = [np.linalg.inv(perturb_pose(scene.gt_c2w, d, 0.01 * d, i, pivot="camera"))
+             for i, d in enumerate((1.4, 0.9, 0.5, 0.05))]
+    counts = iter([244, 210, 200, 327, 330])
+    monkeypatch.setattr(geometric, "score_observation",
+                        lambda *a, **k: PoseScore(400, next(counts), 1.0, 0.6, 0.8, 1.0, 0.1))
+    proposals = iter(poses[1:] + [poses[-1]])  # the last one moves the pose no more
+
+    def propose(*a, **k):
+        class P:
+            w2c, num_inliers, inliers, median_error_px = next(proposals), 200, None, 0.5
+        return P()
+
+    monkeypatch.setattr(geometric, "pnp_from_observation", propose)
+    st = _state(demo, xfeat)
+    out = geometric.run_geometric(st, poses[0], geometric.GeometricConfig(patience=patience))
+    accepted = [r.accepted for r in st.trace if r.stage == Stage.GEOMETRIC]
+    if patience == 2:
+        assert accepted == [True, False, False, True] and out.converged
+        assert np.array_equal(out.w2c, poses[3]) and out.score.inliers == 327
+    else:
+        assert accepted == [True] + [False] * (patience + 1) and not out.converged
+        assert np.array_equal(out.w2c, poses[0]) and out.score.inliers == 244
+    with pytest.raises(ValueError, match="GeometricConfig.patience"):
+        geometric.GeometricConfig(patience=-1)
+
+
 def test_a_proposal_within_the_tie_wins_on_its_mean_displacement(demo, xfeat, monkeypatch):
     """Near the answer the agreeing counts differ by noise: the mean displacement decides."""
     from icomma_plugin.localization import geometric
