@@ -139,6 +139,9 @@ class PosesLedger:
         self.shard, self.num_shards = shard, num_shards
         self.rows: Dict[str, Dict[str, Any]] = {}  # this process's rows (this shard's)
         self._seen: Dict[str, Dict[str, Any]] = {}  # rows of earlier runs and other shards
+        # verdict counts over every row known, kept up to date by `record` (the progress line
+        # asks after every photo: a recount would make a batch quadratic); None: recount
+        self._counts: Optional[Dict[str, int]] = None
         self.rewrite_rows, self.rewrite_seconds = int(rewrite_rows), float(rewrite_seconds)
         self.max_rewrite_share = check_real(max_rewrite_share, "max_rewrite_share", 0.0, 1.0,
                                             lo_open=True)
@@ -225,6 +228,7 @@ class PosesLedger:
                 )
 
     def _load(self) -> None:
+        self._counts = None
         sources = ([self.poses_path] if self.poses_path.is_file() else []) + self._part_paths()
         for p in sources:
             doc = read_poses_json(p)
@@ -252,6 +256,7 @@ class PosesLedger:
 
     def forget(self, names: Sequence[str]) -> None:
         """Drop rows that are going to be redone (``retry_failed``)."""
+        self._counts = None
         for n in names:
             self.rows.pop(n, None)
             self._seen.pop(n, None)
@@ -298,6 +303,7 @@ class PosesLedger:
         self._write_cost = self._last_write - t
 
     def _flush(self) -> None:
+        self._counts = None  # (other shards' rows may arrive)
         if self.num_shards == 1:
             self._write_merged()
             return
@@ -346,6 +352,11 @@ class PosesLedger:
         if self.num_shards > 1:
             row["shard"] = self.shard
         self._append_journal(row)
+        if self._counts is not None:
+            old = self.rows.get(row["name"], self._seen.get(row["name"]))
+            if old is not None and old.get("status") in self._counts:
+                self._counts[old["status"]] -= 1
+            self._counts[row["status"]] += 1
         self.rows[row["name"]] = row
         self._seen.pop(row["name"], None)
         if self._rewrite_due():
@@ -358,4 +369,6 @@ class PosesLedger:
 
     def counts(self) -> Dict[str, int]:
         """``{"ok": n, "uncertain": n, "failed": n}`` over every row known."""
-        return counts_of(self.all_rows())
+        if self._counts is None:
+            self._counts = counts_of(list({**self._seen, **self.rows}.values()))
+        return dict(self._counts)

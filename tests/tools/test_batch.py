@@ -411,6 +411,37 @@ def test_journal_keeps_every_row_between_rewrites(tmp_path):
         PosesLedger(tmp_path, dict(run, model_path="/other"), total=5)
 
 
+def test_the_verdict_counts_follow_every_row_without_a_recount(tmp_path, monkeypatch):
+    """The verdict counts, asked after every photo by the progress line, follow ``record``.
+
+    A photo recorded again moves its count, earlier runs' rows count, and between rewrites
+    nothing merges or sorts every row again (a recount each photo made a batch quadratic).
+    """
+    import icomma_plugin.app.ledger as ledger_mod
+
+    run = {"kind": "batch", "model_path": "/m", "queries": "/q"}
+    led = PosesLedger(tmp_path, run, total=6, rewrite_rows=1, rewrite_seconds=3600)
+    led.record({"index": 0, "name": "p0.png", "status": "failed"})
+    again = PosesLedger(tmp_path, run, total=6, rewrite_rows=1, rewrite_seconds=3600)
+    assert again.counts() == {"ok": 0, "uncertain": 0, "failed": 1}
+    recounts = []
+    real = ledger_mod.counts_of
+    monkeypatch.setattr(ledger_mod, "counts_of", lambda rows: recounts.append(1) or real(rows))
+    monkeypatch.setattr(again, "all_rows", lambda: pytest.fail("every row merged and sorted"))
+    again._last_write = float("inf")  # no rewrite due: the journal takes the rows
+    statuses = ["ok", "uncertain", "ok", "failed", "ok"]
+    for i, status in enumerate(statuses, start=1):
+        again.record({"index": i, "name": f"p{i}.png", "status": status})
+        assert again.counts() == real([{"status": "failed"}] + [{"status": x}
+                                                                 for x in statuses[:i]])
+    again.record({"index": 0, "name": "p0.png", "status": "ok"})  # the failed photo, redone
+    again.record({"index": 2, "name": "p2.png", "status": "ok"})  # a photo localized again
+    assert again.counts() == {"ok": 5, "uncertain": 0, "failed": 1}
+    assert recounts == []
+    monkeypatch.undo()
+    assert again.counts() == real(again.all_rows())
+
+
 @pytest.mark.parametrize("least, share, every", [(0, 0.1, 20), (0, 0.5, 4), (0, 1.0, 2),
                                                   (0.4, 1.0, 2), (3, 1.0, 6)])
 def test_rewrites_take_a_bounded_share_of_the_run(tmp_path, monkeypatch, least, share, every):
