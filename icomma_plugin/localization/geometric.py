@@ -162,6 +162,8 @@ class GeometricOutcome:
     pose (at ``w2c``, or at the pose one tiny step before it when the stage converged).
     first_pnp_inliers: PnP inliers of the first round (0: the start gave no usable proposal).
     start_coverage: share of the photo the render at the start pose covered.
+    pnp_inliers: PnP inliers of each accepted round (not of the renders that scored below the
+        best: the last is the best pose's proposal).
     """
 
     w2c: np.ndarray
@@ -316,7 +318,8 @@ def run_geometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Geometri
                                    subpixel=cfg.subpixel and sc.inliers >= cfg.subpixel_inliers,
                                    inliers=sc.inliers)
         n_pnp = 0 if pnp is None else pnp.num_inliers
-        inliers_per_round.append(n_pnp)
+        if not dip:  # (the last one stays the best pose's: ``robust._support``)
+            inliers_per_round.append(n_pnp)
         rec.matches_used = n_pnp
         state.record(rec)
         if r == 0:

@@ -188,11 +188,12 @@ def test_a_dip_in_the_score_is_crossed_within_the_patience(demo, xfeat, monkeypa
     counts = iter([244, 210, 200, 327, 330])
     monkeypatch.setattr(geometric, "score_observation",
                         lambda *a, **k: PoseScore(400, next(counts), 1.0, 0.6, 0.8, 1.0, 0.1))
-    proposals = iter(poses[1:] + [poses[-1]])  # the last one moves the pose no more
+    # (pose, PnP inliers) proposed by each round's render; the last moves the pose no more
+    proposals = iter(zip(poses[1:] + [poses[-1]], [242, 245, 227, 280, 281]))
 
     def propose(*a, **k):
         class P:
-            w2c, num_inliers, inliers, median_error_px = next(proposals), 200, None, 0.5
+            (w2c, num_inliers), inliers, median_error_px = next(proposals), None, 0.5
         return P()
 
     monkeypatch.setattr(geometric, "pnp_from_observation", propose)
@@ -202,9 +203,11 @@ def test_a_dip_in_the_score_is_crossed_within_the_patience(demo, xfeat, monkeypa
     if patience == 2:
         assert accepted == [True, False, False, True] and out.converged
         assert np.array_equal(out.w2c, poses[3]) and out.score.inliers == 327
+        assert out.pnp_inliers == [242, 280]  # the accepted rounds' (the dips' are not)
     else:
         assert accepted == [True] + [False] * (patience + 1) and not out.converged
         assert np.array_equal(out.w2c, poses[0]) and out.score.inliers == 244
+        assert out.pnp_inliers == [242]  # the best pose's proposal stays the last
     with pytest.raises(ValueError, match="GeometricConfig.patience"):
         geometric.GeometricConfig(patience=-1)
 
