@@ -212,6 +212,47 @@ def test_a_dip_in_the_score_is_crossed_within_the_patience(demo, xfeat, monkeypa
         geometric.GeometricConfig(patience=-1)
 
 
+@pytest.mark.parametrize("tie, count, ends_there", [(0.05, 310, True), (0.05, 300, False),
+                                                     (None, 310, False)])
+def test_a_fixed_point_of_pnp_within_the_tie_ends_the_stage(demo, xfeat, monkeypatch, tie,
+                                                            count, ends_there):
+    """A render below the best whose own proposal barely moves it is taken within the tie.
+
+    goldcape's IMG_5953: 322 agreeing matches 0.33 deg off, whose proposal moves 0.27 deg; that
+    render agrees with 310 and its proposal stays (a fixed point of PnP).
+    """
+    from icomma_plugin.localization import geometric
+    from icomma_plugin.localization.verify import PoseScore
+
+    scene, _, _, _ = demo
+    far = np.linalg.inv(perturb_pose(scene.gt_c2w, 0.33, 0.003, 0, pivot="camera"))
+    near = np.linalg.inv(perturb_pose(scene.gt_c2w, 0.07, 0.0005, 1, pivot="camera"))
+    stay = np.linalg.inv(perturb_pose(scene.gt_c2w, 0.06, 0.0005, 1, pivot="camera"))
+    counts = iter([322, count])
+    monkeypatch.setattr(geometric, "score_observation",
+                        lambda *a, **k: PoseScore(400, next(counts), 1.0, 0.6, 0.8, 1.0, 0.1))
+    proposals = iter([(near, 276), (stay, 281)])
+
+    def propose(*a, **k):
+        class P:
+            (w2c, num_inliers), inliers, median_error_px = next(proposals), None, 0.5
+        return P()
+
+    monkeypatch.setattr(geometric, "pnp_from_observation", propose)
+    st = _state(demo, xfeat)
+    cfg = geometric.GeometricConfig(fixed_point_tie=tie)
+    out = geometric.run_geometric(st, far, cfg)
+    assert [r.accepted for r in st.trace if r.stage == Stage.GEOMETRIC] == [True, False]
+    if ends_there:
+        assert np.array_equal(out.w2c, stay) and out.converged and out.score.inliers == count
+        assert out.pnp_inliers == [276, 281]
+    else:
+        assert np.array_equal(out.w2c, far) and not out.converged and out.score.inliers == 322
+        assert out.pnp_inliers == [276]
+    with pytest.raises(ValueError, match="GeometricConfig.fixed_point_tie"):
+        geometric.GeometricConfig(fixed_point_tie=1.0)
+
+
 def test_a_proposal_within_the_tie_wins_on_its_mean_displacement(demo, xfeat, monkeypatch):
     """Near the answer the agreeing counts differ by noise: the mean displacement decides."""
     from icomma_plugin.localization import geometric
