@@ -172,6 +172,27 @@ def test_a_worse_geometric_proposal_is_rejected_and_the_pose_kept(demo, xfeat, m
     assert [r.accepted for r in recs] == [True, False]
 
 
+def _scripted_rounds(monkeypatch, counts, proposals):
+    """Script the geometric stage: no render is matched.
+
+    Its renders score ``counts`` (agreeing matches) in turn, and their PnP proposes
+    ``proposals`` ((w2c, inliers) pairs) in turn.
+    """
+    from icomma_plugin.localization import geometric
+    from icomma_plugin.localization.verify import PoseScore
+
+    counts, proposals = iter(counts), iter(proposals)
+    monkeypatch.setattr(geometric, "score_observation",
+                        lambda *a, **k: PoseScore(400, next(counts), 1.0, 0.6, 0.8, 1.0, 0.1))
+
+    def propose(*a, **k):
+        class P:
+            (w2c, num_inliers), inliers, median_error_px = next(proposals), None, 0.5
+        return P()
+
+    monkeypatch.setattr(geometric, "pnp_from_observation", propose)
+
+
 @pytest.mark.parametrize("patience", [0, 1, 2])
 def test_a_dip_in_the_score_is_crossed_within_the_patience(demo, xfeat, monkeypatch, patience):
     """Proposals scoring below the best go on from their own PnP, ``patience`` in a row at most.
@@ -180,23 +201,13 @@ def test_a_dip_in_the_score_is_crossed_within_the_patience(demo, xfeat, monkeypa
     327 at the right pose; the stage keeps the best-scored pose it saw.
     """
     from icomma_plugin.localization import geometric
-    from icomma_plugin.localization.verify import PoseScore
 
     scene, _, _, _ = demo
     poses = [np.linalg.inv(perturb_pose(scene.gt_c2w, d, 0.01 * d, i, pivot="camera"))
              for i, d in enumerate((1.4, 0.9, 0.5, 0.05))]
-    counts = iter([244, 210, 200, 327, 330])
-    monkeypatch.setattr(geometric, "score_observation",
-                        lambda *a, **k: PoseScore(400, next(counts), 1.0, 0.6, 0.8, 1.0, 0.1))
-    # (pose, PnP inliers) proposed by each round's render; the last moves the pose no more
-    proposals = iter(zip(poses[1:] + [poses[-1]], [242, 245, 227, 280, 281]))
-
-    def propose(*a, **k):
-        class P:
-            (w2c, num_inliers), inliers, median_error_px = next(proposals), None, 0.5
-        return P()
-
-    monkeypatch.setattr(geometric, "pnp_from_observation", propose)
+    # each round's render proposes the next pose; the last proposal moves the pose no more
+    _scripted_rounds(monkeypatch, [244, 210, 200, 327, 330],
+                     zip(poses[1:] + [poses[-1]], [242, 245, 227, 280, 281]))
     st = _state(demo, xfeat)
     out = geometric.run_geometric(st, poses[0], geometric.GeometricConfig(patience=patience))
     accepted = [r.accepted for r in st.trace if r.stage == Stage.GEOMETRIC]
@@ -222,23 +233,12 @@ def test_a_fixed_point_of_pnp_within_the_tie_ends_the_stage(demo, xfeat, monkeyp
     render agrees with 310 and its proposal stays (a fixed point of PnP).
     """
     from icomma_plugin.localization import geometric
-    from icomma_plugin.localization.verify import PoseScore
 
     scene, _, _, _ = demo
     far = np.linalg.inv(perturb_pose(scene.gt_c2w, 0.33, 0.003, 0, pivot="camera"))
     near = np.linalg.inv(perturb_pose(scene.gt_c2w, 0.07, 0.0005, 1, pivot="camera"))
     stay = np.linalg.inv(perturb_pose(scene.gt_c2w, 0.06, 0.0005, 1, pivot="camera"))
-    counts = iter([322, count])
-    monkeypatch.setattr(geometric, "score_observation",
-                        lambda *a, **k: PoseScore(400, next(counts), 1.0, 0.6, 0.8, 1.0, 0.1))
-    proposals = iter([(near, 276), (stay, 281)])
-
-    def propose(*a, **k):
-        class P:
-            (w2c, num_inliers), inliers, median_error_px = next(proposals), None, 0.5
-        return P()
-
-    monkeypatch.setattr(geometric, "pnp_from_observation", propose)
+    _scripted_rounds(monkeypatch, [322, count], [(near, 276), (stay, 281)])
     st = _state(demo, xfeat)
     cfg = geometric.GeometricConfig(fixed_point_tie=tie)
     out = geometric.run_geometric(st, far, cfg)
