@@ -85,10 +85,11 @@ class GeometricConfig:
         1.36 deg (244 agreeing matches) -> 0.85 (210) -> 0.53 (200) -> 0.05 deg (327), where the
         stage had stopped at 1.36 (docs/LOCALIZATION.md, "A dip in the score"). 0: stop at the
         first such proposal.
-    fixed_point_tie: a render that scores below the best pose, but whose own PnP proposal moves
-        it by less than the stop (a pose PnP converged on, where the best-scored one's proposal
-        moved away), ends the stage there when it agrees with at least ``1 - fixed_point_tie``
-        as many matches as the best: near the answer the counts differ by a few % of noise.
+    fixed_point_tie: a render that scores below the best pose (one of those ``patience`` goes on
+        from), but whose own PnP proposal moves it by less than the stop (a pose PnP converged
+        on, where the best-scored one's proposal moved away), ends the stage there when it
+        agrees with at least ``1 - fixed_point_tie`` as many matches as the best: near the
+        answer the counts differ by a few % of noise.
         goldcape's IMG_5953: 322 agreeing matches at 0.33 deg, its proposal's render 310 at 0.07
         deg and a fixed point; the stage had kept the 0.33-deg pose (docs/LOCALIZATION.md, "A
         dip in the score"). None: always the best-scored pose.
