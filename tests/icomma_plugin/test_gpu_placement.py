@@ -141,23 +141,14 @@ def test_the_localize_tool_with_renderer_cuda(small_demo, monkeypatch, tmp_path)
 @pytest.fixture(scope="module")
 def frames(tmp_path_factory):
     """(model folder, a folder of 3 photos along a path around it, their true poses' JSON)."""
-    from PIL import Image
-
-    from icomma_plugin.pose.convert import look_at_c2w
-    from tests.helpers.demo import demo_model, photo
+    from tests.helpers.demo import demo_model, orbit_c2w, save_photos
 
     root = tmp_path_factory.mktemp("frames")
     s, model = demo_model(root / "model", 80)
     folder = root / "frames"
-    folder.mkdir()
-    gts = {}
-    for i in range(3):
-        az = 0.4 + 0.05 * i
-        c2w = look_at_c2w(np.array([3.8 * np.cos(az), 3.8 * np.sin(az), 2.0]),
-                          np.array([0.0, 0.0, 0.4]))
-        Image.fromarray(photo(model, s.intrinsics, c2w)).save(folder / f"frame{i}.png")
-        gts[f"frame{i}.png"] = c2w.tolist()
-    (root / "gt.json").write_text(json.dumps(gts))
+    save_photos(model, s.intrinsics,
+                {f"frame{i}.png": orbit_c2w(0.4 + 0.05 * i, 2.0) for i in range(3)},
+                folder, root / "gt.json")
     return s.path, folder, root / "gt.json"
 
 

@@ -9,18 +9,16 @@ through a resume and a kill in the second pass), and the demo scene's photos giv
 from __future__ import annotations
 
 import json
-import math
 
 import numpy as np
 import pytest
-from PIL import Image
 
 from icomma_plugin.app.batch import BatchPlan, PhotoTask, WorkerSetup, run_batch
 from icomma_plugin.app.batch import worker as batch_worker
 from icomma_plugin.app.focal import BatchFocalConfig, photo_focal_scale, pooled_focal_scale
 from icomma_plugin.app.ledger import PosesLedger
 from icomma_plugin.camera import Intrinsics
-from tests.helpers.demo import demo_model, photo
+from tests.helpers.demo import demo_model, orbit_c2w, save_photos
 from tests.helpers.focal import check_focal_found
 from tests.helpers.tools import compose, localize_tool
 
@@ -181,20 +179,12 @@ def test_a_batch_keeps_the_given_focal_length(tmp_path, monkeypatch, case):
 @pytest.fixture(scope="module")
 def photos_scene(tmp_path_factory):
     """A 100x100 demo model and 6 photos of it rendered around it, with their true poses."""
-    from icomma_plugin.pose.convert import look_at_c2w
-
     root = tmp_path_factory.mktemp("focal_batch")
     s, model = demo_model(root / "model", 100)
     folder = root / "photos"
-    folder.mkdir()
-    gt = {}
-    for i in range(6):
-        az = 0.3 + 0.9 * i
-        c2w = look_at_c2w(np.array([3.8 * math.cos(az), 3.8 * math.sin(az), 1.6 + 0.2 * (i % 3)]),
-                          np.array([0.0, 0.0, 0.4]))
-        Image.fromarray(photo(model, s.intrinsics, c2w)).save(folder / f"p{i}.png")
-        gt[f"p{i}.png"] = c2w.tolist()
-    (root / "gt.json").write_text(json.dumps(gt))
+    save_photos(model, s.intrinsics,
+                {f"p{i}.png": orbit_c2w(0.3 + 0.9 * i, 1.6 + 0.2 * (i % 3)) for i in range(6)},
+                folder, root / "gt.json")
     return {"model": s.path, "photos": folder, "gt": root / "gt.json", "fx": s.intrinsics.fx}
 
 

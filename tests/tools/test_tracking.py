@@ -8,7 +8,6 @@ folder of frames and from an MP4 through the tool.
 from __future__ import annotations
 
 import json
-import math
 import threading
 from types import SimpleNamespace
 
@@ -22,7 +21,7 @@ from icomma_plugin.app.ledger import PosesLedger
 from icomma_plugin.app.tracking import FrameSource, TrackingConfig, predict_c2w, track
 from icomma_plugin.localization.types import LocalizationResult, Verdict
 from icomma_plugin.pose.se3 import se3_exp
-from tests.helpers.demo import demo_model, photo
+from tests.helpers.demo import demo_model, orbit_c2w, photo
 from tests.helpers.focal import check_focal_found
 from tests.helpers.tools import compose, localize_tool
 
@@ -195,8 +194,6 @@ def test_a_failed_frame_is_relocalized_from_candidates(tmp_path):
 @pytest.fixture(scope="module")
 def path_scene(tmp_path_factory):
     """A 100x100 demo model and N_FRAMES frames along an arc around it (PNG folder + MP4)."""
-    from icomma_plugin.pose.convert import look_at_c2w
-
     root = tmp_path_factory.mktemp("track")
     s, model = demo_model(root / "model", SIZE)
     folder = root / "frames"
@@ -204,8 +201,7 @@ def path_scene(tmp_path_factory):
     gts, frames = {}, []
     for i in range(N_FRAMES):
         az = 0.4 + 0.05 * i
-        eye = np.array([3.8 * math.cos(az), 3.8 * math.sin(az), 2.0 + 0.03 * i])
-        c2w = look_at_c2w(eye, np.array([0.0, 0.0, 0.4]))
+        c2w = orbit_c2w(az, 2.0 + 0.03 * i)
         a = photo(model, s.intrinsics, c2w)
         Image.fromarray(a).save(folder / f"frame{i}.png")
         frames.append(a)
@@ -369,22 +365,19 @@ def portrait_scene(tmp_path_factory):
     """
     from icomma_plugin.camera import Intrinsics
     from icomma_plugin.io.cameras_json import CameraEntry, read_cameras_json, write_cameras_json
-    from icomma_plugin.pose.convert import look_at_c2w
 
     root = tmp_path_factory.mktemp("portrait")
     s, model = demo_model(root / "model", SIZE)
     W, H = PORTRAIT
     fx = 80.0
     intr = Intrinsics(W, H, fx, fx)
-    target = np.array([0.0, 0.0, 0.4])
     cams = read_cameras_json(s.path / "cameras.json")
-    eye0 = np.array([3.8 * math.cos(0.4), 3.8 * math.sin(0.4), 2.0])
-    cams.append(CameraEntry(len(cams), "portrait", W, H, look_at_c2w(eye0, target), fx, fx))
+    cams.append(CameraEntry(len(cams), "portrait", W, H, orbit_c2w(0.4, 2.0), fx, fx))
     write_cameras_json(s.path / "cameras.json", cams)
     gts, frames = {}, []
     for i in range(3):
         az = 0.4 + 0.05 * i
-        c2w = look_at_c2w(np.array([3.8 * math.cos(az), 3.8 * math.sin(az), 2.0]), target)
+        c2w = orbit_c2w(az, 2.0)
         frames.append(photo(model, intr, c2w))
         gts[f"frame_{i:06d}"] = c2w.tolist()
     (root / "gt.json").write_text(json.dumps(gts))
