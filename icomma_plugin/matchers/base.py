@@ -185,7 +185,7 @@ class DescriptorStack:
             self.valid[r, : len(f)] = True
 
     def mutual_nn_counts(self, f1: Features, min_cosine: float = 0.8,
-                         chunk_bytes: int = 64 << 20) -> List[int]:
+                         chunk_bytes: int = 4 << 20) -> List[int]:
         """Each image's `mutual_nn_count` with ``f1`` (-1 for an image without features)."""
         out = [-1] * self.size
         for i in self.empty + (self.rows if len(f1) == 0 else []):
