@@ -48,7 +48,8 @@ __all__ = [
 ]
 
 #: Bump when the stored index changes meaning (old files are then never read: the key changes).
-CACHE_FORMAT = 1
+#: 2: a camera is described by a photo of its name only at the photo's pose.
+CACHE_FORMAT = 2
 
 PathLike = Union[str, os.PathLike]
 T = TypeVar("T")

@@ -140,7 +140,12 @@ class CandidateIndex:
         cams = [np.asarray(c, np.float64) for c in cameras_c2w]
         names = list(names) if names is not None else [f"camera_{i}" for i in range(len(cams))]
         use = photos if (photos is not None and cfg.photos) else None
+        # a camera is described by the photo of its name taken at its pose: a Blender folder
+        # names its train and test views alike (r_0, r_1, ...) and a model's cameras.json lists
+        # both, while the source photos are the train views only
         of_camera = [None if use is None else use.index_of(n) for n in names[: len(cams)]]
+        of_camera = [j if j is not None and same_pose(c, use.photos[j].c2w) else None
+                     for c, j in zip(cams, of_camera)]
         extra = [] if use is None else [
             i for i in range(len(use)) if i not in set(j for j in of_camera if j is not None)]
         centre, radius, up = scene_frame(state.model.means.detach().cpu().numpy(), cams)

@@ -117,6 +117,23 @@ def test_cameras_with_photos_are_ranked_by_their_photos(demo, xfeat, tmp_path):
     assert len(list((tmp_path / "candidates").glob("*.pt"))) == 2
 
 
+def test_a_camera_named_like_a_photo_elsewhere_is_rendered(demo, xfeat):
+    """Only the camera at the photo's pose is described by the photo of its name.
+
+    A Blender folder names its train and test views alike (r_0 ...); a model's cameras.json lists
+    both, and the source photos are the train views.
+    """
+    import dataclasses
+
+    scene, model, cams, photos = demo
+    twin = dataclasses.replace(cams[5], c2w=cams[1].c2w.copy())  # cams[5]'s name, another pose
+    loc = Localizer(model, xfeat, cameras=list(cams) + [twin], photos=photos, cache_dir=False)
+    index = loc.candidate_index(scene.intrinsics, CandidateConfig(num_sampled=0))
+    assert index.source[5] == index.source[len(cams)] == cams[5].img_name
+    assert index.kinds[5] == "photo" and index.kinds[len(cams)] == "camera"
+    assert np.allclose(index.c2w[len(cams)], cams[1].c2w)
+
+
 def _outcome(w2c, inliers, pnp):
     score = PoseScore(inliers + 10, inliers, 0.3, 0.3, 0.5, 0.9, 0.05)
     return GeometricOutcome(w2c, None, score, 3, True, pnp, 0.9, [pnp])
