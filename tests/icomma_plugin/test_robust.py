@@ -1244,28 +1244,32 @@ def test_patch_search_is_checked_and_needs_a_matcher_with_keypoints(demo, xfeat)
 # ------------------------------------------------------------------------------ the focal length
 
 
+def _jacobian_1deg_off(demo, cfg, seed: int, focal_scale: float = 1.0, rng=(0.5, 2.0)):
+    """The demo 1 deg off its truth: (state, w2c, backward gradient, render, mask, Jacobian).
+
+    Of the exposure-profiled loss (gain range ``rng``), the focal length scaled by
+    ``focal_scale``; the Jacobian by ``cfg``'s forward differences.
+    """
+    from icomma_plugin.localization.refine import _evaluate, _fd_jacobian
+
+    st = _state(demo)
+    st.focal_scale = focal_scale
+    w2c = np.linalg.inv(perturb_pose(demo[0].gt_c2w, 1.0, 0.01, seed, pivot="camera"))
+    _, grad, out, mask = _evaluate(st, w2c, 1.0, None, None, exposure_gain=rng)
+    jac = _fd_jacobian(st, cfg, w2c, 1.0, out, mask, 0.0, torch.ones(3, dtype=torch.float64),
+                       st.query_at(1.0).rgb, own_render=False)
+    return st, w2c, grad, out, mask, jac
+
+
 def test_the_focal_gradient_matches_finite_differences_of_the_loss(demo):
     """The Gauss-Newton gradient along the focal length's log against central differences.
 
     Of the exposure-profiled loss, at a pose 1 deg off and a focal length 3 % off the query's.
     """
-    from icomma_plugin.localization.refine import (
-        RefineConfig,
-        _evaluate,
-        _fd_jacobian,
-        _jacobian_gradient,
-    )
+    from icomma_plugin.localization.refine import RefineConfig, _evaluate, _jacobian_gradient
 
-    scene = demo[0]
-    st = _state(demo)
-    st.focal_scale = 1.03
-    w2c = np.linalg.inv(perturb_pose(scene.gt_c2w, 1.0, 0.01, 4, pivot="camera"))
     rng = (0.5, 2.0)
-    cfg = RefineConfig(focal=True)
-    _, _, out, mask = _evaluate(st, w2c, 1.0, None, None, exposure_gain=rng)
-    gains = torch.ones(3, dtype=torch.float64)
-    jac = _fd_jacobian(st, cfg, w2c, 1.0, out, mask, 0.0, gains, st.query_at(1.0).rgb,
-                       own_render=False)
+    st, w2c, _, out, mask, jac = _jacobian_1deg_off(demo, RefineConfig(focal=True), 4, 1.03, rng)
     assert jac.J.shape[1] == 7 and st.focal_scale == 1.03  # the column's render is undone
     g = float(_jacobian_gradient(jac, out.color, rng)[6])
     h, val = 1e-3, []
@@ -1283,22 +1287,11 @@ def test_the_pose_gradient_against_central_differences_of_the_loss(demo):
     the rasterizer's backward pass within 8 %: it leaves out where the Gaussians' footprints are
     cut off, which the loss's differences see (gaussian_renderer_pose/DESIGN.md, "Gradients").
     """
-    from icomma_plugin.localization.refine import (
-        RefineConfig,
-        _evaluate,
-        _fd_jacobian,
-        _jacobian_gradient,
-    )
+    from icomma_plugin.localization.refine import RefineConfig, _evaluate, _jacobian_gradient
     from icomma_plugin.pose import se3_exp
 
-    scene = demo[0]
-    st = _state(demo)
-    w2c = np.linalg.inv(perturb_pose(scene.gt_c2w, 1.0, 0.01, 5, pivot="camera"))
     rng = (0.5, 2.0)
-    _, grad, out, mask = _evaluate(st, w2c, 1.0, None, None, exposure_gain=rng)
-    gains = torch.ones(3, dtype=torch.float64)
-    jac = _fd_jacobian(st, RefineConfig(fd_step=1e-4), w2c, 1.0, out, mask, 0.0, gains,
-                       st.query_at(1.0).rgb, own_render=False)
+    st, w2c, grad, out, mask, jac = _jacobian_1deg_off(demo, RefineConfig(fd_step=1e-4), 5)
     g = _jacobian_gradient(jac, out.color, rng)
     assert g.shape == (6,) and g.dtype == torch.float64
     h, central = 3e-4, torch.zeros(6, dtype=torch.float64)
