@@ -370,5 +370,5 @@ class PosesLedger:
     def counts(self) -> Dict[str, int]:
         """``{"ok": n, "uncertain": n, "failed": n}`` over every row known."""
         if self._counts is None:
-            self._counts = counts_of(list({**self._seen, **self.rows}.values()))
+            self._counts = counts_of(self.all_rows())
         return dict(self._counts)

@@ -274,17 +274,6 @@ def pnp_from_observation(state: LocalizationState, obs: Observation, cfg: Geomet
                          min_inliers=cfg.min_pnp_inliers, seed=seed)
 
 
-def _below_stop(cfg: GeometricConfig, w2c: np.ndarray, proposal: np.ndarray,
-                scene_depth: Optional[float], obs: Observation) -> bool:
-    """Whether ``proposal`` moves ``w2c`` by less than the stage's stop.
-
-    ``stop_rot_deg``, and ``stop_trans_rel`` of the scene depth (else of the render's median).
-    """
-    drot, dtrans = _motion(w2c, proposal)
-    depth = scene_depth if scene_depth else median_depth(obs.depth, obs.alpha)
-    return drot < cfg.stop_rot_deg and dtrans < cfg.stop_trans_rel * depth
-
-
 def run_geometric(state: LocalizationState, w2c_start: np.ndarray, cfg: GeometricConfig,
                   scale: float = 1.0, scene_depth: Optional[float] = None,
                   hypothesis: Optional[int] = None) -> GeometricOutcome:
@@ -338,8 +327,9 @@ def run_geometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Geometri
             first_inliers = n_pnp
         if pnp is None:
             break
-        drot, _ = _motion(w2c, pnp.w2c)
-        small = _below_stop(cfg, w2c, pnp.w2c, scene_depth, obs)
+        drot, dtrans = _motion(w2c, pnp.w2c)
+        depth = scene_depth if scene_depth else median_depth(obs.depth, obs.alpha)
+        small = drot < cfg.stop_rot_deg and dtrans < cfg.stop_trans_rel * depth  # (the stop)
         if dip:  # (``patience``) on from its proposal, unless the pose is PnP's own fixed point
             if small:
                 tie = cfg.fixed_point_tie
