@@ -199,6 +199,18 @@ def render_correspondences(state: LocalizationState, obs: Observation, cfg: Geom
     m = obs.matches
     if m is None or len(m) < cfg.min_pnp_inliers:
         return np.zeros((0, 3)), np.zeros((0, 2))
+    refined = cfg.subpixel_iterations if subpixel and not m.subpixel else None
+    key = (refined, cfg.min_alpha, cfg.max_depth_jump)
+    if key not in obs.lifted:  # (the PnP's and the verdict's focal refit's: lifted once)
+        pts, pix = _lift_matches(state, obs, cfg, subpixel)
+        pts.flags.writeable = pix.flags.writeable = False
+        obs.lifted[key] = pts, pix
+    return obs.lifted[key]
+
+
+def _lift_matches(state: LocalizationState, obs: Observation, cfg: GeometricConfig,
+                  subpixel: bool) -> Tuple[np.ndarray, np.ndarray]:
+    m = obs.matches
     intr = state.intrinsics_at(obs.scale)
     kpts0, kpts1 = m.kpts0.detach(), m.kpts1.detach()
     if subpixel and not m.subpixel:  # (a patch search's are sub-pixel already)

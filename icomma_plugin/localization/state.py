@@ -74,7 +74,9 @@ class Observation:
     ``state.intrinsics_at(scale)``). color/depth/alpha: the render. matches: render (kpts0) vs
     query (kpts1) at that scale, or None if not matched. subpixel: the render's keypoints
     refined against the query (``geometric.render_correspondences``), by Newton iterations, so
-    that the PnP and the verdict's focal refit of one render refine them once.
+    that the PnP and the verdict's focal refit of one render refine them once. lifted: those
+    correspondences lifted to world points, ``(points, query pixels)`` (read-only) by how they
+    were made, so that they are lifted once too.
     """
 
     w2c: np.ndarray
@@ -84,6 +86,7 @@ class Observation:
     alpha: torch.Tensor
     matches: Any = None
     subpixel: Dict[int, torch.Tensor] = field(default_factory=dict)
+    lifted: Dict[tuple, Tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
 
 @dataclass

@@ -299,7 +299,8 @@ def observe_and_score(state: LocalizationState, w2c: np.ndarray, scale: float, i
         if obs is None or obs.scale != scale:
             obs = state.observe(w2c, scale, match=False)
         obs.matches = state.match(obs.color, scale)
-        obs.subpixel.clear()  # refined for other matches
+        obs.subpixel.clear()  # refined and lifted for other matches
+        obs.lifted.clear()
         return score_observation(obs, state, inlier_px), obs
 
 

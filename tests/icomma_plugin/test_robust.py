@@ -131,6 +131,37 @@ def test_depth_edges_are_those_of_a_3x3_max_and_min_pool(shape):
         assert got.any() and not got.all()
 
 
+@pytest.mark.parametrize("shape", [(1, 1), (2, 9), (7, 5), (40, 33)])
+def test_depth_edges_about_points_are_the_whole_maps_where_a_sample_reads(shape):
+    """The depth edges ``lift_keypoints`` computes about its keypoints alone.
+
+    The whole map's values on each point's nearest pixel and neighbours, so a bilinear sample at
+    the points reads the same (integer, half-pixel and border positions included).
+    """
+    from icomma_plugin.localization.geometry import _depth_edges_at, depth_edges, sample_bilinear
+
+    g = torch.Generator().manual_seed(6)
+    H, W = shape
+    depth = 2.0 + 0.05 * torch.rand((1,) + shape, generator=g, dtype=torch.float64)
+    depth[..., H // 3:, W // 2:] += 1.0
+    depth[..., : H // 2, : W // 3] = 0.0
+    size = torch.tensor([W - 1, H - 1], dtype=torch.float64)
+    xy = torch.rand((200, 2), generator=g, dtype=torch.float64) * size
+    xy[:40] = torch.round(xy[:40])
+    xy[40:60] = torch.floor(xy[40:60]) + 0.5
+    xy[60:70, 0], xy[70:80, 1] = 0.0, H - 1.0
+    whole = depth_edges(depth, 0.05).to(torch.float64)
+    near = _depth_edges_at(depth, xy, 0.05)
+    assert near.shape == whole.shape
+    c = torch.round(xy).long()
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            x, y = c[:, 0] + dx, c[:, 1] + dy
+            inside = (x >= 0) & (x < W) & (y >= 0) & (y < H)
+            assert torch.equal(near[0, y[inside], x[inside]], whole[0, y[inside], x[inside]])
+    assert torch.equal(sample_bilinear(near, xy)[:, 0] > 0, sample_bilinear(whole, xy)[:, 0] > 0)
+
+
 def test_lift_keypoints_inverts_the_projection(demo):
     scene, model, _, _ = demo
     st = _state(demo)

@@ -63,6 +63,21 @@ def test_exact_at_zero():
         assert torch.equal(se3_log(torch.eye(4, dtype=dtype)), torch.zeros(6, dtype=dtype))
 
 
+@pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-3, 0.03, 0.5, 3.0])
+def test_numpy_twist_is_the_torch_twist(angle):
+    """A numpy twist (the host-side solvers') gives the float64 torch exponential's matrix."""
+    import numpy as np
+
+    rng = np.random.default_rng(7)
+    axis = rng.normal(size=3)
+    xi = np.concatenate([rng.normal(size=3), angle * axis / np.linalg.norm(axis)])
+    T = se3_exp(xi)
+    assert isinstance(T, np.ndarray) and T.dtype == np.float64 and T.shape == (4, 4)
+    np.testing.assert_allclose(T, se3_exp(torch.as_tensor(xi)).numpy(), rtol=0, atol=1e-15)
+    with pytest.raises(ValueError, match="xi"):
+        se3_exp(np.zeros(5))
+
+
 def test_known_values():
     # 90 degrees about z maps x to y; translation along rho with phi = 0 is a pure shift.
     R = so3_exp(torch.tensor([0.0, 0.0, math.pi / 2], dtype=torch.float64))
