@@ -176,6 +176,9 @@ class GeometricOutcome:
     start_coverage: share of the photo the render at the start pose covered.
     pnp_inliers: PnP inliers of each accepted round (not of the renders that scored below the
         best: the last is the best pose's proposal).
+    joined: the stage stopped because a proposal came near the pose it was given to join
+        (``run_geometric``'s ``join``): it leads where that pose is; ``w2c`` and ``score`` are
+        those of its best render before (not a pose of its own).
     """
 
     w2c: np.ndarray
@@ -186,6 +189,11 @@ class GeometricOutcome:
     first_pnp_inliers: int
     start_coverage: float
     pnp_inliers: List[int] = field(default_factory=list)
+    joined: bool = False
+
+
+#: ``run_geometric``'s ``join``: the camera centres within this share of the scene depth.
+JOIN_DEPTH_SHARE = 0.1
 
 
 def _motion(w2c_a: np.ndarray, w2c_b: np.ndarray):
@@ -288,16 +296,20 @@ def pnp_from_observation(state: LocalizationState, obs: Observation, cfg: Geomet
 
 def run_geometric(state: LocalizationState, w2c_start: np.ndarray, cfg: GeometricConfig,
                   scale: float = 1.0, scene_depth: Optional[float] = None,
-                  hypothesis: Optional[int] = None) -> GeometricOutcome:
+                  hypothesis: Optional[int] = None,
+                  join: Optional[Tuple[np.ndarray, float]] = None) -> GeometricOutcome:
     """Render-match-PnP rounds from ``w2c_start`` (see the module docstring).
 
     With ``cfg.coarse_scale`` < 1 the rounds start at that share of ``scale`` and move to
     ``scale`` once a proposal moves the pose by less than ``cfg.coarse_until_deg``; scores of
     the two resolutions are not compared (the first round at ``scale`` is taken as it is).
+    ``join``: ``(w2c, degrees)``: stop (``joined``) once a proposal lies within that rotation of
+    that pose and within ``JOIN_DEPTH_SHARE`` of the scene depth of its centre, the rounds after
+    it would find that pose again (a rival hypothesis that leads to the best one).
     """
     w2c = np.asarray(w2c_start, np.float64)
     best_w2c, best_obs, best_score = w2c, None, None
-    first_inliers, start_cov, converged = 0, 0.0, False
+    first_inliers, start_cov, converged, joined = 0, 0.0, False, False
     inliers_per_round: List[int] = []
     rounds, dips = 0, 0  # dips: rounds in a row whose render scored below the best
     level = cfg.first_scale(scale)
@@ -342,6 +354,11 @@ def run_geometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Geometri
         drot, dtrans = _motion(w2c, pnp.w2c)
         depth = scene_depth if scene_depth else median_depth(obs.depth, obs.alpha)
         small = drot < cfg.stop_rot_deg and dtrans < cfg.stop_trans_rel * depth  # (the stop)
+        if join is not None:
+            jrot, jtrans = _motion(join[0], pnp.w2c)
+            if jrot < join[1] and jtrans < JOIN_DEPTH_SHARE * depth:
+                joined = True
+                break
         if dip:  # (``patience``) on from its proposal, unless the pose is PnP's own fixed point
             if small:
                 tie = cfg.fixed_point_tie
@@ -373,4 +390,5 @@ def run_geometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Geometri
         first_inliers,
         start_cov,
         inliers_per_round,
+        joined,
     )

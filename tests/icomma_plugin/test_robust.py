@@ -284,6 +284,69 @@ def test_a_fixed_point_of_pnp_within_the_tie_ends_the_stage(demo, xfeat, monkeyp
         geometric.GeometricConfig(fixed_point_tie=1.0)
 
 
+@pytest.mark.parametrize("join_deg, shift, joined", [(5.0, 0.0, True), (1.0, 0.0, False),
+                                                    (5.0, 1.0, False), (None, 0.0, False)])
+def test_a_stage_that_leads_to_the_pose_it_may_join_stops_there(demo, xfeat, monkeypatch,
+                                                                join_deg, shift, joined):
+    """A rival hypothesis whose proposal lands near the best pose stops (``join``).
+
+    The proposal 2 deg from the pose to join: within 5 deg it joins after the first round
+    (unless its centre is elsewhere: a repeating scene's twin); within 1 deg it goes on.
+    """
+    from icomma_plugin.localization import geometric
+
+    scene, _, _, _ = demo
+    best = np.linalg.inv(scene.gt_c2w)
+    start = np.linalg.inv(perturb_pose(scene.gt_c2w, 25.0, 0.1, 0, pivot="camera"))
+    near = np.linalg.inv(perturb_pose(scene.gt_c2w, 2.0, 0.0, 1, pivot="camera"))
+    near[:3, 3] += shift * np.asarray(near[:3, :3])[:, 0]  # its centre moved sideways
+    stay = near.copy()
+    _scripted_rounds(monkeypatch, [150, 300, 301], [(near, 140), (stay, 290), (stay, 290)])
+    st = _state(demo, xfeat)
+    join = None if join_deg is None else (best, join_deg)
+    out = geometric.run_geometric(st, start, geometric.GeometricConfig(max_rounds=3), join=join)
+    assert out.joined == joined
+    if joined:
+        assert out.rounds == 1 and np.array_equal(out.w2c, start) and out.score.inliers == 150
+    else:
+        assert out.rounds == 2 and out.converged and out.score.inliers == 300
+
+
+def test_a_hypothesis_that_joined_is_neither_the_best_nor_a_rival():
+    """``_Search`` keeps its best and ``_rival`` looks past a hypothesis that joined it."""
+    from icomma_plugin.localization import robust
+    from icomma_plugin.localization.geometric import GeometricOutcome
+    from icomma_plugin.localization.verify import PoseScore
+
+    def outcome(w2c, inliers, joined=False):
+        score = PoseScore(inliers + 10, inliers, 0.3, 0.3, 0.5, 0.9, 0.05)
+        return GeometricOutcome(w2c, None, score, 1, False, inliers, 0.9, [inliers], joined)
+
+    cfg = robust.RobustConfig()
+    best = outcome(np.eye(4), 200)
+    far = perturb_pose(np.eye(4), 30.0, 0.0, 0, pivot="camera")
+    assert robust._rival([("a", best), ("b", outcome(far, 190))], best, cfg) is not None
+    assert robust._rival([("a", best), ("b", outcome(far, 190, True))], best, cfg) is None
+
+    search = robust._Search(None, cfg, 1.0)
+    search.best = best
+
+    class Index:
+        source = {3: "r_3"}
+
+        def start_w2c(self, idx, turns):
+            return far
+
+    import unittest.mock as mock
+
+    with mock.patch.object(robust, "run_geometric", lambda *a, **k: outcome(far, 250, True)):
+        search._run_candidate(Index(), 3, 0, 2, " (rival)", join=(best.w2c, 5.0))
+    assert search.best is best and search.hyps[-1][1].joined
+    with mock.patch.object(robust, "run_geometric", lambda *a, **k: outcome(far, 250)):
+        search._run_candidate(Index(), 3, 0, 3)
+    assert search.best is search.hyps[-1][1]
+
+
 def test_a_proposal_within_the_tie_wins_on_its_mean_displacement(demo, xfeat, monkeypatch):
     """Near the answer the agreeing counts differ by noise: the mean displacement decides."""
     from icomma_plugin.localization import geometric
