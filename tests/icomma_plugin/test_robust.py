@@ -347,6 +347,43 @@ def test_a_hypothesis_that_joined_is_neither_the_best_nor_a_rival():
     assert search.best is search.hyps[-1][1]
 
 
+@pytest.mark.parametrize("converged, rounds, joins", [(True, 3, True), (True, 8, False),
+                                                     (False, 3, False)])
+def test_a_rival_may_join_only_a_best_pose_that_settled(monkeypatch, converged, rounds, joins):
+    """The rival's rounds stop near the best pose only if that converged before its last round.
+
+    A best that needed all its rounds may not sit at its basin's fixed point (goldcape's
+    IMG_5913): the rival then runs to its end and is taken if it scores better.
+    """
+    from icomma_plugin.localization import robust
+    from icomma_plugin.localization.geometric import GeometricOutcome
+    from icomma_plugin.localization.verify import PoseScore
+
+    cfg = robust.RobustConfig()
+    score = PoseScore(250, 240, 0.3, 0.3, 0.5, 0.9, 0.05)
+    search = robust._Search(None, cfg, 1.0)
+    search.best = GeometricOutcome(np.eye(4), None, score, rounds, converged, 200, 0.9, [200])
+    far = perturb_pose(np.eye(4), 30.0, 0.0, 0, pivot="camera")
+
+    class Index:
+        source, features, last_counts = ["a", "b"], [object(), object()], [100, 95]
+
+        def start_w2c(self, idx, turns):
+            return np.eye(4) if idx == 0 else far
+
+    asked = {}
+
+    def fake(state, w2c, cfg_, scale, hypothesis=None, join=None):
+        asked["join"] = join
+        return GeometricOutcome(w2c, None, score, 1, False, 0, 0.9, [], join is not None)
+
+    monkeypatch.setattr(robust, "run_geometric", fake)
+    search._run_rival(Index(), [(0, 0), (1, 0)], {0})
+    assert (asked["join"] is not None) == joins
+    if joins:
+        assert asked["join"][1] == robust.RIVAL_JOIN_SHARE * cfg.candidates.rival_deg
+
+
 def test_a_proposal_within_the_tie_wins_on_its_mean_displacement(demo, xfeat, monkeypatch):
     """Near the answer the agreeing counts differ by noise: the mean displacement decides."""
     from icomma_plugin.localization import geometric
