@@ -69,14 +69,10 @@ class FitConfig:
     # Gaussian's distance from the cameras' centre beyond the extent (room-scale scenes)
     distance_scaled_thresholds: bool = True
     # per-photo exposure (exposure.py; upstream --train_test_exp): None = on for photographed
-    # captures, off for synthetic object renders. Its learning rate is a tenth of upstream's
-    # (1e-2 -> 1e-3): a photo is seen once every 43-161 steps on the shared captures, and Adam
-    # moves its exposure by some 6-12 learning rates a visit whatever the gradient's size (the
-    # momentum outlives the visit, the second moment decays between visits); docs/FITTING.md,
-    # "The exposure's learning rate": +0.4-1.2 dB held out on fox, bird and goldcape
+    # captures, off for synthetic object renders
     exposure: Optional[bool] = None
-    exposure_lr_init: float = 1e-3
-    exposure_lr_final: float = 1e-4
+    exposure_lr_init: float = 1e-2
+    exposure_lr_final: float = 1e-3
     # coarse-to-fine: where the coarse levels end, as fractions of the run, coarsest first:
     # (0.1, 0.3) trains at 1/4 size until 10 %, at 1/2 until 30 %, at full size after; (0.3,)
     # at 1/2 until 30 %; () at full size throughout. A level that would make an image side

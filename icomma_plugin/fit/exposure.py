@@ -2,8 +2,7 @@
 
 Upstream 3DGS (2024) optimises, for every training image, a 3x4 matrix `E = [A | b]` applied to
 the render before the loss: `render'(c) = sum_k A[c, k] render(k) + b[c]`, initialised to the
-identity, Adam with a learning rate decaying log-linearly from 1e-2 to 1e-3 over the run (the
-recipe here takes a tenth of that: `FitConfig.exposure_lr_init`, docs/FITTING.md). The
+identity, Adam with a learning rate decaying log-linearly from 1e-2 to 1e-3 over the run. The
 scene is then free of each photo's exposure and white balance; the exposures are written beside
 the model (`exposure.json`, {image name: 3x4 list}, as upstream) and never applied to renders at
 localization time, so the model folder stays upstream-compatible.

@@ -343,9 +343,7 @@ def test_fit_with_exposure_explains_photos_of_changing_exposure():
                          between, size)
     psnr = {}
     for exposure in (False, True):
-        # 1200 steps: the recipe's exposure rate (a tenth of upstream's) needs ~150 visits a
-        # photo to learn gains 35 % apart (300 steps did at upstream's rate)
-        cfg = FitConfig.scaled_schedule(1200, sh_degree=0, densify_until_iter=0)
+        cfg = FitConfig.scaled_schedule(300, sh_degree=0, densify_until_iter=0)
         tr = Trainer(init, views, 3.0, cfg, exposure=exposure)
         tr.run()
         torch.set_grad_enabled(False)
