@@ -68,8 +68,12 @@ def depth_edges(depth: torch.Tensor, rel: float) -> torch.Tensor:
     The expected depth of a pixel on an occlusion boundary mixes the near and the far surface, so a
     keypoint there lifts to a point that lies on neither.
     """
-    hi = _extreme_3x3(depth, torch.maximum)
-    lo = _extreme_3x3(depth, torch.minimum)
+    hi, lo = _extreme_3x3(depth, torch.maximum), _extreme_3x3(depth, torch.minimum)
+    return _spans(hi, lo, depth, rel)
+
+
+def _spans(hi: torch.Tensor, lo: torch.Tensor, depth: torch.Tensor, rel: float) -> torch.Tensor:
+    """Whether a depth range ``hi - lo`` exceeds ``rel`` times the ``depth`` (the edge rule)."""
     return (hi - lo) > rel * depth.clamp_min(1e-12)
 
 
@@ -91,7 +95,7 @@ def _depth_edges_at(depth: torch.Tensor, xy: torch.Tensor, rel: float) -> torch.
     hi = torch.stack([blk[:, i:i + 3, j:j + 3].amax((1, 2)) for i in range(3) for j in range(3)], 1)
     lo = torch.stack([blk[:, i:i + 3, j:j + 3].amin((1, 2)) for i in range(3) for j in range(3)], 1)
     mid = blk[:, 1:4, 1:4].reshape(-1, 9)
-    edge = (hi - lo) > rel * mid.clamp_min(1e-12)  # [N, 9], the centre 3x3 row by row
+    edge = _spans(hi, lo, mid, rel)  # [N, 9], the centre 3x3 row by row
     px = cols[:, 1:4, None].expand(-1, 3, 3).transpose(1, 2).reshape(-1, 9)
     py = rows[:, 1:4, None].expand(-1, 3, 3).reshape(-1, 9)
     ok = (px >= 0) & (px < W) & (py >= 0) & (py < H)

@@ -78,21 +78,27 @@ def vee(M: torch.Tensor) -> torch.Tensor:
     )
 
 
+def _series(x):
+    """(A, B, C) by their Taylor series in ``x = theta^2`` (tensors or floats alike)."""
+    return (1.0 - x / 6.0 * (1.0 - x / 20.0 * (1.0 - x / 42.0)),
+            0.5 - x / 24.0 * (1.0 - x / 30.0 * (1.0 - x / 56.0)),
+            1.0 / 6.0 - x / 120.0 * (1.0 - x / 42.0 * (1.0 - x / 72.0)))
+
+
+def _closed(t2, t, s, half):
+    """(A, B, C) in closed form from ``t^2, t, sin t, sin(t/2)`` (tensors or floats alike)."""
+    # B = (1 - cos t)/t^2 as 2 sin^2(t/2)/t^2, without the cancellation of 1 - cos t
+    return s / t, 2.0 * half * half / t2, (t - s) / (t2 * t)
+
+
 def _coeffs(theta2: torch.Tensor):
     """(A, B, C) = (sin t/t, (1-cos t)/t^2, (t - sin t)/t^3) of t = sqrt(theta2), NaN-free at 0."""
     small = theta2 < _SMALL
     # theta -> 0: feed the closed form a dummy angle so its (discarded) gradient stays finite.
     t2s = torch.where(small, torch.ones_like(theta2), theta2)
     t = torch.sqrt(t2s)
-    s = torch.sin(t)
-    half = torch.sin(0.5 * t)
-    A_cf = s / t
-    B_cf = 2.0 * half * half / t2s  # = (1 - cos t)/t^2 without the cancellation of 1 - cos t
-    C_cf = (t - s) / (t2s * t)
-    x = theta2
-    A_ts = 1.0 - x / 6.0 * (1.0 - x / 20.0 * (1.0 - x / 42.0))
-    B_ts = 0.5 - x / 24.0 * (1.0 - x / 30.0 * (1.0 - x / 56.0))
-    C_ts = 1.0 / 6.0 - x / 120.0 * (1.0 - x / 42.0 * (1.0 - x / 72.0))
+    A_cf, B_cf, C_cf = _closed(t2s, t, torch.sin(t), torch.sin(0.5 * t))
+    A_ts, B_ts, C_ts = _series(theta2)
     return (
         torch.where(small, A_ts, A_cf),
         torch.where(small, B_ts, B_cf),
@@ -247,13 +253,10 @@ def _se3_exp_numpy(xi: np.ndarray) -> np.ndarray:
     rho, phi = xi[:3], xi[3:]
     x = float(phi @ phi)
     if x < _SMALL:
-        A = 1.0 - x / 6.0 * (1.0 - x / 20.0 * (1.0 - x / 42.0))
-        B = 0.5 - x / 24.0 * (1.0 - x / 30.0 * (1.0 - x / 56.0))
-        C = 1.0 / 6.0 - x / 120.0 * (1.0 - x / 42.0 * (1.0 - x / 72.0))
+        A, B, C = _series(x)
     else:
         t = np.sqrt(x)
-        s, half = np.sin(t), np.sin(0.5 * t)
-        A, B, C = s / t, 2.0 * half * half / x, (t - s) / (x * t)
+        A, B, C = _closed(x, t, np.sin(t), np.sin(0.5 * t))
     K = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
     K2 = K @ K
     T = np.eye(4)
