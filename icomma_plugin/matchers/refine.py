@@ -28,7 +28,7 @@ Pixel convention: (x, y), integer pixel centres (3DGS), see docs/CONTRACTS.md.
 from __future__ import annotations
 
 import math
-from typing import Optional, Tuple, Union
+from typing import NamedTuple, Optional, Tuple, Union
 
 import torch
 import torch.nn.functional as F
@@ -139,26 +139,42 @@ def _half_grid_patches(gray, centre, radius, patch, sign, grad=False):
     return patches(s), patches(deriv[..., 0] * scale[0]), patches(deriv[..., 1] * scale[1])
 
 
-def _ncc_scores(render_g, query_g, centre, kpts_query, disp, offs, weights, eps,
+class _QueryPatches(NamedTuple):
+    """The query's side of ``_ncc_scores``, the same at every step of one refinement.
+
+    ``centred``: the patches at ``p - d/2 + o`` less their weighted means [N, D, O]; ``var``:
+    their weighted variances [N, D] (made once per call instead of once per step).
+    """
+
+    centred: torch.Tensor
+    var: torch.Tensor
+
+
+def _query_patches(query_g, kpts_query, disp, offs, weights) -> _QueryPatches:
+    """``_QueryPatches`` of query_g [1,1,H,W] at kpts_query [N, 2] (``_ncc_scores``' grids)."""
+    b = _half_grid_patches(query_g, kpts_query, _grid_radius(disp), _grid_radius(offs), -1)
+    b = b - (b @ weights).unsqueeze(-1)
+    return _QueryPatches(b, (b * b) @ weights)
+
+
+def _ncc_scores(render_g, query: _QueryPatches, centre, disp, offs, weights, eps,
                 grad_centre: bool = False):
     """NCC of render at centre + d/2 + o against query at p - d/2 + o.
 
-    centre, kpts_query: [N, 2]; disp, offs: ``_offset_grid`` of the soft window's and the patch's
-    radius; weights: [O] (sum 1) -> [N, D]; with ``grad_centre`` also dNCC/dcentre [N, D, 2]
-    (detached): the NCC's derivative by its samples (closed form) times the samples' by their
-    positions (one backward pass of the bilinear sampling alone, instead of two through the
-    whole step).
+    centre: [N, 2]; ``query``: ``_query_patches`` at the query keypoints p; disp, offs:
+    ``_offset_grid`` of the soft window's and the patch's radius; weights: [O] (sum 1) -> [N, D];
+    with ``grad_centre`` also dNCC/dcentre [N, D, 2] (detached): the NCC's derivative by its
+    samples (closed form) times the samples' by their positions (one backward pass of the
+    bilinear sampling alone, instead of two through the whole step).
     """
     radius, patch = _grid_radius(disp), _grid_radius(offs)
     out = _half_grid_patches(render_g, centre, radius, patch, 1, grad_centre)
     a = out[0] if grad_centre else out
-    b = _half_grid_patches(query_g, kpts_query, radius, patch, -1)
+    b, var_b = query
     # weighted moments as matrix-vector products over the patch
     a = a - (a @ weights).unsqueeze(-1)
-    b = b - (b @ weights).unsqueeze(-1)
     cov = (a * b) @ weights
     var_a = (a * a) @ weights
-    var_b = (b * b) @ weights
     den = torch.sqrt(var_a * var_b + eps)
     s = cov / den
     if not grad_centre:
@@ -223,14 +239,14 @@ def peak_margin(ncc: torch.Tensor, disp: torch.Tensor, best: torch.Tensor) -> to
     return ncc.gather(1, best.view(-1, 1)).view(-1) - rival
 
 
-def _soft_step(render_g, query_g, centre, kpts_query, disp, offs, weights, eps, temperature,
+def _soft_step(render_g, query: _QueryPatches, centre, disp, offs, weights, eps, temperature,
                jacobian: bool = False):
     """Soft-argmax displacement F(centre) [N, 2] and the NCC at d = 0 [N].
 
     With ``jacobian`` also J = dF/dcentre [N, 2, 2] (``J[n, i, j] = dF_i / dc_j``, detached):
     with p = softmax(s / T), dF/dc = sum_d p_d (d - F) (ds_d/dc)^T / T.
     """
-    out = _ncc_scores(render_g, query_g, centre, kpts_query, disp, offs, weights, eps, jacobian)
+    out = _ncc_scores(render_g, query, centre, disp, offs, weights, eps, jacobian)
     s, ds_dc = out if jacobian else (out, None)
     prob = torch.softmax(s / temperature, dim=-1)
     step = prob @ disp
@@ -243,7 +259,7 @@ def _soft_step(render_g, query_g, centre, kpts_query, disp, offs, weights, eps, 
     return step, centre_score, jac
 
 
-def _step(render_g, query_g, centre, kpts_query, disp, offs, weights, eps, temperature, implicit,
+def _step(render_g, query: _QueryPatches, centre, disp, offs, weights, eps, temperature, implicit,
           radius):
     """One refinement step from `centre` (detached): (delta [N, 2], NCC at centre [N]).
 
@@ -256,11 +272,10 @@ def _step(render_g, query_g, centre, kpts_query, disp, offs, weights, eps, tempe
     n = centre.shape[0]
     c = centre.detach()
     if not implicit:
-        delta, score = _soft_step(render_g, query_g, c, kpts_query, disp, offs, weights, eps,
-                                  temperature)
+        delta, score = _soft_step(render_g, query, c, disp, offs, weights, eps, temperature)
     else:
-        step, score, jac = _soft_step(render_g, query_g, c, kpts_query, disp, offs, weights, eps,
-                                      temperature, jacobian=True)
+        step, score, jac = _soft_step(render_g, query, c, disp, offs, weights, eps, temperature,
+                                      jacobian=True)
         m = -jac  # [N, 2, 2] = -dF/dc
         # 2x2 in closed form: the smallest singular value |det| / s_max, and the inverse
         det = m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] * m[:, 1, 0]
@@ -390,13 +405,14 @@ def refine_render_keypoints(
                 centre[sl] = _integer_search(rg, query_g, centre[sl], kq[sl], window, patch, offs,
                                              weights, eps, margins)
         # 2. fixed-point iterations of the soft-argmax step (Newton steps where well conditioned)
+        query_p = _query_patches(query_g, kq, soft_disp, offs, weights)
         for _ in range(iterations):
-            delta, _ = _step(rg, query_g, centre, kq, soft_disp, offs, weights, eps, temperature,
+            delta, _ = _step(rg, query_p, centre, soft_disp, offs, weights, eps, temperature,
                              True, radius)
             centre = centre + delta.detach()
 
     # 3. final step, with the gradient w.r.t. the render
-    delta, score = _step(render_g, query_g, centre, kq, soft_disp, offs, weights, eps, temperature,
+    delta, score = _step(render_g, query_p, centre, soft_disp, offs, weights, eps, temperature,
                          implicit, radius)
     refined = centre + delta
     if not (render.requires_grad and torch.is_grad_enabled()):

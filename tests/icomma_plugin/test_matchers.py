@@ -416,7 +416,7 @@ def test_refine_jacobian_in_closed_form_matches_finite_differences():
 
     Against central differences of F in float64, and against autograd through the whole step.
     """
-    from icomma_plugin.matchers.refine import _offset_grid, _soft_step, _to_gray
+    from icomma_plugin.matchers.refine import _offset_grid, _query_patches, _soft_step, _to_gray
 
     dt = torch.float64
     query = _to_gray(texture(96, 96).to(dt), 1.0)
@@ -429,8 +429,8 @@ def test_refine_jacobian_in_closed_form_matches_finite_differences():
     w = torch.exp(-(offs * offs).sum(-1) / 18.0)
     w = w / w.sum()
     disp = _offset_grid(1, "cpu", dt)
-    args = (render, query)
-    rest = (kq, disp, offs, w, 1e-8, 0.05)
+    args = (render, _query_patches(query, kq, disp, offs, w))
+    rest = (disp, offs, w, 1e-8, 0.05)
     _, _, jac = _soft_step(*args, centre, *rest, jacobian=True)
     h = 1e-5
     fd = torch.stack([(_soft_step(*args, centre + h * e, *rest)[0]
