@@ -487,8 +487,12 @@ def _fd_jacobian(state, cfg, w2c, scale, out, mask, blur, gains, query,
     return _Jacobian(J, mask.detach().double(), base, query, exposure, blur)
 
 
-def _jacobian_gradient(jac: _Jacobian, color: torch.Tensor, gain_range) -> torch.Tensor:
-    """The loss's Gauss-Newton gradient from the level's Jacobian, ``[K]`` float64.
+def _jacobian_gradient(jac: _Jacobian, color: torch.Tensor, gain_range,
+                       first: int = 0) -> torch.Tensor:
+    """The loss's Gauss-Newton gradient from the level's Jacobian, ``[K - first]`` float64.
+
+    Of the Jacobian's columns from ``first`` on (6: the focal length's alone, which is all the
+    refinement takes from it).
 
     ``2 sum_c a_c sum_p W (a_c I_c + b_c - Q_c) J_c / (C sum W)`` of the render ``color`` (at the
     Jacobian's resolution), the exposure ``a, b`` fitted (its derivative is not needed at the fit:
@@ -500,13 +504,13 @@ def _jacobian_gradient(jac: _Jacobian, color: torch.Tensor, gain_range) -> torch
         img = gaussian_blur(color.detach().to(jac.J.dtype), jac.blur)
         q = jac.query.to(img.dtype)
         w = jac.mask.to(img.dtype)
-        C, K = jac.J.shape[0], jac.J.shape[1]
+        C, K = jac.J.shape[0], jac.J.shape[1] - first
         a = torch.ones(C, 1, 1, dtype=img.dtype, device=img.device)
         if gain_range is not None:
             a, b = exposure_fit(img, q, w, gain_range)
             img = a * img + b
         r = (a * (img - q) * w).reshape(C, -1, 1)
-        Jf = jac.J.reshape(C, K, -1)
+        Jf = jac.J[:, first:].reshape(C, K, -1)
         g = torch.zeros(K, dtype=torch.float64, device=img.device)
         for s in range(0, Jf.shape[-1], _GN_BLOCK):  # float32 blocks summed in float64
             g += torch.bmm(Jf[..., s:s + _GN_BLOCK], r[:, s:s + _GN_BLOCK]).double().sum((0, 2))
@@ -631,7 +635,7 @@ def _lm_level(state: LocalizationState, cfg: RefineConfig, w2c: np.ndarray, scal
     gain = cfg.fitted_gain_range
     K = 7 if cfg.focal else 6
     if cfg.focal:  # the focal length's log: a 7th parameter (``state.focal_scale``)
-        grad = torch.cat([grad, _jacobian_gradient(jac, out.color, gain)[6:]])
+        grad = torch.cat([grad, _jacobian_gradient(jac, out.color, gain, first=6)])
     lam, nu = cfg.lambda_init, 2.0
     last_rot = last_trans = None
     drop = 1.0  # the share of the loss the last step took off
@@ -687,7 +691,7 @@ def _lm_level(state: LocalizationState, cfg: RefineConfig, w2c: np.ndarray, scal
             hess, jac = _hessian_and_jacobian(state, cfg, w2c, scale, out_try, mask, intr, blur,
                                               query, robust)
             if cfg.focal:
-                grad = torch.cat([grad, _jacobian_gradient(jac, out_try.color, gain)[6:]])
+                grad = torch.cat([grad, _jacobian_gradient(jac, out_try.color, gain, first=6)])
         elif robust is not None and jac is not None and jac.mask.shape == mask.shape:
             # the weights of the new residuals (those of the level's start were of a misaligned
             # render: too little curvature, overshooting steps; docs/LOCALIZATION.md)
