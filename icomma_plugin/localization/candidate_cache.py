@@ -19,6 +19,13 @@ The reduced models of the level of detail (``lod.reduce_model``, built by the Lo
 geometric stage and candidate renders) are stored beside the indices, as ``lod-<key>.pt``, keyed by
 the model's fingerprint, the ``LodConfig``, the working camera and the poses they were built from
 (:func:`lod_fields`), with the same atomic writes and locks.
+
+The folder is kept under a size cap (``ICOMMA_CACHE_MAX_GB``, default 4; 0: none), as ccache
+does: each load marks its file as used (its modification time), and after each write the least
+recently used files are removed until the folder is under the cap again. A sweep over models or
+settings leaves an index behind per key, and the keys of older settings, formats included, are
+never asked for again; they are the first to go. Only the cache's own files are touched
+(``<32 hex>.pt`` and ``lod-<32 hex>.pt``, their locks, and temporary files of a write a day old).
 """
 from __future__ import annotations
 
@@ -26,8 +33,10 @@ import hashlib
 import json
 import logging
 import os
+import re
+import time
 from pathlib import Path
-from typing import Any, Callable, Dict, Mapping, Optional, Tuple, TypeVar, Union
+from typing import Any, Callable, Dict, List, Mapping, Optional, Tuple, TypeVar, Union
 
 import numpy as np
 import torch
@@ -42,6 +51,7 @@ __all__ = [
     "CACHE_FORMAT",
     "CandidateCache",
     "default_cache_dir",
+    "default_max_bytes",
     "lod_fields",
     "matcher_identity",
     "model_fingerprint",
@@ -64,6 +74,35 @@ def default_cache_dir() -> Path:
         return Path(env).expanduser()
     base = os.environ.get("XDG_CACHE_HOME") or "~/.cache"
     return Path(base).expanduser() / "icomma"
+
+
+#: The candidates folder's size cap unless ``ICOMMA_CACHE_MAX_GB`` says otherwise (an index of a
+#: real capture's 160 cameras is 6-15 MB, a reduced model of a 1M model some 100 MB).
+DEFAULT_MAX_GB = 4.0
+
+#: The names of the cache's own files: an index, or a reduced model (``lod-``); group 1 the key.
+_CACHE_FILE = re.compile(r"^(?:lod-)?([0-9a-f]{32})\.pt$")
+
+#: A temporary file of a write older than this (seconds) is a crashed write's leftover.
+_STALE_TMP_S = 86400.0
+
+
+def default_max_bytes() -> Optional[int]:
+    """The size cap in bytes: ``$ICOMMA_CACHE_MAX_GB`` (GiB; 0 or less: None, no cap), else 4 GiB.
+
+    A value that is not a number is reported and the default kept.
+    """
+    text = os.environ.get("ICOMMA_CACHE_MAX_GB")
+    gb = DEFAULT_MAX_GB
+    if text is not None and text.strip():
+        try:
+            gb = float(text)
+        except ValueError:
+            logger.warning("ICOMMA_CACHE_MAX_GB=%r is not a number of GiB: the cap stays %g GiB",
+                           text, DEFAULT_MAX_GB)
+        if gb != gb:  # nan
+            gb = DEFAULT_MAX_GB
+    return None if gb <= 0 else int(gb * (1 << 30))
 
 
 def model_fingerprint(model: GaussianModel) -> str:
@@ -122,11 +161,19 @@ def lod_fields(model_id: str, lod: Mapping[str, Any], intrinsics, cameras_c2w,
 
 
 class CandidateCache:
-    """Candidate indices stored under ``directory`` (``<key>.pt``, one per key)."""
+    """Candidate indices stored under ``directory`` (``<key>.pt``, one per key).
 
-    def __init__(self, directory: Optional[PathLike] = None):
+    ``max_bytes``: the folder's size cap (module docstring); None: ``default_max_bytes()``, 0:
+    no cap.
+    """
+
+    def __init__(self, directory: Optional[PathLike] = None, max_bytes: Optional[int] = None):
         self.directory = Path(directory).expanduser() if directory else (
             default_cache_dir() / "candidates")
+        if max_bytes is not None and (isinstance(max_bytes, bool) or not isinstance(max_bytes, int)
+                                      or max_bytes < 0):
+            raise ValueError(f"max_bytes must be None or an int >= 0, got {max_bytes!r}")
+        self.max_bytes = default_max_bytes() if max_bytes is None else (max_bytes or None)
 
     @staticmethod
     def key(fields: Mapping[str, Any]) -> str:
@@ -152,19 +199,65 @@ class CandidateCache:
             d = torch.load(p, map_location="cpu", weights_only=True)
             if d.get("format") != CACHE_FORMAT:
                 return None
-            return decode(d)
+            value = decode(d)
         except Exception as e:  # noqa: BLE001 - a damaged cache file is rebuilt, never fatal
             logger.warning("%s %s unreadable (%s: %s): building it again", what, p,
                            type(e).__name__, e)
             return None
+        try:  # used now: the last to go when the folder is over its cap
+            os.utime(p)
+        except OSError:
+            pass  # (another user's file in a shared cache)
+        return value
 
-    @staticmethod
-    def _save(p: Path, fields: Mapping[str, Any], payload: Dict[str, Any]) -> Path:
-        """Store ``payload`` with the format and the key's fields, atomically."""
+    def _save(self, p: Path, fields: Mapping[str, Any], payload: Dict[str, Any]) -> Path:
+        """Store ``payload`` with the format and the key's fields, atomically; then ``prune``."""
         with atomic_path(p) as tmp:
             torch.save({"format": CACHE_FORMAT,
                         "fields": json.loads(json.dumps(fields, default=str)), **payload}, tmp)
+        self.prune(keep=p)
         return p
+
+    def prune(self, keep: Optional[Path] = None) -> List[Path]:
+        """Remove the least recently used files until the folder is under ``max_bytes``.
+
+        ``keep``: a file never removed (the one just written). Also removes the temporary files
+        of writes that crashed a day or more ago. Returns the cache files removed.
+        """
+        entries, total, now = [], 0, time.time()
+        try:
+            names = list(self.directory.iterdir())
+        except OSError:
+            return []
+        for p in names:
+            try:
+                st = p.stat()
+            except OSError:
+                continue  # removed meanwhile
+            if p.name.startswith(".") and p.name.endswith(".tmp"):
+                if now - st.st_mtime > _STALE_TMP_S:
+                    _unlink(p)
+                continue
+            if _CACHE_FILE.match(p.name):
+                entries.append((st.st_mtime, p.name, st.st_size, p))
+                total += st.st_size
+        if self.max_bytes is None or total <= self.max_bytes:
+            return []
+        removed, freed = [], 0
+        for _, name, size, p in sorted(entries):
+            if total - freed <= self.max_bytes:
+                break
+            if keep is not None and p == Path(keep):
+                continue
+            if _unlink(p):
+                removed.append(p)
+                freed += size
+                _unlink(self.directory / f"{_CACHE_FILE.match(name).group(1)}.lock")
+        if removed:
+            logger.info("cache %s over %.1f GiB: removed the %d least recently used files "
+                        "(%.0f MB)", self.directory, self.max_bytes / (1 << 30), len(removed),
+                        freed / 1e6)
+        return removed
 
     def save(self, key: str, fields: Mapping[str, Any], index: CandidateIndex) -> Path:
         """Store ``index`` atomically (a reader never sees half a file)."""
@@ -229,3 +322,12 @@ class CandidateCache:
             except OSError as e:
                 logger.warning("could not store %s in %s (%s)", key, self.directory, e)
             return value, True
+
+
+def _unlink(p: Path) -> bool:
+    """Remove ``p``; False when it was gone already or cannot be removed."""
+    try:
+        p.unlink()
+        return True
+    except OSError:
+        return False
