@@ -11,6 +11,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, fields
 from typing import Optional, Tuple
 
+from ..checks import check_bool
+
 
 @dataclass
 class FitConfig:
@@ -73,6 +75,9 @@ class FitConfig:
     exposure: Optional[bool] = None
     exposure_lr_init: float = 1e-2
     exposure_lr_final: float = 1e-3
+    # Adam steps only the photos seen since the last step (exposure.ExposureState.sparse);
+    # False: upstream's dense Adam
+    exposure_sparse: bool = False
     # coarse-to-fine: where the coarse levels end, as fractions of the run, coarsest first:
     # (0.1, 0.3) trains at 1/4 size until 10 %, at 1/2 until 30 %, at full size after; (0.3,)
     # at 1/2 until 30 %; () at full size throughout. A level that would make an image side
@@ -135,6 +140,7 @@ class FitConfig:
         if self.exposure not in (None, True, False):
             raise ValueError(f"FitConfig.exposure must be None (auto), True or False, got "
                              f"{self.exposure!r}")
+        check_bool(self.exposure_sparse, "FitConfig.exposure_sparse")
         self.coarse_to_fine = tuple(float(f) for f in self.coarse_to_fine)
         if len(self.coarse_to_fine) > 2 or any(
                 not 0.0 <= f <= 1.0 for f in self.coarse_to_fine) or list(

@@ -27,27 +27,40 @@ from typing import Dict, Optional, Sequence
 import numpy as np
 import torch
 
-from ..checks import check_int
+from ..checks import check_bool, check_int
 from ..pose.convert import as_rigid, invert_rigid
 from ..pose.views import camera_nearness
 from .state import expon_lr
 
 
 class ExposureState:
-    """One affine colour transform [3, 4] per training photo, with its own Adam."""
+    """One affine colour transform [3, 4] per training photo, with its own Adam.
+
+    ``sparse``: Adam steps only the photos seen since the last step, each with its own step
+    count (as ``torch.optim.SparseAdam``): a photo's transform moves about one learning rate a
+    visit. Upstream's dense Adam (False) also moves every photo between its visits, on the
+    momentum of its last gradient, some 6-12 learning rates a visit in all.
+    """
 
     def __init__(self, num_views: int, lr_init: float = 1e-2, lr_final: float = 1e-3,
                  max_steps: int = 30_000, dtype: torch.dtype = torch.float32,
-                 device: Optional[torch.device] = None):
+                 device: Optional[torch.device] = None, sparse: bool = False):
         if isinstance(num_views, bool) or not isinstance(num_views, int) or num_views < 1:
             raise ValueError(f"num_views must be a positive int, got {num_views!r}")
         if not (lr_init > 0 and lr_final > 0):
             raise ValueError(f"lr_init and lr_final must be > 0, got {lr_init!r}, {lr_final!r}")
+        check_bool(sparse, "sparse")
         eye = torch.eye(3, 4, dtype=dtype, device=device)
         self.params = torch.nn.Parameter(eye.repeat(num_views, 1, 1).contiguous())
         self.lr_init, self.lr_final, self.max_steps = float(lr_init), float(lr_final), max_steps
+        self.sparse = sparse
         self.optimizer = torch.optim.Adam([self.params], lr=self.lr_init, eps=1e-15)
         self._touched = torch.zeros(num_views, dtype=torch.bool)
+        if sparse:  # the per-photo moments and step counts
+            self._m = torch.zeros_like(self.params.detach())
+            self._v = torch.zeros_like(self.params.detach())
+            self._t = torch.zeros(num_views, dtype=torch.int64)
+            self._seen = torch.zeros(num_views, dtype=torch.bool)
 
     @property
     def num_views(self) -> int:
@@ -75,6 +88,8 @@ class ExposureState:
         grad[index, :, 3] += g.sum(dim=1)
         self.params.grad = grad
         self._touched[index] = True
+        if self.sparse:
+            self._seen[index] = True
         return (A.T @ g).reshape(image.shape)
 
     @torch.no_grad()
@@ -82,11 +97,30 @@ class ExposureState:
         """One Adam step at `iteration`'s learning rate, then recentre; clears the gradient."""
         if self.params.grad is None:
             return
-        for group in self.optimizer.param_groups:
-            group["lr"] = expon_lr(iteration, self.lr_init, self.lr_final, self.max_steps)
-        self.optimizer.step()
-        self.optimizer.zero_grad(set_to_none=True)
+        lr = expon_lr(iteration, self.lr_init, self.lr_final, self.max_steps)
+        if self.sparse:
+            self._sparse_step(lr)
+            self.params.grad = None
+        else:
+            for group in self.optimizer.param_groups:
+                group["lr"] = lr
+            self.optimizer.step()
+            self.optimizer.zero_grad(set_to_none=True)
         self.recentre()
+
+    def _sparse_step(self, lr: float, betas=(0.9, 0.999), eps: float = 1e-15) -> None:
+        """Adam on the rows seen since the last step, each on its own step count."""
+        rows = torch.nonzero(self._seen).flatten()
+        self._seen[rows] = False
+        g = self.params.grad[rows]
+        self._t[rows] += 1
+        t = self._t[rows].to(g.dtype).view(-1, 1, 1)
+        m = self._m[rows].mul_(betas[0]).add_(g, alpha=1 - betas[0])
+        v = self._v[rows].mul_(betas[1]).addcmul_(g, g, value=1 - betas[1])
+        self._m[rows], self._v[rows] = m, v
+        m_hat = m / (1 - betas[0] ** t)
+        v_hat = v / (1 - betas[1] ** t)
+        self.params.data[rows] -= lr * m_hat / (v_hat.sqrt() + eps)
 
     @torch.no_grad()
     def recentre(self) -> None:

@@ -238,7 +238,7 @@ class Trainer:
             self.centre = torch.as_tensor(scene_centre, dtype=self.dtype, device=self.device)
         self.exposure = ExposureState(len(self.train_views), c.exposure_lr_init,
                                       c.exposure_lr_final, self.max_steps, self.dtype,
-                                      self.device) if exposure else None
+                                      self.device, sparse=c.exposure_sparse) if exposure else None
         self._levels: Dict[int, List[FitView]] = {1: self.train_views}
 
     # ------------------------------------------------------------------ helpers

@@ -104,6 +104,48 @@ def test_exposure_recentre_and_json():
         ExposureState(0)
 
 
+def _visit(st, index, seed):
+    """A gradient for photo ``index``'s transform, as a training step that shows it."""
+    g = torch.Generator().manual_seed(seed)
+    img = torch.rand(3, 4, 5, generator=g, dtype=torch.float64)
+    st.backward(index, img, torch.rand(3, 4, 5, generator=g, dtype=torch.float64) - 0.5)
+
+
+@pytest.mark.parametrize("sparse", [False, True])
+def test_exposure_sparse_adam_moves_only_the_photos_it_saw(sparse):
+    """Between its visits a photo's transform stays put with ``sparse`` (the recentring aside).
+
+    Upstream's dense Adam moves it on its last gradient's momentum at every step.
+    """
+    st = ExposureState(3, lr_init=1e-2, lr_final=1e-2, dtype=torch.float64, sparse=sparse)
+    _visit(st, 0, 0)
+    st.step(0)
+    first = st.params.detach().clone()
+    # a first Adam step moves every element with a gradient by the learning rate; recentring
+    # moves all three photos alike, by a third of it
+    torch.testing.assert_close((first[0] - first[1]).abs(), torch.full((3, 4), 1e-2,
+                                                                        dtype=torch.float64))
+    torch.testing.assert_close(first[1], first[2])
+    for it in range(1, 6):  # five steps that show photo 1 alone
+        _visit(st, 1, it)
+        st.step(it)
+    now = st.params.detach()
+    shift = (now[2] - first[2])  # photo 2 was never seen: the recentring's shift alone
+    moved0 = float((now[0] - first[0] - shift).abs().max())
+    if sparse:
+        assert moved0 < 1e-12  # photo 0 stayed where its one visit left it
+    else:
+        assert moved0 > 2e-2  # momentum carried it on, by more than two learning rates
+    assert float((now[1] - first[1] - shift).abs().max()) > 1e-2  # photo 1 moved
+
+
+def test_exposure_sparse_is_checked():
+    with pytest.raises(ValueError, match="sparse"):
+        ExposureState(2, sparse="yes")
+    with pytest.raises(ValueError, match="exposure_sparse"):
+        FitConfig(exposure_sparse=1)
+
+
 def test_fit_affine_colour_recovers_a_transform():
     g = torch.Generator().manual_seed(2)
     render = torch.rand(3, 20, 30, generator=g, dtype=torch.float64)
