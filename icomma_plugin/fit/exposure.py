@@ -55,12 +55,11 @@ class ExposureState:
         self.lr_init, self.lr_final, self.max_steps = float(lr_init), float(lr_final), max_steps
         self.sparse = sparse
         self.optimizer = torch.optim.Adam([self.params], lr=self.lr_init, eps=1e-15)
-        self._touched = torch.zeros(num_views, dtype=torch.bool)
+        self._seen = torch.zeros(num_views, dtype=torch.bool)  # since the last step
         if sparse:  # the per-photo moments and step counts
             self._m = torch.zeros_like(self.params.detach())
             self._v = torch.zeros_like(self.params.detach())
             self._t = torch.zeros(num_views, dtype=torch.int64)
-            self._seen = torch.zeros(num_views, dtype=torch.bool)
 
     @property
     def num_views(self) -> int:
@@ -87,9 +86,7 @@ class ExposureState:
         grad[index, :, :3] += g @ x.T
         grad[index, :, 3] += g.sum(dim=1)
         self.params.grad = grad
-        self._touched[index] = True
-        if self.sparse:
-            self._seen[index] = True
+        self._seen[index] = True
         return (A.T @ g).reshape(image.shape)
 
     @torch.no_grad()
@@ -106,6 +103,7 @@ class ExposureState:
                 group["lr"] = lr
             self.optimizer.step()
             self.optimizer.zero_grad(set_to_none=True)
+            self._seen[:] = False
         self.recentre()
 
     def _sparse_step(self, lr: float, betas=(0.9, 0.999), eps: float = 1e-15) -> None:

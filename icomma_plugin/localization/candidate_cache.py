@@ -32,6 +32,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 import os
 import re
 import time
@@ -88,9 +89,9 @@ _STALE_TMP_S = 86400.0
 
 
 def default_max_bytes() -> Optional[int]:
-    """The size cap in bytes: ``$ICOMMA_CACHE_MAX_GB`` (GiB; 0 or less: None, no cap), else 4 GiB.
+    """The size cap in bytes: ``$ICOMMA_CACHE_MAX_GB`` in GiB, else 4 GiB.
 
-    A value that is not a number is reported and the default kept.
+    0 or less, or inf: None (no cap). A value that is not a number is reported and the default kept.
     """
     text = os.environ.get("ICOMMA_CACHE_MAX_GB")
     gb = DEFAULT_MAX_GB
@@ -100,9 +101,9 @@ def default_max_bytes() -> Optional[int]:
         except ValueError:
             logger.warning("ICOMMA_CACHE_MAX_GB=%r is not a number of GiB: the cap stays %g GiB",
                            text, DEFAULT_MAX_GB)
-        if gb != gb:  # nan
+        if math.isnan(gb):
             gb = DEFAULT_MAX_GB
-    return None if gb <= 0 else int(gb * (1 << 30))
+    return None if gb <= 0 or math.isinf(gb) else int(gb * (1 << 30))
 
 
 def model_fingerprint(model: GaussianModel) -> str:
@@ -238,13 +239,14 @@ class CandidateCache:
                 if now - st.st_mtime > _STALE_TMP_S:
                     _unlink(p)
                 continue
-            if _CACHE_FILE.match(p.name):
-                entries.append((st.st_mtime, p.name, st.st_size, p))
+            m = _CACHE_FILE.match(p.name)
+            if m:
+                entries.append((st.st_mtime, p.name, st.st_size, p, m.group(1)))
                 total += st.st_size
         if self.max_bytes is None or total <= self.max_bytes:
             return []
         removed, freed = [], 0
-        for _, name, size, p in sorted(entries):
+        for _, _, size, p, key in sorted(entries):
             if total - freed <= self.max_bytes:
                 break
             if keep is not None and p == Path(keep):
@@ -252,7 +254,7 @@ class CandidateCache:
             if _unlink(p):
                 removed.append(p)
                 freed += size
-                _unlink(self.directory / f"{_CACHE_FILE.match(name).group(1)}.lock")
+                _unlink(self.directory / f"{key}.lock")
         if removed:
             logger.info("cache %s over %.1f GiB: removed the %d least recently used files "
                         "(%.0f MB)", self.directory, self.max_bytes / (1 << 30), len(removed),

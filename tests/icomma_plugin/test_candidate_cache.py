@@ -87,6 +87,8 @@ def test_the_cap_from_the_environment(monkeypatch, caplog):
     assert CandidateCache("unused").max_bytes == 1 << 29
     monkeypatch.setenv("ICOMMA_CACHE_MAX_GB", "0")
     assert default_max_bytes() is None
+    monkeypatch.setenv("ICOMMA_CACHE_MAX_GB", "inf")
+    assert default_max_bytes() is None
     monkeypatch.setenv("ICOMMA_CACHE_MAX_GB", "lots")
     with caplog.at_level(logging.WARNING):
         assert default_max_bytes() == int(DEFAULT_MAX_GB * (1 << 30))
