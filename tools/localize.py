@@ -268,12 +268,15 @@ def _run_many(cfg: DictConfig, out: Path) -> Dict[str, Any]:
 def _run_batch(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, Any]:
     from icomma_plugin.app.batch import plan_batch, run_batch, run_identity
     from icomma_plugin.app.focal import BatchFocalConfig
+    from icomma_plugin.app.lens import BatchLensConfig
     from icomma_plugin.app.ledger import PosesLedger
     from icomma_plugin.checks import config_from_dict
 
     workers = int(cfg.get("workers") or 1)
     plan, _ = plan_batch(data, mf)
-    focal = config_from_dict(BatchFocalConfig, common.container(cfg.get("batch")), "batch")
+    group = dict(common.container(cfg.get("batch")) or {})
+    lens = config_from_dict(BatchLensConfig, group.pop("lens", None), "batch.lens")
+    focal = config_from_dict(BatchFocalConfig, group, "batch")
     ledger = PosesLedger(
         out, {**run_identity("batch", data, setup.model_path), "config": common.container(cfg)},
         len(plan.tasks), int(data.get("shard") or 0), int(data.get("num_shards") or 1),
@@ -282,7 +285,7 @@ def _run_batch(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, Any]:
                      threads_per_worker=int(cfg.get("threads") or 1),
                      retry_failed=bool(cfg.output.get("retry_failed")), progress=bar,
                      model_folder=mf if workers == 1 else None,
-                     matcher=matcher if workers == 1 else None, focal=focal)
+                     matcher=matcher if workers == 1 else None, focal=focal, lens=lens)
     rows = ledger.all_rows()
     if summ.focal_passes and cfg.output.get("focal_plot"):
         from icomma_plugin.pictures import plot_focal_passes
@@ -302,6 +305,7 @@ def _run_batch(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, Any]:
     return {"kind": "batch", "done_now": summ.done_now, "skipped": summ.skipped,
             "photos_per_minute": summ.photos_per_minute, "seconds": summ.seconds,
             "focal_scale": summ.focal_scale, "focal_adoptions": summ.focal_adoptions,
+            "distortion": summ.distortion, "distortion_adoptions": summ.distortion_adoptions,
             "redone": summ.redone, "rows": rows}
 
 
@@ -401,6 +405,11 @@ def many_summary(doc: Dict[str, Any]) -> str:
         lines.append(_tracking_line(s, rows))
     elif s.get("kind") == "batch" and _focal_line(s, "photos"):
         lines.append(_focal_line(s, "photos"))
+    if s.get("kind") == "batch" and s.get("distortion"):
+        k = ",".join(f"{v:.5f}" for v in s["distortion"])
+        lines.append(f"  lens         distortion [k1,k2,p1,p2] = [{k}] estimated from the photos "
+                     f"and removed (adopted {s.get('distortion_adoptions', 0)} times this run); "
+                     f"give data.intrinsics.distortion=[{k}] for more photos of this camera")
     for f, paths in (s.get("exports") or {}).items():
         lines.append(f"  export {f}: {', '.join(paths)}")
     lines.append(f"  outputs in {s.get('output_dir')} (poses.json, poses.csv)")

@@ -25,8 +25,10 @@ import torch
 from ..checks import check_bool, check_choice, check_int, check_real
 from ..pose.convert import invert_rigid, rotation_error_deg
 from .geometry import (
+    DistortionFit,
     FocalFit,
     PnPResult,
+    fit_pose_and_distortion,
     fit_pose_and_focal,
     lift_keypoints,
     median_depth,
@@ -38,7 +40,8 @@ from .verify import PoseScore, score_observation
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ANCHORS", "GeometricConfig", "GeometricOutcome", "focal_fits", "pnp_from_observation",
+__all__ = ["ANCHORS", "GeometricConfig", "GeometricOutcome", "distortion_fits", "focal_fits",
+           "pnp_from_observation",
            "render_correspondences", "run_geometric"]
 
 #: Where the geometric stage's 2D-3D correspondences come from (``GeometricConfig.anchors``).
@@ -263,6 +266,23 @@ def focal_fits(state: LocalizationState, obs: Observation,
         return None
     args = (pts, pix, obs.w2c, state.intrinsics_at(obs.scale), 3.0 * cfg.ransac_px)
     free, fixed = fit_pose_and_focal(*args), fit_pose_and_focal(*args, max_log_focal=0.0)
+    return None if free is None or fixed is None else (free, fixed)
+
+
+def distortion_fits(state: LocalizationState, obs: Observation,
+                    cfg: GeometricConfig) -> Optional[Tuple[DistortionFit, DistortionFit]]:
+    """The matches of ``obs`` fitted by their reprojection with the lens's distortion free.
+
+    ``(free, fixed)``, each a ``geometry.DistortionFit`` (the focal length and k1, k2, p1, p2
+    free; the pose alone), from ``obs``'s pose, on the same correspondences as
+    :func:`focal_fits`; None with too few.
+    """
+    pts, pix = render_correspondences(state, obs, cfg, subpixel=cfg.subpixel)
+    if len(pts) == 0:
+        return None
+    args = (pts, pix, obs.w2c, state.intrinsics_at(obs.scale), 3.0 * cfg.ransac_px)
+    free = fit_pose_and_distortion(*args)
+    fixed = fit_pose_and_distortion(*args, terms=0, max_log_focal=0.0)
     return None if free is None or fixed is None else (free, fixed)
 
 

@@ -24,7 +24,12 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "PnPResult",
     "depth_edges",
+    "DistortionFit",
     "FocalFit",
+    "distort_normalised",
+    "distortion_field",
+    "distortion_shift_px",
+    "fit_pose_and_distortion",
     "fit_pose_and_focal",
     "lift_keypoints",
     "median_depth",
@@ -348,3 +353,155 @@ def fit_pose_and_focal(points_world: np.ndarray, pixels: np.ndarray, w2c: np.nda
     err = np.hypot(r[: len(x)], r[len(x):])
     return FocalFit(T, float(np.exp(log_s)), float(np.median(err)),
                     float(np.sqrt(np.mean(err ** 2))))
+
+
+class DistortionFit(NamedTuple):
+    """A fit of :func:`fit_pose_and_distortion`: the pose, the lens's coefficients, the errors."""
+
+    w2c: np.ndarray  # [4, 4]
+    coefficients: Tuple[float, float, float, float]  # OpenCV's k1, k2, p1, p2 (0: not fitted)
+    focal_scale: float  # of both focal lengths (1: not fitted)
+    median_px: float  # of the correspondences fitted
+    rms_px: float  # root mean square: what the fit minimises
+    max_radius: float  # the largest normalised radius among them (where they were measured)
+
+
+def distort_normalised(xy: np.ndarray, coefficients) -> np.ndarray:
+    """OpenCV's distortion ``(k1, k2, p1, p2)`` of normalised image coordinates ``[..., 2]``."""
+    k1, k2, p1, p2 = (float(c) for c in coefficients)
+    x, y = xy[..., 0], xy[..., 1]
+    r2 = x * x + y * y
+    d = 1.0 + k1 * r2 + k2 * r2 * r2
+    return np.stack([x * d + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+                     y * d + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y], -1)
+
+
+def distortion_field(coefficients, max_radius: float, focal_px: float, radii: int = 16,
+                     angles: int = 16) -> np.ndarray:
+    """What the distortion moves pixels by, ``[radii * angles, 2]`` [px].
+
+    On a polar grid of normalised radii up to ``max_radius`` (where a photo's matches measured it).
+    """
+    r = np.linspace(max_radius / radii, max_radius, radii)
+    t = np.linspace(0.0, 2.0 * np.pi, angles, endpoint=False)
+    xy = np.stack([np.outer(r, np.cos(t)), np.outer(r, np.sin(t))], -1).reshape(-1, 2)
+    return focal_px * (distort_normalised(xy, coefficients) - xy)
+
+
+def distortion_shift_px(coefficients, max_radius: float, focal_px: float) -> float:
+    """The largest displacement [px] the distortion makes within ``max_radius``.
+
+    Its coefficients trade against each other (k1 against k2), their effect where they were
+    measured does not.
+    """
+    return float(np.linalg.norm(distortion_field(coefficients, max_radius, focal_px), axis=1).max())
+
+
+def fit_pose_and_distortion(points_world: np.ndarray, pixels: np.ndarray, w2c: np.ndarray,
+                            intrinsics: Intrinsics, threshold_px: float, iterations: int = 30,
+                            terms: int = 4, max_coefficient: float = 2.0,
+                            max_log_focal: float = 0.2) -> Optional[DistortionFit]:
+    """The pose and the lens distortion that best reproject 2D-3D correspondences.
+
+    The photo's pixels are taken as OpenCV's distortion of the pinhole camera ``intrinsics``:
+    ``u = fx x_d + cx`` with ``x_d`` the distorted normalised coordinates
+    (:func:`distort_normalised`: radial k1, k2 and tangential p1, p2), the model a render's
+    pinhole image lacks when a photo's lens distortion was not removed. Levenberg-Marquardt over
+    a camera-frame twist of ``w2c``, the log of a scale of both focal lengths (clamped to
+    +-``max_log_focal``; 0: the given ones) and the first ``terms`` of ``(k1, k2, p1, p2)`` (0:
+    none; 1, 2 or 4; each clamped to +-``max_coefficient``), on the correspondences within
+    ``threshold_px`` of their projection at ``w2c``, with the closed-form Jacobian as
+    :func:`fit_pose_and_focal` (a few ms for 500 correspondences). The focal length is free
+    with the coefficients so that a focal length off (whose image motion grows with the radius)
+    is not taken for a distortion: given 8 % short, the demo scene's photos fitted k1 0.05 and
+    p1 -0.01 without it. On fox's phone photos the tangential terms (p1 = -0.001) matter:
+    undistorted without them, its poses ended 0.07 deg off (median) instead of 0.016.
+
+    Returns:
+        The :class:`DistortionFit` of those correspondences, or None with fewer than 12 of them.
+    """
+    from ..pose.se3 import se3_exp
+
+    if terms not in (0, 1, 2, 4):
+        raise ValueError(f"terms must be 0, 1, 2 or 4 coefficients, got {terms!r}")
+    X = np.asarray(points_world, np.float64).reshape(-1, 3)
+    x = np.asarray(pixels, np.float64).reshape(-1, 2)
+    uv, z = project(X, w2c, intrinsics)
+    use = (np.linalg.norm(uv - x, axis=1) < threshold_px) & (z > 0)
+    if int(use.sum()) < 12:
+        return None
+    X, x = X[use], x[use]
+    f = np.array([float(intrinsics.fx), float(intrinsics.fy)])
+    c = np.array([float(intrinsics.cx_px), float(intrinsics.cy_px)])
+
+    n_focal = 1 if max_log_focal > 0 else 0
+
+    def residual(T: np.ndarray, k: np.ndarray, log_s: float):  # [N, 2] px; what J needs
+        P = X @ T[:3, :3].T + T[:3, 3]
+        zs = np.where(np.abs(P[:, 2]) < 1e-12, 1e-12, P[:, 2])
+        xn = P[:, :2] / zs[:, None]
+        moved = float(np.exp(log_s)) * f * distort_normalised(xn, k)
+        return moved + c - x, (P, zs, xn, moved)
+
+    def jacobian(k: np.ndarray, parts, log_s: float) -> np.ndarray:  # [2N, 6 + focal + terms]
+        P, zs, xn, moved = parts
+        fs = float(np.exp(log_s)) * f
+        n = len(P)
+        k1, k2, p1, p2 = k
+        xx, yy = xn[:, 0], xn[:, 1]
+        r2 = xx * xx + yy * yy
+        d = 1.0 + k1 * r2 + k2 * r2 * r2
+        dd = 2.0 * (k1 + 2.0 * k2 * r2)  # d(d)/dx = dd x, d(d)/dy = dd y
+        A = np.empty((n, 2, 2))  # d(distorted xn)/d(xn), times the focal lengths by row
+        A[:, 0, 0] = d + dd * xx * xx + 2.0 * p1 * yy + 6.0 * p2 * xx
+        A[:, 0, 1] = dd * xx * yy + 2.0 * p1 * xx + 2.0 * p2 * yy
+        A[:, 1, 0] = dd * xx * yy + 2.0 * p1 * xx + 2.0 * p2 * yy
+        A[:, 1, 1] = d + dd * yy * yy + 6.0 * p1 * yy + 2.0 * p2 * xx
+        A *= fs[None, :, None]
+        B = np.zeros((n, 2, 3))  # d(xn)/dP
+        B[:, 0, 0] = B[:, 1, 1] = 1.0 / zs
+        B[:, :, 2] = -xn / zs[:, None]
+        C = np.zeros((n, 3, 6))  # dP/d(rho, phi) for P' = P + rho + phi x P: [I | -hat(P)]
+        C[:, 0, 0] = C[:, 1, 1] = C[:, 2, 2] = 1.0
+        C[:, 0, 4], C[:, 0, 5] = P[:, 2], -P[:, 1]
+        C[:, 1, 3], C[:, 1, 5] = -P[:, 2], P[:, 0]
+        C[:, 2, 3], C[:, 2, 4] = P[:, 1], -P[:, 0]
+        J = np.zeros((n, 2, 6 + n_focal + terms))
+        J[:, :, :6] = A @ B @ C
+        if n_focal:
+            J[:, :, 6] = moved  # d/d(log focal scale)
+        by_k = (np.stack([xx * r2, yy * r2], 1), np.stack([xx * r2 * r2, yy * r2 * r2], 1),
+                np.stack([2.0 * xx * yy, r2 + 2.0 * yy * yy], 1),
+                np.stack([r2 + 2.0 * xx * xx, 2.0 * xx * yy], 1))
+        for j in range(terms):
+            J[:, :, 6 + n_focal + j] = fs * by_k[j]
+        return J.reshape(2 * n, -1)
+
+    T, k, log_s, lam = np.asarray(w2c, np.float64), np.zeros(4), 0.0, 1e-3
+    r, parts = residual(T, k, log_s)
+    cost = float((r * r).sum())
+    for _ in range(iterations):
+        J = jacobian(k, parts, log_s)
+        A, g = J.T @ J, J.T @ r.reshape(-1)
+        step = -np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12), g)
+        T_try = se3_exp(step[:6]) @ T
+        s_try = float(np.clip(log_s + step[6], -max_log_focal, max_log_focal)) if n_focal \
+            else 0.0
+        k_try = k.copy()
+        k_try[:terms] = np.clip(k[:terms] + step[6 + n_focal:], -max_coefficient,
+                                max_coefficient)
+        r_try, parts_try = residual(T_try, k_try, s_try)
+        c_try = float((r_try * r_try).sum())
+        done = np.abs(step).max() < 1e-9 or abs(cost - c_try) <= 1e-12 * cost
+        if c_try < cost:
+            T, k, log_s, cost, lam = T_try, k_try, s_try, c_try, max(lam / 3.0, 1e-9)
+            r, parts = r_try, parts_try
+        else:
+            lam *= 4.0
+            done = done or lam > 1e8
+        if done:
+            break
+    err = np.hypot(r[:, 0], r[:, 1])
+    reach = float(np.sqrt((parts[2] ** 2).sum(1).max()))
+    return DistortionFit(T, tuple(float(v) for v in k), float(np.exp(log_s)),
+                         float(np.median(err)), float(np.sqrt(np.mean(err ** 2))), reach)

@@ -30,8 +30,9 @@ from ..camera import Intrinsics
 from ..checks import check_bool, check_choice, check_int, check_real, config_from_dict
 from ..pose.convert import invert_rigid, rotation_error_deg
 from .candidates import CandidateConfig, usable
-from .geometric import GeometricConfig, GeometricOutcome, focal_fits, run_geometric
-from .geometry import FocalFit, median_depth
+from .geometric import (GeometricConfig, GeometricOutcome, distortion_fits, focal_fits,
+                        run_geometric)
+from .geometry import FocalFit, distortion_shift_px, median_depth
 from .refine import RefineConfig, refine_photometric
 from .state import LocalizationState, Observation
 from .types import MethodOutcome, Stage, TraceRecord
@@ -476,6 +477,32 @@ def _focal_signal(state: LocalizationState, cfg: RobustConfig, obs: Optional[Obs
             "rms_px_given": round(fixed.rms_px, 4)}, free
 
 
+def _distortion_signal(state: LocalizationState, cfg: RobustConfig, obs: Optional[Observation]
+                       ) -> Optional[Dict[str, Any]]:
+    """The lens check at the final pose: a signal of the verdict, which it does not decide.
+
+    The final render's matches fitted with the photo's lens distortion free (a render is a
+    pinhole image; a photo whose lens distortion was not removed is not): ``coefficients``
+    (OpenCV's k1, k2, p1, p2), ``shift_px`` (what they move a pixel by, at most, within the
+    matches' reach, at the working size), ``reach`` (that largest normalised radius) and
+    ``focal_px`` (the focal length of those pixels), ``rms_px`` and ``rms_px_given`` (the pose
+    alone). None with too few matches. One photo's coefficients scatter with its matches (bird's
+    soft photos, undistorted, fit up to 9 px of it), so a batch pools them (``app.lens``).
+    """
+    if obs is None or obs.matches is None:
+        return None
+    with state.timed("verify"):
+        fits = distortion_fits(state, obs, cfg.geometric)
+    if fits is None:
+        return None
+    free, fixed = fits
+    focal = float(state.intrinsics_at(obs.scale).fx)
+    return {"coefficients": [round(v, 6) for v in free.coefficients],
+            "shift_px": round(distortion_shift_px(free.coefficients, free.max_radius, focal), 4),
+            "reach": round(free.max_radius, 4), "focal_px": round(focal, 3),
+            "rms_px": round(free.rms_px, 4), "rms_px_given": round(fixed.rms_px, 4)}
+
+
 def _passes_rollback(sc: PoseScore, geo: PoseScore, cfg: RobustConfig) -> bool:
     """Whether a refined pose's score keeps the geometric one's agreement (else rolled back)."""
     return (sc.inliers >= cfg.rollback_inliers * geo.inliers
@@ -565,6 +592,7 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
             if retried is not None:
                 ref, score, judged, focal = retried
                 w2c, keep = ref.w2c, True
+    distortion = _distortion_signal(state, cfg, judged)  # of the pose kept
     extra = {
         "start_render_empty": search.empty_start,
         "hypotheses": len(search.hyps),
@@ -576,6 +604,8 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
     }
     if focal is not None:
         extra["focal"] = focal
+    if distortion is not None:
+        extra["distortion"] = distortion
     if retry is not None:
         extra["focal_retry"] = retry
     # Whether the pose stopped moving is said by the last stage that moved it: the refinement, or

@@ -39,7 +39,9 @@ class PhotoTask:
     length. init_c2w: the start pose, or None (candidate views). gt_c2w: the truth when known
     (errors only). error: bad input found while planning: the photo is recorded as failed with
     this reason. focal_scale: the focal length of ``intrinsics`` as a share of the one given
-    (``focal.BatchFocalConfig``; ``with_focal_scale``).
+    (``focal.BatchFocalConfig``; ``with_focal_scale``). distortion: OpenCV's ``(k1, k2, p1, p2)``
+    the photo is undistorted with, adopted from the batch's photos
+    (``lens.BatchLensConfig``), or None.
     """
 
     index: int
@@ -51,6 +53,7 @@ class PhotoTask:
     gt_c2w: Optional[np.ndarray] = None
     error: Optional[str] = None
     focal_scale: float = 1.0
+    distortion: Optional[Tuple[float, ...]] = None
 
     def with_focal_scale(self, scale: float, init_c2w: Optional[np.ndarray]) -> "PhotoTask":
         """This photo with ``scale`` x the given focal length, started from ``init_c2w``."""

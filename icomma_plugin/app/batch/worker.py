@@ -18,7 +18,7 @@ import json
 import logging
 import multiprocessing
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Dict, Iterator, List, Optional, Tuple
 
@@ -31,7 +31,8 @@ from ...matchers import matcher_from_config
 from ...io.atomic import write_json_atomic
 from ...pose.convert import cameras_extent
 from ..focal import CAMERA_FOCAL_KEY, BatchFocalConfig, photo_focal_scale
-from ..inputs import ProblemError
+from ..inputs import LensDistortion, ProblemError
+from ..lens import CAMERA_DISTORTION_KEY, BatchLensConfig
 from ..ledger import PosesLedger
 from ..problem import Problem, read_query_image
 from .planning import BatchPlan, PhotoTask
@@ -135,8 +136,11 @@ class BatchWorker:
                     f"{task.intrinsics.height} its intrinsics were planned for"
                 )
             valid = None
-            if self.setup.distortion is not None:
-                rgb, alpha, valid = self.setup.distortion.undistort(rgb, alpha, task.intrinsics)
+            lens = self.setup.distortion
+            if lens is None and task.distortion is not None:  # adopted from the photos
+                lens = LensDistortion(tuple(task.distortion))
+            if lens is not None:
+                rgb, alpha, valid = lens.undistort(rgb, alpha, task.intrinsics)
             q = Query(rgb, task.intrinsics, alpha, valid, task.name)
         return q.resized(self.setup.resize)
 
@@ -182,9 +186,7 @@ class BatchWorker:
         """Localize one photo; always returns a row (a failed one for bad input or a crash)."""
         t0 = time.perf_counter()
         if task.error:
-            row = failure_row(task, f"bad input: {task.error}", task.error)
-            row[CAMERA_FOCAL_KEY] = task.focal_scale
-            return row
+            return _camera_of(failure_row(task, f"bad input: {task.error}", task.error), task)
         try:
             with _seeded(None if self.setup.seed is None else self.setup.seed + task.index):
                 problem = self.problem(task, self.load_query(task))
@@ -200,8 +202,18 @@ class BatchWorker:
             logger.exception("photo %s failed", task.name)
             msg = f"internal error: {type(e).__name__}: {e}"
             row = failure_row(task, msg, msg, time.perf_counter() - t0)
-        row[CAMERA_FOCAL_KEY] = task.focal_scale
-        return row
+        return _camera_of(row, task)
+
+
+def _camera_of(row: Dict[str, Any], task: PhotoTask) -> Dict[str, Any]:
+    """``row`` with the camera its photo was localized with.
+
+    The focal length's share of the given one, and the adopted lens distortion when there is one.
+    """
+    row[CAMERA_FOCAL_KEY] = task.focal_scale
+    if task.distortion is not None:
+        row[CAMERA_DISTORTION_KEY] = [float(v) for v in task.distortion]
+    return row
 
 
 # ---------------------------------------------------------------------------------- processes
@@ -242,6 +254,8 @@ class BatchSummary:
     focal_adoptions: int = 0  # times this call adopted a focal length from the photos
     redone: int = 0  # photos localized again with an adopted focal length
     focal_passes: List[Dict[str, Any]] = field(default_factory=list)  # poses.focal.json's passes
+    distortion: Optional[List[float]] = None  # k1, k2, p1, p2 adopted from the photos
+    distortion_adoptions: int = 0  # times this call adopted them
 
     @property
     def photos_per_minute(self) -> Optional[float]:
@@ -251,9 +265,20 @@ class BatchSummary:
         )
 
 
-def _todo(mine: List[PhotoTask], ledger: PosesLedger, retry_failed: bool, scale: float
-          ) -> Tuple[List[PhotoTask], int]:
-    """(the photos of ``mine`` without a row at the focal ``scale``, how many have one)."""
+def _same_lens(row: Dict[str, Any], k: Optional[Tuple[float, ...]]) -> bool:
+    """Whether ``row``'s photo was undistorted with the adopted coefficients ``k`` (None: none)."""
+    used = row.get(CAMERA_DISTORTION_KEY)
+    if used is None or k is None:
+        return used is None and k is None
+    return all(abs(float(a) - float(b)) < 1e-12 for a, b in zip(used, k))
+
+
+def _todo(mine: List[PhotoTask], ledger: PosesLedger, retry_failed: bool, scale: float,
+          lens: Optional[Tuple[float, ...]] = None) -> Tuple[List[PhotoTask], int]:
+    """(the photos of ``mine`` without a row at this camera, how many have one).
+
+    The camera: the focal ``scale`` and the adopted ``lens`` coefficients (None: none).
+    """
     done = ledger.finished()
     if retry_failed:
         ledger.forget([t.name for t in mine if done.get(t.name, {}).get("status") == "failed"])
@@ -261,7 +286,8 @@ def _todo(mine: List[PhotoTask], ledger: PosesLedger, retry_failed: bool, scale:
 
     def held(t: PhotoTask) -> bool:
         row = done.get(t.name)
-        return row is not None and abs(float(row.get(CAMERA_FOCAL_KEY) or 1.0) - scale) < 1e-9
+        return (row is not None and abs(float(row.get(CAMERA_FOCAL_KEY) or 1.0) - scale) < 1e-9
+                and _same_lens(row, lens))
 
     todo = [t for t in mine if not held(t)]
     if len(mine) > len(todo):
@@ -308,16 +334,39 @@ def _focal_state_path(ledger: PosesLedger) -> Path:
 
 
 def _read_focal_state(path: Path) -> Dict[str, Any]:
-    """``{"scale", "adoptions", "passes"}`` of a batch (``poses.focal.json``; none yet: 1.0)."""
+    """The camera a batch adopted from its photos (``poses.focal.json``; none yet: the given one).
+
+    ``{"scale", "adoptions", "passes", "distortion", "distortion_adoptions"}``.
+    """
     try:
         state = json.loads(path.read_text())
+        k = state.get("distortion")
         return {"scale": float(state["scale"]), "adoptions": int(state["adoptions"]),
-                "passes": list(state.get("passes") or [])}
+                "passes": list(state.get("passes") or []),
+                "distortion": None if k is None else [float(v) for v in k],
+                "distortion_adoptions": int(state.get("distortion_adoptions") or 0)}
     except FileNotFoundError:
-        return {"scale": 1.0, "adoptions": 0, "passes": []}
+        return _given_camera()
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise ProblemError(f"cannot read the batch's focal length {path} ({e}); move it away to "
                            "decide it again") from None
+
+
+def _given_camera() -> Dict[str, Any]:
+    """The camera state of a batch that adopted nothing from its photos."""
+    return {"scale": 1.0, "adoptions": 0, "passes": [], "distortion": None,
+            "distortion_adoptions": 0}
+
+
+def _as_camera(task: PhotoTask, scale: float, lens: Optional[Tuple[float, ...]],
+               again: Optional[Dict[str, Any]]) -> PhotoTask:
+    """``task`` with the batch's camera.
+
+    A photo localized again (``again``: its last row) starts from its last pose.
+    """
+    if scale == 1.0 and lens is None and again is None:
+        return task
+    return replace(task.with_focal_scale(scale, _start_of(again, task)), distortion=lens)
 
 
 def run_batch(
@@ -332,6 +381,7 @@ def run_batch(
     model_folder=None,
     matcher=None,
     focal: Optional[BatchFocalConfig] = None,
+    lens: Optional[BatchLensConfig] = None,
 ) -> BatchSummary:
     """Localize this shard's unfinished photos of ``plan``, recording each in ``ledger``.
 
@@ -351,30 +401,35 @@ def run_batch(
         focal: the focal length from the photos (``focal.BatchFocalConfig``; None: off). Used
             for photo files given one camera; a dataset folder's views keep their own. The
             adopted one is kept in ``poses.focal.json`` for a resumed run.
+        lens: the lens distortion from the photos (``lens.BatchLensConfig``; None: off). For
+            photo files given one camera and no distortion; decided before the focal length
+            after each pass, kept in ``poses.focal.json`` too.
     """
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers must be a positive int, got {workers!r}")
     mine = [t for t in plan.tasks if t.index % ledger.num_shards == ledger.shard]
-    pooling = (focal is not None and focal.focal_from_photos and bool(mine)
-               and all(t.view is None for t in mine))
+    own_camera = bool(mine) and all(t.view is None for t in mine)  # files given one camera
+    pool_focal = own_camera and focal is not None and focal.focal_from_photos
+    pool_lens = (own_camera and lens is not None and lens.from_photos
+                 and setup.distortion is None)
+    pooling = pool_focal or pool_lens
     state_path = _focal_state_path(ledger)
-    state = _read_focal_state(state_path) if pooling else {"scale": 1.0, "adoptions": 0,
-                                                           "passes": []}
+    state = _read_focal_state(state_path) if pooling else _given_camera()
     t0 = time.perf_counter()
     rows: List[Dict[str, Any]] = []
     redone: set = set()
     skipped = None
     with _executor(setup, workers, threads_per_worker, len(mine), model_folder,
                    matcher) as localize:
-        adopted_now = 0
+        adopted_now = lens_now = 0
         while True:
-            scale = state["scale"]
-            todo, held = _todo(mine, ledger, retry_failed and skipped is None, scale)
+            scale, k = state["scale"], state["distortion"]
+            k = None if k is None else tuple(float(v) for v in k)
+            todo, held = _todo(mine, ledger, retry_failed and skipped is None, scale, k)
             skipped = held if skipped is None else skipped
             done = ledger.finished()
-            # a photo localized again with a new focal length starts from its first pose
-            tasks = [t if scale == 1.0 and t.name not in done else t.with_focal_scale(
-                scale, _start_of(done.get(t.name), t)) for t in todo]
+            # a photo localized again with a new camera starts from its last pose
+            tasks = [_as_camera(t, scale, k, done.get(t.name)) for t in todo]
             if progress is not None:
                 progress({"row": None, "counts": ledger.counts(), "done": 0, "todo": len(tasks),
                           "skipped": held, "focal_scale": scale})
@@ -392,12 +447,24 @@ def run_batch(
                 break
             finished = ledger.finished()
             now = [finished[t.name] for t in mine if t.name in finished]
-            new = None if state["adoptions"] >= focal.focal_rounds else focal.adopt(
-                now, scale, state["adoptions"] > 0)
+            # the lens first: a distortion left in the photos pulls their focal refits
+            new_k = None if not pool_lens or state["distortion_adoptions"] >= lens.rounds \
+                else lens.adopt(now, state["distortion"])
+            if new_k is not None:
+                logger.info("the photos' refits (%d) agree on a lens distortion (k1, k2, p1, p2) "
+                            "%s: the batch undistorts them with it, and localizes them again",
+                            len(now), ", ".join(f"{v:.5f}" for v in new_k))
+                state.update(distortion=list(new_k),
+                             distortion_adoptions=state["distortion_adoptions"] + 1)
+                write_json_atomic(state_path, state)
+                lens_now += 1
+                continue
+            new = None if not pool_focal or state["adoptions"] >= focal.focal_rounds \
+                else focal.adopt(now, scale, state["adoptions"] > 0)
             if state["adoptions"] or new is not None:  # the record of the passes (focal.png)
                 _record_pass(state, scale, now)
             if new is None:
-                if state["adoptions"]:
+                if state["adoptions"] or state["distortion_adoptions"]:
                     write_json_atomic(state_path, state)
                 break
             logger.info("the photos' refits (%d) agree on a focal length %.4f x the given one "
@@ -411,7 +478,8 @@ def run_batch(
     return BatchSummary(
         ledger.counts(), len(latest), skipped or 0, len(latest), time.perf_counter() - t0, latest,
         focal_scale=state["scale"], focal_adoptions=adopted_now, redone=len(redone),
-        focal_passes=state["passes"],
+        focal_passes=state["passes"], distortion=state["distortion"],
+        distortion_adoptions=lens_now,
     )
 
 

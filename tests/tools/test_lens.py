@@ -1,0 +1,274 @@
+"""One camera's lens distortion from many photos: the pooled estimate, and a batch that adopts it.
+
+The pooling rule and a photo's estimate (``app/lens.py``), a batch whose fake lens is distorted
+(adopted, every photo undistorted and localized again from its pose, kept through a resume), the
+cases that keep the photos as they are, and fox's phone photos given their pinhole intrinsics
+alone through the tool.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from icomma_plugin.app.batch import BatchPlan, PhotoTask, WorkerSetup, run_batch
+from icomma_plugin.app.batch import worker as batch_worker
+from icomma_plugin.app.inputs import LensDistortion
+from icomma_plugin.app.lens import (BatchLensConfig, PhotoDistortion, photo_distortion,
+                                    pooled_distortion)
+from icomma_plugin.app.ledger import PosesLedger
+from icomma_plugin.camera import Intrinsics
+from tests.helpers.tools import compose, localize_tool
+
+pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
+
+FOX_LENS = (0.0578421, -0.0805099, -0.000980296, 0.00015575)  # fox's transforms.json
+
+
+def _photos(rng, centre, spread, n=20, reach=0.7, focal=340.0):
+    return [PhotoDistortion(tuple(np.asarray(centre) + spread * rng.standard_normal(4)), reach,
+                            focal) for _ in range(n)]
+
+
+def test_pooled_distortion_needs_photos_that_agree():
+    rng = np.random.default_rng(0)
+    lens = _photos(rng, FOX_LENS, [0.005, 0.01, 0.0002, 0.0002])
+    got = pooled_distortion(lens)
+    assert got == pytest.approx(np.median([p.coefficients for p in lens], axis=0))
+    assert got[0] == pytest.approx(FOX_LENS[0], abs=0.005)
+    # relative to the coefficients used now: nothing left to adopt
+    assert pooled_distortion(lens, current=got) is None
+    # photos without distortion, scattered as bird's soft ones (k1 +-0.05): not adopted
+    assert pooled_distortion(_photos(rng, (0, 0, 0, 0), [0.05, 0.08, 0.001, 0.001], 60)) is None
+    # a median that moves pixels by less than min_shift_px: not adopted
+    small = _photos(rng, (0.004, 0, 0, 0), [0.0005, 0, 0, 0])
+    assert pooled_distortion(small, min_shift_px=0.5) is None
+    assert pooled_distortion(small, min_shift_px=0.2) is not None
+    # a median off but photos both ways: not adopted
+    split = _photos(rng, FOX_LENS, 0.0, 6) + _photos(rng, np.negative(FOX_LENS), 0.0, 4)
+    assert pooled_distortion(split, agree=0.8) is None
+    assert pooled_distortion(split, agree=0.6) is not None
+    assert pooled_distortion([]) is None
+
+
+def test_a_photos_distortion_adds_the_one_it_was_undistorted_with():
+    sig = {"coefficients": [0.01, -0.02, 0.0001, 0.0], "reach": 0.6, "focal_px": 300.0}
+    row = {"status": "ok", "c2w": np.eye(4).tolist(), "signals": {"distortion": sig}}
+    assert photo_distortion(row).coefficients == pytest.approx((0.01, -0.02, 0.0001, 0.0))
+    used = {**row, "camera_distortion": [0.05, -0.06, -0.001, 0.0002]}
+    assert photo_distortion(used).coefficients == pytest.approx((0.06, -0.08, -0.0009, 0.0002))
+    assert photo_distortion(used).reach == 0.6 and photo_distortion(used).focal_px == 300.0
+    assert photo_distortion({**row, "status": "failed"}) is None
+    assert photo_distortion({**row, "signals": {}}) is None
+    assert photo_distortion({**row, "signals": {"distortion": {"coefficients": [1.0]}}}) is None
+
+
+def test_batch_lens_config_names_bad_settings():
+    with pytest.raises(ValueError, match="batch.lens.min_photos"):
+        BatchLensConfig(min_photos=1)
+    with pytest.raises(ValueError, match="batch.lens.min_shift_px"):
+        BatchLensConfig(min_shift_px=0.0)
+    with pytest.raises(ValueError, match="batch.lens.agree"):
+        BatchLensConfig(agree=0.2)
+    with pytest.raises(ValueError, match="batch.lens.from_photos"):
+        BatchLensConfig(from_photos="yes")
+    with pytest.raises(ValueError, match="batch.lens.rounds"):
+        BatchLensConfig(rounds=0)
+
+
+# ------------------------------------------------------------------ a batch through a fake lens
+
+
+class _DistortedWorker:
+    """Every photo `ok` where it starts.
+
+    Its matches see the lens ``LENS`` less what it was undistorted with.
+    """
+
+    LENS = FOX_LENS
+    calls: list = []  # (name, distortion or None, start x) of every photo localized, in order
+
+    def __init__(self, setup, model_folder=None, matcher=None):
+        pass
+
+    def run(self, task: PhotoTask):
+        used = np.zeros(4) if task.distortion is None else np.asarray(task.distortion)
+        type(self).calls.append((task.name, task.distortion,
+                                 None if task.init_c2w is None else float(task.init_c2w[0, 3])))
+        c2w = np.eye(4)
+        c2w[0, 3] = 1.0 + task.index
+        left = (np.asarray(self.LENS) - used).tolist()
+        row = {"name": task.name, "index": task.index, "status": "ok", "c2w": c2w.tolist(),
+               "signals": {"distortion": {"coefficients": left, "reach": 0.7, "focal_px": 340.0},
+                           "focal": {"scale": 1.0}},
+               "intrinsics": task.intrinsics.to_json(), "camera_focal_scale": task.focal_scale}
+        if task.distortion is not None:
+            row["camera_distortion"] = list(task.distortion)
+        return row
+
+
+def _plan(n=6, view=None):
+    tasks = [PhotoTask(i, f"p{i}.png", f"p{i}.png", view, Intrinsics(8, 8, 8.0, 8.0))
+             for i in range(n)]
+    return BatchPlan(tasks, "model", None, False, None, "none")
+
+
+def _run(tmp_path, monkeypatch, plan=None, lens=BatchLensConfig(), distortion=None):
+    monkeypatch.setattr(batch_worker, "BatchWorker", _DistortedWorker)
+    monkeypatch.setattr(_DistortedWorker, "calls", [])
+    plan = plan or _plan()
+    ledger = PosesLedger(tmp_path / "out", {"kind": "batch"}, len(plan.tasks), 0, 1)
+    setup = WorkerSetup(model_path="model", method=None, matcher=None,
+                        out_dir=str(tmp_path / "out"), distortion=distortion)
+    from icomma_plugin.app.focal import BatchFocalConfig
+
+    summ = run_batch(plan, setup, ledger, focal=BatchFocalConfig(), lens=lens)
+    return summ, ledger, list(_DistortedWorker.calls)
+
+
+def test_a_batch_adopts_the_lens_its_photos_agree_on(tmp_path, monkeypatch):
+    summ, ledger, calls = _run(tmp_path, monkeypatch)
+    # six photos read as they are agree on fox's lens: adopted, all six undistorted with it and
+    # localized again, each from the pose it was found at; then nothing is left to adopt
+    assert [c[:2] for c in calls[:6]] == [(f"p{i}.png", None) for i in range(6)]
+    assert [c[0] for c in calls[6:]] == [f"p{i}.png" for i in range(6)]
+    assert all(c[1] == pytest.approx(FOX_LENS) for c in calls[6:])
+    assert [c[2] for c in calls[6:]] == [1.0 + i for i in range(6)]
+    assert summ.distortion == pytest.approx(FOX_LENS) and summ.distortion_adoptions == 1
+    assert summ.focal_scale == 1.0 and summ.redone == 6 and summ.done_now == 6
+    rows = ledger.all_rows()
+    assert all(r["camera_distortion"] == pytest.approx(FOX_LENS) for r in rows)
+    state = json.loads((tmp_path / "out" / "poses.focal.json").read_text())
+    assert state["distortion"] == pytest.approx(FOX_LENS) and state["distortion_adoptions"] == 1
+    # run again in the same folder: nothing to do, the lens kept
+    summ2, _, calls2 = _run(tmp_path, monkeypatch)
+    assert calls2 == [] and summ2.distortion == pytest.approx(FOX_LENS)
+    assert summ2.distortion_adoptions == 0
+
+
+@pytest.mark.parametrize("case", ["off", "too_few", "dataset_views", "given", "pinhole"])
+def test_a_batch_keeps_its_photos_as_they_are(tmp_path, monkeypatch, case):
+    plan, lens, distortion = _plan(), BatchLensConfig(), None
+    if case == "off":
+        lens = BatchLensConfig(from_photos=False)
+    elif case == "too_few":
+        plan = _plan(4)
+    elif case == "dataset_views":  # a dataset folder's views are undistorted already
+        plan = _plan(view=object())
+    elif case == "given":  # the user's coefficients are the photos' lens
+        distortion = LensDistortion(FOX_LENS)
+    else:
+        monkeypatch.setattr(_DistortedWorker, "LENS", (0.0, 0.0, 0.0, 0.0))
+    summ, ledger, calls = _run(tmp_path, monkeypatch, plan=plan, lens=lens,
+                               distortion=distortion)
+    assert len(calls) == len(plan.tasks) and {c[1] for c in calls} == {None}
+    assert summ.distortion is None and summ.distortion_adoptions == 0
+    assert not (tmp_path / "out" / "poses.focal.json").exists()
+    assert all("camera_distortion" not in r for r in ledger.all_rows())
+
+
+# ------------------------------------------------------------- the demo scene, through the tool
+
+DEMO_LENS = (0.12, -0.05, 0.002, -0.001)
+
+
+@pytest.fixture(scope="module")
+def distorted_photos(tmp_path_factory):
+    """A 200x200 demo model and 6 photos of it through the lens ``DEMO_LENS``, their true poses."""
+    import cv2
+    from PIL import Image
+
+    from tests.helpers.demo import demo_model, orbit_c2w, photo
+
+    root = tmp_path_factory.mktemp("lens_batch")
+    s, model = demo_model(root / "model", 200)
+    i = s.intrinsics
+    K = np.array([[i.fx, 0.0, i.cx_px], [0.0, i.fy, i.cy_px], [0.0, 0.0, 1.0]])
+    # the distorted photo's pixel shows the pinhole render at its undistorted position
+    uv = np.stack(np.meshgrid(np.arange(200.0), np.arange(200.0)), -1).reshape(-1, 1, 2)
+    src = cv2.undistortPoints(uv, K, np.array(DEMO_LENS), P=K).reshape(200, 200, 2)
+    src = src.astype(np.float32)
+    folder, gt = root / "photos", {}
+    folder.mkdir()
+    for n in range(6):
+        c2w = orbit_c2w(0.3 + 0.9 * n, 1.6 + 0.2 * (n % 3))
+        img = cv2.remap(photo(model, i, c2w), src[..., 0], src[..., 1], cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_REPLICATE)
+        Image.fromarray(img).save(folder / f"p{n}.png")
+        gt[f"p{n}.png"] = c2w.tolist()
+    (root / "gt.json").write_text(json.dumps(gt))
+    return {"model": s.path, "photos": folder, "gt": root / "gt.json", "intrinsics": i}
+
+
+def test_a_batch_of_distorted_photos_finds_their_lens(distorted_photos, tmp_path):
+    """Photos through a lens, given their pinhole intrinsics alone.
+
+    The batch estimates the lens from them, undistorts them and localizes them again, nearer the
+    truth.
+    """
+    ps, i = distorted_photos, distorted_photos["intrinsics"]
+    doc = {}
+    for on in (False, True):
+        out = tmp_path / f"out_{on}"
+        doc[on] = localize_tool().run(compose([
+            "data=model_folder", f"data.model_path={ps['model']}", f"data.queries={ps['photos']}",
+            f"data.intrinsics.fx={i.fx}", f"data.intrinsics.fy={i.fy}",
+            f"data.intrinsics.cx={i.cx_px}", f"data.intrinsics.cy={i.cy_px}",
+            f"data.gt.poses_file={ps['gt']}", "data.init=none",
+            f"batch.lens.from_photos={str(on).lower()}", f"output.dir={out}",
+            "output.progress=false", "output.contact_sheet=false", "threads=1"]), out)
+    assert doc[False]["summary"]["distortion"] is None
+    found = doc[True]["summary"]["distortion"]
+    assert found is not None and doc[True]["summary"]["distortion_adoptions"] >= 1
+    from icomma_plugin.localization.geometry import distortion_field
+
+    # the lens it found moves the photos' pixels as the true one does, within a few tenths of a px
+    true_field = distortion_field(DEMO_LENS, 0.55, i.fx)
+    assert np.abs(distortion_field(found, 0.55, i.fx) - true_field).max() < 0.35 * np.abs(
+        true_field).max()
+    rows = {r["name"]: r for r in doc[True]["photos"]}
+    assert all(r["camera_distortion"] == pytest.approx(found) for r in rows.values())
+    errs = {on: np.array([r["rot_err_deg"] for r in doc[on]["photos"]]) for on in doc}
+    assert np.median(errs[True]) < 0.6 * np.median(errs[False])
+    assert errs[True].max() < 0.1
+    assert "lens" in localize_tool().many_summary(doc[True])
+
+
+# ------------------------------------------------------------- fox's phone photos, through the tool
+
+FOX_FIT = Path.home() / ".cache" / "icomma" / "fits" / "fox"  # `make scenes` or tools/fit_scene.py
+
+
+@pytest.mark.shared_data
+@pytest.mark.skipif(not (FOX_FIT / "cfg_args").is_file(), reason=f"no fox fit at {FOX_FIT}")
+def test_fox_photos_given_no_distortion_find_their_lens(fox_root, tmp_path):
+    """Ten of fox's phone photos as files, given their pinhole intrinsics alone.
+
+    The batch finds the lens its calibration gives, and the poses come nearer the truth.
+    """
+    doc = {}
+    for on in (False, True):
+        out = tmp_path / f"out_{on}"
+        doc[on] = localize_tool().run(compose([
+            "data=model_folder", f"data.model_path={FOX_FIT}",
+            f"data.queries={fox_root / 'images'}",
+            "data.every=5", "data.intrinsics.fx=1375.52", "data.intrinsics.fy=1374.49",
+            "data.intrinsics.cx=554.058", "data.intrinsics.cy=964.768",
+            "data.intrinsics.width=1080", "data.intrinsics.height=1920", "data.resize=480",
+            "data.init=none", f"data.gt.cameras_json={FOX_FIT / 'cameras.json'}",
+            f"batch.lens.from_photos={str(on).lower()}", f"output.dir={out}",
+            "output.progress=false", "output.contact_sheet=false", "threads=2"]), out)
+    found = doc[True]["summary"]["distortion"]
+    assert doc[False]["summary"]["distortion"] is None
+    assert found[0] == pytest.approx(FOX_LENS[0], abs=0.01)
+    assert found[1] == pytest.approx(FOX_LENS[1], abs=0.02)
+    assert found[2] == pytest.approx(FOX_LENS[2], abs=0.0005)
+
+    def median_err(d):
+        return float(np.median([r["rot_err_deg"] for r in d["photos"]]))
+
+    assert median_err(doc[True]) < 0.5 * median_err(doc[False])
+    assert median_err(doc[True]) < 0.05
