@@ -157,6 +157,7 @@ class TrackingConfig:
             work_side=max(16, int(round(side * self.fast_scale))),
             use_candidates=False,
             verify_geometric=True,
+            lens_check=False,
             mutual_nn=self.fast_mutual_nn if features else None,
             patch_search=self.fast_patch_search if features else None,
             patch_search_ncc=self.fast_patch_ncc,

@@ -267,6 +267,22 @@ def solve_pnp(
     return PnPResult(w2c=w2c, inliers=inliers, median_error_px=float(np.median(err[inliers])))
 
 
+def _near_projection(points_world: np.ndarray, pixels: np.ndarray, w2c: np.ndarray,
+                     intrinsics: Intrinsics, threshold_px: float, least: int = 12
+                     ) -> Optional[Tuple[np.ndarray, np.ndarray]]:
+    """The correspondences a refit starts from, float64: those in front of the camera.
+
+    Within ``threshold_px`` of their projection at ``w2c``; None with fewer than ``least``.
+    """
+    X = np.asarray(points_world, np.float64).reshape(-1, 3)
+    x = np.asarray(pixels, np.float64).reshape(-1, 2)
+    uv, z = project(X, w2c, intrinsics)
+    use = (np.linalg.norm(uv - x, axis=1) < threshold_px) & (z > 0)
+    if int(use.sum()) < least:
+        return None
+    return X[use], x[use]
+
+
 class FocalFit(NamedTuple):
     """A fit of :func:`fit_pose_and_focal`: the pose, the focal scale, the reprojection errors."""
 
@@ -293,13 +309,10 @@ def fit_pose_and_focal(points_world: np.ndarray, pixels: np.ndarray, w2c: np.nda
     """
     from ..pose.se3 import se3_exp
 
-    X = np.asarray(points_world, np.float64).reshape(-1, 3)
-    x = np.asarray(pixels, np.float64).reshape(-1, 2)
-    uv, z = project(X, w2c, intrinsics)
-    use = (np.linalg.norm(uv - x, axis=1) < threshold_px) & (z > 0)
-    if int(use.sum()) < 12:
+    near = _near_projection(points_world, pixels, w2c, intrinsics, threshold_px)
+    if near is None:
         return None
-    X, x = X[use], x[use]
+    X, x = near
     n_par = 7 if max_log_focal > 0 else 6
     fx, fy = float(intrinsics.fx), float(intrinsics.fy)
     cx, cy = float(intrinsics.cx_px), float(intrinsics.cy_px)
@@ -424,13 +437,10 @@ def fit_pose_and_distortion(points_world: np.ndarray, pixels: np.ndarray, w2c: n
 
     if terms not in (0, 1, 2, 4):
         raise ValueError(f"terms must be 0, 1, 2 or 4 coefficients, got {terms!r}")
-    X = np.asarray(points_world, np.float64).reshape(-1, 3)
-    x = np.asarray(pixels, np.float64).reshape(-1, 2)
-    uv, z = project(X, w2c, intrinsics)
-    use = (np.linalg.norm(uv - x, axis=1) < threshold_px) & (z > 0)
-    if int(use.sum()) < 12:
+    near = _near_projection(points_world, pixels, w2c, intrinsics, threshold_px)
+    if near is None:
         return None
-    X, x = X[use], x[use]
+    X, x = near
     f = np.array([float(intrinsics.fx), float(intrinsics.fy)])
     c = np.array([float(intrinsics.cx_px), float(intrinsics.cy_px)])
 

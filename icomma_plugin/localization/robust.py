@@ -68,6 +68,10 @@ class RobustConfig:
         ones): fox's held-out photos given a focal length 4 or 8 % off, 0.15-0.92 deg ->
         0.02-0.04 (median; docs/LOCALIZATION.md). Tried only where
         ``refine.can_estimate_focal`` (the refinement's defaults).
+    lens_check: the verdict refits the final render's matches with the lens distortion free
+        (``signals.distortion``, 3-4 ms a pose), which a batch of photos given one camera pools
+        (``app.lens``); it does not move the verdict. Off in tracking's fast mode (nothing
+        reads it there).
     verify_geometric: when the refinement takes no step (``refine.iterations`` 0) and the geometric
         stage converged, the verdict is decided on the geometric stage's last render-and-match
         (at most ``geometric.stop_rot_deg`` from the returned pose, the PnP step that ended the
@@ -126,6 +130,7 @@ class RobustConfig:
     rollback_median_px: float = 0.5
     verify_geometric: bool = False
     focal_retry: bool = True
+    lens_check: bool = True
     refine_reduced: bool = False
     refine_model_side: bool = True
     mutual_nn: Optional[float] = None
@@ -166,7 +171,7 @@ class RobustConfig:
         if self.sh_degree is not None:
             check_choice(self.sh_degree, n + "sh_degree", (0, 1, 2, 3))
         for name in ("use_candidates", "antialiasing", "record_trace", "verify_geometric",
-                     "focal_retry", "refine_reduced", "refine_model_side"):
+                     "focal_retry", "lens_check", "refine_reduced", "refine_model_side"):
             check_bool(getattr(self, name), n + name)
 
     @classmethod
@@ -592,7 +597,7 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
             if retried is not None:
                 ref, score, judged, focal = retried
                 w2c, keep = ref.w2c, True
-    distortion = _distortion_signal(state, cfg, judged)  # of the pose kept
+    distortion = _distortion_signal(state, cfg, judged) if cfg.lens_check else None
     extra = {
         "start_render_empty": search.empty_start,
         "hypotheses": len(search.hyps),

@@ -125,3 +125,29 @@ def test_the_distortion_fit_names_a_wrong_argument():
     _, X, truth_c2w, intr = _scene(8)
     with pytest.raises(ValueError, match="terms must be 0, 1, 2 or 4"):
         fit_pose_and_distortion(X, X[:, :2], np.linalg.inv(truth_c2w), intr, 1.0, terms=3)
+
+
+def test_a_localization_records_the_lens_check_unless_asked_not_to(demo, xfeat):
+    """``signals.distortion`` of the demo's own pinhole query: small.
+
+    None with ``lens_check`` off (tracking's fast mode).
+    """
+    from icomma_plugin.localization.robust import RobustConfig
+    from icomma_plugin.localization.types import Query
+    from icomma_plugin.localize import localize
+
+    scene, model, cams = demo
+    init = perturb_pose(scene.gt_c2w, 5.0, 0.02, 3, pivot="camera")
+    out = {}
+    for on in (True, False):
+        out[on] = localize(model, Query(scene.load_query(), scene.intrinsics), matcher=xfeat,
+                           init_c2w=init, gt_c2w=scene.gt_c2w, cameras=[e.c2w for e in cams],
+                           cache_dir=False, config=RobustConfig(lens_check=on))
+    sig = out[True].verdict.signals["distortion"]
+    assert set(sig) == {"coefficients", "shift_px", "reach", "focal_px", "rms_px",
+                        "rms_px_given"}
+    assert len(sig["coefficients"]) == 4 and 0.0 < sig["reach"] < 1.0
+    assert sig["focal_px"] == pytest.approx(scene.intrinsics.fx, rel=1e-3)
+    assert sig["rms_px"] <= sig["rms_px_given"] and sig["shift_px"] < 1.0
+    assert "distortion" not in out[False].verdict.signals
+    assert np.allclose(out[True].c2w, out[False].c2w)  # a signal: the pose is the same
