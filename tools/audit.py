@@ -275,6 +275,15 @@ def summary(doc: Dict[str, Any]) -> str:
                      "photos explained better at another focal length than their record's"
                      + "".join(f"\n    {c['camera']}: {_focal_reading(c['focal'])}"
                                for c in doc["cameras"] if (c.get("focal") or {}).get("disagrees")))
+    lens = s.get("lens")
+    if lens:
+        k = ", ".join(f"{v:.4f}" for v in lens["coefficients"])
+        lines.append(
+            f"  lens: the photos' refits agree on a distortion their dataset does not remove "
+            f"(k1, k2, p1, p2 = {k}; {lens['shift_px']:.2f} px, {100 * lens['agree']:.0f} % of "
+            f"{lens['views']} runs): check the capture's camera model" if lens["distorted"] else
+            f"  lens: no distortion left in the photos ({lens['shift_px']:.2f} px, "
+            f"{100 * lens['agree']:.0f} % of {lens['views']} runs agreeing)")
     if cal.get("stored"):
         moved = ", ".join(f"{k} {a:g} -> {b:g}" for k, (a, b) in cal["changed"].items())
         lines.append(f"  calibration ({cal['counts']['used']} right ok poses): "

@@ -268,14 +268,14 @@ def _run_many(cfg: DictConfig, out: Path) -> Dict[str, Any]:
 def _run_batch(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, Any]:
     from icomma_plugin.app.batch import plan_batch, run_batch, run_identity
     from icomma_plugin.app.focal import BatchFocalConfig
-    from icomma_plugin.app.lens import BatchLensConfig
+    from icomma_plugin.app.lens import LensConfig
     from icomma_plugin.app.ledger import PosesLedger
     from icomma_plugin.checks import config_from_dict
 
     workers = int(cfg.get("workers") or 1)
     plan, _ = plan_batch(data, mf)
     group = dict(common.container(cfg.get("batch")) or {})
-    lens = config_from_dict(BatchLensConfig, group.pop("lens", None), "batch.lens")
+    lens = config_from_dict(LensConfig, group.pop("lens", None), "batch.lens")
     focal = config_from_dict(BatchFocalConfig, group, "batch")
     ledger = PosesLedger(
         out, {**run_identity("batch", data, setup.model_path), "config": common.container(cfg)},
@@ -346,6 +346,7 @@ def _run_sequence(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, An
             "frames_per_second": summ.frames_per_second, "seconds": summ.seconds,
             "relocalized": summ.relocalized, "fast_ok": summ.fast_ok, "files": files,
             "focal_scale": summ.focal_scale, "focal_adoptions": summ.focal_adoptions,
+            "distortion": summ.distortion, "distortion_adoptions": summ.distortion_adoptions,
             "redone": summ.redone, "rows": rows}
 
 
@@ -359,8 +360,9 @@ def _tracking_line(s: Dict[str, Any], rows: List[Dict[str, Any]]) -> str:
     if matched or fell_back:
         line += (f"; patch search matched {matched} renders, left {fell_back} to the "
                  "descriptors")
-    focal = _focal_line(s, "frames")
-    return line + ("\n" + focal if focal else "")
+    for extra in (_focal_line(s, "frames"), _lens_line(s, "frames")):
+        line += "\n" + extra if extra else ""
+    return line
 
 
 def _focal_line(s: Dict[str, Any], what: str) -> str:
@@ -371,6 +373,16 @@ def _focal_line(s: Dict[str, Any], what: str) -> str:
     return (f"  focal length {scale:.4f} x the given one, estimated from the {what} "
             f"(adopted {s.get('focal_adoptions', 0)} times this run; {s.get('redone', 0)} "
             f"{what} localized again with it)")
+
+
+def _lens_line(s: Dict[str, Any], what: str) -> str:
+    """The lens distortion a batch or a sequence estimated from its photos ("": none)."""
+    if not s.get("distortion"):
+        return ""
+    k = ",".join(f"{v:.5f}" for v in s["distortion"])
+    return (f"  lens         distortion [k1,k2,p1,p2] = [{k}] estimated from the {what} and "
+            f"removed (adopted {s.get('distortion_adoptions', 0)} times this run); give "
+            f"data.intrinsics.distortion=[{k}] for more {what} of this camera")
 
 
 def many_summary(doc: Dict[str, Any]) -> str:
@@ -405,11 +417,8 @@ def many_summary(doc: Dict[str, Any]) -> str:
         lines.append(_tracking_line(s, rows))
     elif s.get("kind") == "batch" and _focal_line(s, "photos"):
         lines.append(_focal_line(s, "photos"))
-    if s.get("kind") == "batch" and s.get("distortion"):
-        k = ",".join(f"{v:.5f}" for v in s["distortion"])
-        lines.append(f"  lens         distortion [k1,k2,p1,p2] = [{k}] estimated from the photos "
-                     f"and removed (adopted {s.get('distortion_adoptions', 0)} times this run); "
-                     f"give data.intrinsics.distortion=[{k}] for more photos of this camera")
+    if s.get("kind") == "batch" and _lens_line(s, "photos"):
+        lines.append(_lens_line(s, "photos"))
     for f, paths in (s.get("exports") or {}).items():
         lines.append(f"  export {f}: {', '.join(paths)}")
     lines.append(f"  outputs in {s.get('output_dir')} (poses.json, poses.csv)")

@@ -447,7 +447,28 @@ def audit_summary(cameras: Sequence[Mapping[str, Any]], rows: Sequence[Mapping[s
         "focal_disagreeing": sorted((c["camera"] for c in cameras
                                      if (c.get("focal") or {}).get("disagrees")),
                                     key=natural_key),
+        # the lens the photos' refits agree on beyond their dataset's undistortion (the photo
+        # runs, not the control's renders nor the focal check's scaled cameras)
+        "lens": _lens_of(rows),
     }
+
+
+def _lens_of(rows: Sequence[Mapping[str, Any]]) -> Optional[Dict[str, Any]]:
+    """``lens.lens_evidence`` of the photo runs, and whether it says they are ``distorted``.
+
+    ``distorted``: whether a batch's rule (``lens.LensConfig``'s defaults) would adopt it. None
+    without refits.
+    """
+    from .lens import LensConfig, lens_evidence, photo_distortion
+
+    rule = LensConfig()
+    photo_runs = [r for r in rows if r.get("start") != CONTROL
+                  and not str(r.get("start")).startswith("focal")]
+    ev = lens_evidence([photo_distortion(dict(r)) for r in photo_runs])
+    if ev is not None:
+        ev["distorted"] = bool(ev["views"] >= rule.min_views
+                               and ev["shift_px"] > rule.min_shift_px and ev["agree"] >= rule.agree)
+    return ev
 
 
 # ---------------------------------------------------------------------------------- resume

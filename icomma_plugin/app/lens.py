@@ -7,7 +7,7 @@ the distortion: fox's phone photos given their pinhole intrinsics alone end 0.14
 distortion free (``signals.distortion``, ``geometry.fit_pose_and_distortion``); one photo's
 coefficients scatter with its matches (bird's soft photos, which have no distortion, fit up to
 9 px of it), many photos of one camera agree. A batch of photo files given one camera
-(``BatchLensConfig``) pools them (``pooled_distortion``), undistorts its photos with the
+(``LensConfig``) pools them (``pooled_distortion``), undistorts its photos with the
 coefficients they agree on and localizes them again. Each row records the coefficients its photo
 was undistorted with (``CAMERA_DISTORTION_KEY``).
 """
@@ -22,8 +22,8 @@ import numpy as np
 from ..checks import check_bool, check_int, check_real
 from ..localization.geometry import distortion_field
 
-__all__ = ["CAMERA_DISTORTION_KEY", "BatchLensConfig", "PhotoDistortion", "photo_distortion",
-           "pooled_distortion"]
+__all__ = ["CAMERA_DISTORTION_KEY", "LensConfig", "PhotoDistortion", "TrackingLensConfig",
+           "lens_evidence", "photo_distortion", "pooled_distortion"]
 
 #: a row's field: OpenCV's ``[k1, k2, p1, p2]`` its photo was undistorted with (adopted from the
 #: photos); absent when none
@@ -66,17 +66,14 @@ def photo_distortion(row: Dict[str, Any]) -> Optional[PhotoDistortion]:
     return PhotoDistortion(c, reach, focal)
 
 
-def pooled_distortion(estimates: Sequence[PhotoDistortion],
-                      current: Sequence[float] = (0.0, 0.0, 0.0, 0.0), min_shift_px: float = 0.5,
-                      agree: float = 0.8) -> Optional[Tuple[float, float, float, float]]:
-    """The coefficients the photos agree on, or None when they do not say ``current`` is off.
+def lens_evidence(estimates: Sequence[PhotoDistortion],
+                  current: Sequence[float] = (0.0, 0.0, 0.0, 0.0)) -> Optional[Dict[str, Any]]:
+    """What the photos' refits say of their lens together; None without any.
 
-    The median of each coefficient, when the change from ``current`` moves a pixel by more than
-    ``min_shift_px`` within the photos' reach (their median reach and focal length) and at least
-    ``agree`` of the photos' own changes point the same way (a positive inner product of the two
-    displacement fields over that disc). Fox's 50 phone photos given no distortion: k1 0.056, k2
-    -0.078 (its calibration: 0.058, -0.081), 2.2 px, all 50 the same way; bird, goldcape and fox
-    undistorted: 0.1-0.3 px, 48-72 % (docs/BATCHES.md).
+    ``{"coefficients"`` (the median of each of k1, k2, p1, p2), ``"shift_px"`` (what the change
+    from ``current`` moves a pixel by, at most, within the photos' median reach, at their median
+    focal length), ``"agree"`` (the share of the photos whose own change points the same way: a
+    positive inner product of the two displacement fields over that disc), ``"views"}``.
     """
     est = [e for e in estimates if e is not None]
     if not est:
@@ -86,46 +83,86 @@ def pooled_distortion(estimates: Sequence[PhotoDistortion],
     reach = float(np.median([e.reach for e in est]))
     focal = float(np.median([e.focal_px for e in est]))
     pooled = np.median(cs, axis=0)
-    field = distortion_field(pooled, reach, focal) - distortion_field(cur, reach, focal)
-    if float(np.linalg.norm(field, axis=1).max()) <= min_shift_px:
-        return None
     base = distortion_field(cur, reach, focal)
+    field = distortion_field(pooled, reach, focal) - base
     same_way = np.mean([float(((distortion_field(c, reach, focal) - base) * field).sum()) > 0.0
                         for c in cs])
-    return tuple(float(v) for v in pooled) if same_way >= agree else None
+    return {"coefficients": [float(v) for v in pooled],
+            "shift_px": float(np.linalg.norm(field, axis=1).max()), "agree": float(same_way),
+            "views": len(est)}
+
+
+def pooled_distortion(estimates: Sequence[PhotoDistortion],
+                      current: Sequence[float] = (0.0, 0.0, 0.0, 0.0), min_shift_px: float = 0.5,
+                      agree: float = 0.8) -> Optional[Tuple[float, float, float, float]]:
+    """The coefficients the photos agree on, or None when they do not say ``current`` is off.
+
+    :func:`lens_evidence`'s median coefficients, when their change from ``current`` moves a pixel
+    by more than ``min_shift_px`` and at least ``agree`` of the photos point the same way. Fox's
+    50 phone photos given no distortion: k1 0.055, k2 -0.078, p1 -0.0010, p2 0.0001 (its
+    calibration: 0.058, -0.081, -0.0010, 0.0002), 2.5 px, all 50 the same way; goldcape's photos
+    as files 0.26 px, 52 %; bird's views 1.7 px, 54 % (docs/BATCHES.md).
+    """
+    ev = lens_evidence(estimates, current)
+    if ev is None or ev["shift_px"] <= min_shift_px or ev["agree"] < agree:
+        return None
+    return tuple(ev["coefficients"])
 
 
 @dataclass
-class BatchLensConfig:
-    """A batch's lens distortion from its photos (the tool's ``batch.lens`` group).
+class LensConfig:
+    """One camera's lens distortion from its photos (the tool's ``batch.lens`` group).
 
-    from_photos: when the photos are files given one camera and no distortion (``data.intrinsics``
+    estimate: when the photos are files given one camera and no distortion (``data.intrinsics``
         without ``distortion``; not a dataset folder's views, which are undistorted already) and
-        at least ``min_photos`` of them were localized, the coefficients they agree on
+        at least ``min_views`` of them were localized, the coefficients they agree on
         (``pooled_distortion``: ``min_shift_px``, ``agree``) are adopted and every photo is
-        undistorted with them and localized again, from its pose; at most ``rounds`` times. This
+        undistorted with them and localized again, from its pose; at most ``rounds`` times (a
+        second round, on the photos undistorted, moved fox's frames' estimate away from its
+        calibration: k1 0.058 -> 0.066, docs/BATCHES.md). This
         is decided before the focal length (``batch.focal_from_photos``), whose refits a
         distortion left in the photos pulls. A sharded run decides per shard.
     """
 
-    from_photos: bool = True
-    min_photos: int = 5
+    #: the config group its settings are named by in errors
+    GROUP = "batch.lens"
+
+    estimate: bool = True
+    min_views: int = 5
     min_shift_px: float = 0.5
     agree: float = 0.8
-    rounds: int = 2
+    rounds: int = 1
 
     def __post_init__(self):
-        check_bool(self.from_photos, "batch.lens.from_photos")
-        check_int(self.min_photos, "batch.lens.min_photos", 2)
-        check_real(self.min_shift_px, "batch.lens.min_shift_px", 0.0, lo_open=True)
-        check_real(self.agree, "batch.lens.agree", 0.5, 1.0)
-        check_int(self.rounds, "batch.lens.rounds", 1)
+        g = self.GROUP
+        check_bool(self.estimate, f"{g}.estimate")
+        check_int(self.min_views, f"{g}.min_views", 2)
+        check_real(self.min_shift_px, f"{g}.min_shift_px", 0.0, lo_open=True)
+        check_real(self.agree, f"{g}.agree", 0.5, 1.0)
+        check_int(self.rounds, f"{g}.rounds", 1)
 
     def adopt(self, rows: Sequence[Dict[str, Any]], current: Optional[Sequence[float]]
               ) -> Optional[Tuple[float, float, float, float]]:
-        """The coefficients the photos of ``rows`` agree on instead of ``current``, or None."""
+        """The coefficients the views of ``rows`` agree on instead of ``current``, or None."""
         est = [e for e in map(photo_distortion, rows) if e is not None]
-        if not self.from_photos or len(est) < self.min_photos:
+        if not self.estimate or len(est) < self.min_views:
             return None
         return pooled_distortion(est, (0.0,) * 4 if current is None else current,
                                  self.min_shift_px, self.agree)
+
+
+@dataclass
+class TrackingLensConfig(LensConfig):
+    """A sequence's lens distortion from its first frames (the tool's ``tracking.lens`` group).
+
+    As :class:`LensConfig`, decided once on the first ``min_views`` frames localized (their lens
+    refits: in the tracking mode too until then, on sub-pixel keypoints); when adopted, those
+    frames are localized again with it from their poses, and every later frame is undistorted
+    with it; a focal length adopted from the distorted frames is undone and estimated again from
+    the undistorted ones. Fox's 50 photos as frames: the first 20
+    gave k1 0.058, k2 -0.079 (its calibration: 0.058, -0.081), the first 10 0.055, -0.075.
+    """
+
+    GROUP = "tracking.lens"
+
+    min_views: int = 20

@@ -39,7 +39,8 @@ from ..pose.convert import invert_rigid
 from ..pose.se3 import se3_exp, se3_log
 from .batch import BatchWorker, PhotoTask, failure_row, result_row
 from .focal import CAMERA_FOCAL_KEY, check_pooling, photo_focal_scale, pooled_focal_scale
-from .inputs import ProblemError, list_photos, start_poses
+from .inputs import LensDistortion, ProblemError, list_photos, start_poses
+from .lens import CAMERA_DISTORTION_KEY, TrackingLensConfig, photo_distortion
 from .ledger import PosesLedger
 from .problem import warn_if_rotated
 
@@ -97,6 +98,10 @@ class TrackingConfig:
             adopted (``camera_focal_scale`` in its row, the share of the given one; the row's
             ``intrinsics`` are those its pose holds with). Off: every frame with the given
             intrinsics.
+        lens: the camera's lens distortion from the first frames, when none was given
+            (``lens.TrackingLensConfig``; ``tracking.lens.estimate``): decided once, before the
+            focal length; adopted, those frames are localized again with it and every later
+            frame is undistorted with it (``camera_distortion`` in its row).
     """
 
     velocity: bool = True
@@ -120,6 +125,7 @@ class TrackingConfig:
     focal_rounds: int = 3
     focal_settle: float = 0.005
     focal_history: int = 100
+    lens: TrackingLensConfig = field(default_factory=TrackingLensConfig)
 
     def __post_init__(self):
         from ..checks import check_bool, check_int, check_real
@@ -290,7 +296,9 @@ class TrackingSummary:
     fast_ok: int = 0  # frames the tracking mode's cheap localization settled alone
     focal_scale: float = 1.0  # the sequence's focal length at the end, a share of the given one
     focal_adoptions: int = 0  # times this call adopted a focal length from its frames
-    redone: int = 0  # frames localized again with an adopted focal length
+    redone: int = 0  # frames localized again with an adopted focal length or lens
+    distortion: Optional[List[float]] = None  # k1, k2, p1, p2 adopted from the frames
+    distortion_adoptions: int = 0  # times this call adopted them
 
     @property
     def frames_per_second(self) -> Optional[float]:
@@ -356,7 +364,7 @@ def _query(rgb: np.ndarray, intr: Intrinsics, name: str, resize: Optional[int],
 
 @dataclass
 class _Held:
-    """A frame of the focal length's window: kept to be localized again when the focal changes."""
+    """A frame of the focal length's (or the lens's) window: kept to be localized again."""
 
     index: int
     name: str
@@ -385,6 +393,14 @@ class _Tracker:
         # the frames' focal scales since the last adoption (the next one is decided on them)
         self.since: deque = deque(maxlen=cfg.focal_history)
         self.focal_adoptions = 0
+        # the lens (a resumed run: its last row's), decided once on the first frames
+        lenses = [r[CAMERA_DISTORTION_KEY] for r in done if r.get(CAMERA_DISTORTION_KEY)]
+        given = worker.setup.distortion is not None
+        self.lens = tuple(float(v) for v in lenses[-1]) if lenses and not given else None
+        self.lens_open = cfg.lens.estimate and not given and len(done) < cfg.lens.min_views
+        self.lens_window: List[_Held] = []
+        self.lens_adoptions = 0
+        self.focal_before_lens = self.focal_scale  # what an adopted lens goes back to
         self.redone = 0
         self.relocalized = 0
         self.fast_settled: set = set()  # names of the frames the cheap localization settled
@@ -393,32 +409,43 @@ class _Tracker:
         """The tracking mode's cheap config for ``query`` (None: not used)."""
         loc = self.worker.localizer
         side = loc.method.work_side or loc.model_side or max(query.size)
-        return self.cfg.fast_method(loc.method, min(side, max(query.size)), loc.matcher)
+        fast = self.cfg.fast_method(loc.method, min(side, max(query.size)), loc.matcher)
+        if fast is not None and self.lens_open:  # its refits decide the lens: sub-pixel ones
+            fast = dataclasses.replace(fast, lens_check=True, geometric=dataclasses.replace(
+                fast.geometric, subpixel_iterations=loc.method.geometric.subpixel_iterations))
+        return fast
 
     def _intrinsics(self, rgb: np.ndarray) -> Intrinsics:
         """A frame's intrinsics: the given ones with the sequence's focal length."""
         given = self.intrinsics_of((int(rgb.shape[1]), int(rgb.shape[0])))
         return given.with_focal_scale(self.focal_scale)
 
+    def _distortion(self):
+        """The lens the frames are undistorted with: the given one, or the adopted one, or None."""
+        if self.lens is not None:
+            return LensDistortion(self.lens)
+        return self.worker.setup.distortion
+
     def _query(self, name: str, rgb: np.ndarray) -> Tuple[Intrinsics, Query]:
         intr = self._intrinsics(rgb)
-        setup = self.worker.setup
-        return intr, _query(rgb, intr, name, setup.resize, setup.distortion)
+        return intr, _query(rgb, intr, name, self.worker.setup.resize, self._distortion())
 
     def ahead(self, item: Tuple[int, str, np.ndarray]) -> Tuple[int, str, np.ndarray, Any]:
         """``(index, name, rgb)`` -> ``(index, name, rgb, (intrinsics, query) or None)``.
 
         In the prefetch thread: the frame's query with the matcher's features of it made ahead
-        (``Localizer.prepare``). None for a frame already done, or a bad one (``frame`` reports it).
+        (``Localizer.prepare``), and the lens it was undistorted with. None for a frame already
+        done, or a bad one (``frame`` reports it).
         """
         index, name, rgb = item
         if name in self.done:
             return index, name, rgb, None
         try:
+            lens = self.lens
             intr, query = self._query(name, rgb)
             fast = self._fast_method(query)
             self.worker.localizer.prepare(query, fast)
-            return index, name, rgb, (intr, query)
+            return index, name, rgb, (intr, query, lens)
         except Exception:  # noqa: BLE001 - the frame itself meets the error again and reports it
             return index, name, rgb, None
 
@@ -450,7 +477,7 @@ class _Tracker:
               start: Optional[np.ndarray] = None) -> Dict[str, Any]:
         """Localize one frame and return its row (a failed row for bad input).
 
-        ``prepared``: ``(intrinsics, query)`` of the frame made ahead (``ahead``), or None.
+        ``prepared``: ``(intrinsics, query, lens)`` of the frame made ahead (``ahead``), or None.
         ``start``: the start pose (None: predicted from the history).
         """
         worker = self.worker
@@ -462,9 +489,10 @@ class _Tracker:
         path = self.source.spec if self.source.is_video else str(self.source.paths[index])
         task = PhotoTask(index, name, path, None, None, start, gt)
         try:
-            if prepared is not None and prepared[0] != self._intrinsics(rgb):
-                prepared = None  # made ahead before the sequence's focal length changed
-            task.intrinsics, query = prepared or self._query(name, rgb)
+            if prepared is not None and (prepared[0] != self._intrinsics(rgb)
+                                         or prepared[2] != self.lens):
+                prepared = None  # made ahead before the sequence's camera changed
+            task.intrinsics, query = prepared[:2] if prepared else self._query(name, rgb)
             problem = worker.problem(task, query)
             result, again = self._localize(problem, start)
             folder, thumb = worker.write_pictures(problem, result, time.perf_counter() - t_frame)
@@ -476,6 +504,8 @@ class _Tracker:
             msg = str(e).splitlines()[0] if str(e) else type(e).__name__
             row = failure_row(task, f"bad input: {msg}", msg, time.perf_counter() - t_frame)
         row[CAMERA_FOCAL_KEY] = self.focal_scale
+        if self.lens is not None:
+            row[CAMERA_DISTORTION_KEY] = list(self.lens)
         again = bool(self.history) and self.history[-1][0] >= index
         if again:  # a frame localized again (``settle_focal``): its new pose replaces the old
             self.history = [h for h in self.history if h[0] != index]
@@ -484,6 +514,51 @@ class _Tracker:
             if again:
                 self.history.sort(key=lambda h: h[0])
         return row
+
+    def settle_lens(self, index: int, name: str, rgb: np.ndarray, row: Dict[str, Any]
+                    ) -> List[Dict[str, Any]]:
+        """Add a frame to the lens's first window; the rows of the frames localized again.
+
+        Once ``lens.min_views`` frames are in, the lens their refits agree on
+        (``LensConfig.adopt``) is adopted and they are localized again with it from their own
+        poses, at most ``lens.rounds`` times; then the lens is decided for the sequence (the
+        focal length's window starts again, on undistorted frames).
+        """
+        cfg = self.cfg.lens
+        if not self.lens_open:
+            return []
+        if photo_distortion(row) is None and row.get("c2w") is not None:
+            self.lens_open = False  # a method without the lens check: nothing to decide on
+            self.lens_window = []
+            return []
+        self.lens_window.append(_Held(index, name, rgb, row))
+        if len(self.lens_window) < cfg.min_views:
+            return []
+        redone: Dict[str, Dict[str, Any]] = {}
+        for _ in range(cfg.rounds):
+            new = cfg.adopt([h.row for h in self.lens_window], self.lens)
+            if new is None:
+                break
+            logger.info("%d frames agree on a lens distortion (k1, k2, p1, p2) %s: the sequence "
+                        "undistorts its frames with it, and localizes these again",
+                        len(self.lens_window), ", ".join(f"{v:.5f}" for v in new))
+            self.lens = new
+            self.lens_adoptions += 1
+            # a focal length adopted from these distorted frames is undone (it made up for part
+            # of the distortion: fox's 1.011); the undistorted frames to come estimate it again
+            self.focal_scale = self.focal_before_lens
+            for h in self.lens_window:
+                if h.row.get("c2w") is None:  # failed when localized again: left as it is
+                    continue
+                h.row = self.frame(h.index, h.name, h.rgb, start=np.asarray(h.row["c2w"]))
+                redone[h.name] = h.row
+        self.lens_open = False
+        self.lens_window = []
+        if redone:  # the focal length's frames were distorted: its estimate starts again
+            self.window.clear()
+            self.since.clear()
+        self.redone += len(redone)
+        return list(redone.values())
 
     def settle_focal(self, index: int, name: str, rgb: np.ndarray, row: Dict[str, Any]
                      ) -> List[Dict[str, Any]]:
@@ -569,7 +644,9 @@ def track(
             skipped += 1
             continue
         row = tracker.frame(index, name, rgb, prepared[0] if prepared else None)
-        for r in [row] + tracker.settle_focal(index, name, rgb, row):
+        out = [row] + tracker.settle_lens(index, name, rgb, row)
+        row = out[-1] if out[-1]["name"] == name else row  # this frame, localized again
+        for r in out + tracker.settle_focal(index, name, rgb, row):
             ledger.record(r)
             rows[r["name"]] = r
         if progress is not None:
@@ -578,7 +655,9 @@ def track(
     ledger.flush()
     return TrackingSummary(ledger.counts(), len(rows), skipped, time.perf_counter() - t0,
                            tracker.relocalized, list(rows.values()), len(tracker.fast_settled),
-                           tracker.focal_scale, tracker.focal_adoptions, tracker.redone)
+                           tracker.focal_scale, tracker.focal_adoptions, tracker.redone,
+                           None if tracker.lens is None else list(tracker.lens),
+                           tracker.lens_adoptions)
 
 
 def write_tracking_video(
@@ -611,7 +690,10 @@ def write_tracking_video(
         intr = intrinsics_of((int(rgb.shape[1]), int(rgb.shape[0])))
         if r.get("intrinsics"):  # those the pose holds with (a focal length estimated)
             intr = Intrinsics.from_json(r["intrinsics"])
-        q = _query(rgb, intr, name, worker.setup.resize, worker.setup.distortion)
+        lens = worker.setup.distortion
+        if r.get(CAMERA_DISTORTION_KEY):  # a lens adopted from the frames
+            lens = LensDistortion(tuple(r[CAMERA_DISTORTION_KEY]))
+        q = _query(rgb, intr, name, worker.setup.resize, lens)
         if r.get("c2w") is not None:
             w2c = torch.as_tensor(invert_rigid(np.asarray(r["c2w"], np.float64)),
                                   dtype=model.dtype, device=model.device)

@@ -365,8 +365,12 @@ def test_the_corrupted_cameras_are_flagged_and_the_others_are_not(capture, tmp_p
     assert doc["summary"]["median_record_rot_std_deg"] is None
     assert all(c["record"] is None and c["within_record"] is None for c in cams.values())
     assert sum(doc["summary"]["verdicts"].values()) == 12
+    # the photos are pinhole renders: no lens distortion left in them (their 12 runs' refits)
+    lens = doc["summary"]["lens"]
+    assert lens["views"] >= 10 and lens["distorted"] is False
     text = audit_tool().summary(doc)
     assert "control: the model's renders at the records come back to" in text
+    assert "lens: no distortion left in the photos" in text
     reading = audit_tool()._control_reading
     assert "agree with their records" in reading(0.02, 0.001)
     assert "disagreement with their records" in reading(0.3, 0.01)

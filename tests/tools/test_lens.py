@@ -17,7 +17,7 @@ import pytest
 from icomma_plugin.app.batch import BatchPlan, PhotoTask, WorkerSetup, run_batch
 from icomma_plugin.app.batch import worker as batch_worker
 from icomma_plugin.app.inputs import LensDistortion
-from icomma_plugin.app.lens import (BatchLensConfig, PhotoDistortion, photo_distortion,
+from icomma_plugin.app.lens import (LensConfig, PhotoDistortion, photo_distortion,
                                     pooled_distortion)
 from icomma_plugin.app.ledger import PosesLedger
 from icomma_plugin.camera import Intrinsics
@@ -67,16 +67,16 @@ def test_a_photos_distortion_adds_the_one_it_was_undistorted_with():
 
 
 def test_batch_lens_config_names_bad_settings():
-    with pytest.raises(ValueError, match="batch.lens.min_photos"):
-        BatchLensConfig(min_photos=1)
+    with pytest.raises(ValueError, match="batch.lens.min_views"):
+        LensConfig(min_views=1)
     with pytest.raises(ValueError, match="batch.lens.min_shift_px"):
-        BatchLensConfig(min_shift_px=0.0)
+        LensConfig(min_shift_px=0.0)
     with pytest.raises(ValueError, match="batch.lens.agree"):
-        BatchLensConfig(agree=0.2)
-    with pytest.raises(ValueError, match="batch.lens.from_photos"):
-        BatchLensConfig(from_photos="yes")
+        LensConfig(agree=0.2)
+    with pytest.raises(ValueError, match="batch.lens.estimate"):
+        LensConfig(estimate="yes")
     with pytest.raises(ValueError, match="batch.lens.rounds"):
-        BatchLensConfig(rounds=0)
+        LensConfig(rounds=0)
 
 
 # ------------------------------------------------------------------ a batch through a fake lens
@@ -116,7 +116,7 @@ def _plan(n=6, view=None):
     return BatchPlan(tasks, "model", None, False, None, "none")
 
 
-def _run(tmp_path, monkeypatch, plan=None, lens=BatchLensConfig(), distortion=None):
+def _run(tmp_path, monkeypatch, plan=None, lens=LensConfig(), distortion=None):
     monkeypatch.setattr(batch_worker, "BatchWorker", _DistortedWorker)
     monkeypatch.setattr(_DistortedWorker, "calls", [])
     plan = plan or _plan()
@@ -151,9 +151,9 @@ def test_a_batch_adopts_the_lens_its_photos_agree_on(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("case", ["off", "too_few", "dataset_views", "given", "pinhole"])
 def test_a_batch_keeps_its_photos_as_they_are(tmp_path, monkeypatch, case):
-    plan, lens, distortion = _plan(), BatchLensConfig(), None
+    plan, lens, distortion = _plan(), LensConfig(), None
     if case == "off":
-        lens = BatchLensConfig(from_photos=False)
+        lens = LensConfig(estimate=False)
     elif case == "too_few":
         plan = _plan(4)
     elif case == "dataset_views":  # a dataset folder's views are undistorted already
@@ -168,6 +168,86 @@ def test_a_batch_keeps_its_photos_as_they_are(tmp_path, monkeypatch, case):
     assert summ.distortion is None and summ.distortion_adoptions == 0
     assert not (tmp_path / "out" / "poses.focal.json").exists()
     assert all("camera_distortion" not in r for r in ledger.all_rows())
+
+
+# ---------------------------------------------------------- a sequence through a fake lens
+
+
+def _lens_frames(tmp_path, n):
+    from PIL import Image
+
+    folder = tmp_path / "frames"
+    folder.mkdir(exist_ok=True)
+    for i in range(n):
+        Image.new("RGB", (8, 8)).save(folder / f"g{i}.png")
+    return folder
+
+
+def _fake_lens_worker(focal_ask=1.0):
+    """The tracking tests' fake worker whose frames see fox's lens until undistorted."""
+    from tests.tools.test_tracking import _FakeWorker
+
+    class _Worker(_FakeWorker):
+        def result(self, query, init_c2w, fast):
+            res = super().result(query, init_c2w, fast)
+            undistorted = query.valid is not None  # (a remapped 8x8 frame loses its corners)
+            left = [0.0] * 4 if undistorted else list(FOX_LENS)
+            res.verdict.signals["distortion"] = {"coefficients": left, "reach": 0.7,
+                                                 "focal_px": 340.0}  # (a phone's, in px)
+            res.verdict.signals["focal"] = {"scale": focal_ask, "rms_px": 0.5,
+                                            "rms_px_given": 0.6}
+            self.calls[-1] += (undistorted, round(query.intrinsics.fx, 6))
+            return res
+
+    return _Worker({f"g{i}.png": np.eye(4) for i in range(8)})
+
+
+def test_a_sequence_adopts_the_lens_of_its_first_frames_and_keeps_it(tmp_path):
+    from icomma_plugin.app.lens import TrackingLensConfig
+    from icomma_plugin.app.tracking import FrameSource, TrackingConfig, track
+
+    folder = _lens_frames(tmp_path, 6)
+    cfg = TrackingConfig(lens=TrackingLensConfig(min_views=3), focal_window=3)
+    w = _fake_lens_worker(focal_ask=1.1)  # the distorted frames also ask for 10 % more focal
+    summ = track(w, FrameSource.open(str(folder), limit=4),
+                 PosesLedger(tmp_path / "out", {"kind": "sequence"}, 6),
+                 lambda s: Intrinsics(8, 8, 8.0, 8.0), init_c2w=np.eye(4), cfg=cfg)
+    # three frames read as they are agree on the lens: adopted; those three localized again
+    # undistorted, with the focal length adopted from them undone (it made up for the lens)
+    assert [(c[0], c[3], c[4]) for c in w.calls] == [
+        ("g0.png", False, 8.0), ("g1.png", False, 8.0), ("g2.png", False, 8.0),
+        ("g0.png", True, 8.0), ("g1.png", True, 8.0), ("g2.png", True, 8.0), ("g3.png", True, 8.0)]
+    assert summ.distortion == pytest.approx(FOX_LENS) and summ.distortion_adoptions == 1
+    assert summ.redone == 3
+    rows = PosesLedger(tmp_path / "out", {"kind": "sequence"}, 6).all_rows()
+    assert all(r["camera_distortion"] == pytest.approx(FOX_LENS) for r in rows)
+    assert all(r["camera_focal_scale"] == 1.0 for r in rows)
+    # a resumed run goes on undistorting with it, deciding nothing again
+    w2 = _fake_lens_worker()
+    summ2 = track(w2, FrameSource.open(str(folder)),
+                  PosesLedger(tmp_path / "out", {"kind": "sequence"}, 6),
+                  lambda s: Intrinsics(8, 8, 8.0, 8.0), init_c2w=np.eye(4), cfg=cfg)
+    assert [(c[0], c[3]) for c in w2.calls] == [("g4.png", True), ("g5.png", True)]
+    assert summ2.distortion == pytest.approx(FOX_LENS) and summ2.distortion_adoptions == 0
+    # off, or a lens given: the frames as they are (or as the given lens makes them)
+    w3 = _fake_lens_worker()
+    track(w3, FrameSource.open(str(folder)), PosesLedger(tmp_path / "out3", {"kind": "sequence"},
+          6), lambda s: Intrinsics(8, 8, 8.0, 8.0), init_c2w=np.eye(4),
+          cfg=TrackingConfig(lens=TrackingLensConfig(estimate=False, min_views=3)))
+    assert {c[3] for c in w3.calls} == {False} and len(w3.calls) == 6
+
+
+def test_tracking_lens_config_names_its_group():
+    from icomma_plugin.app.lens import TrackingLensConfig
+    from icomma_plugin.app.tracking import TrackingConfig
+    from icomma_plugin.checks import config_from_dict
+
+    with pytest.raises(ValueError, match="tracking.lens.min_views"):
+        TrackingLensConfig(min_views=1)
+    cfg = config_from_dict(TrackingConfig, {"lens": {"min_views": 7}}, "tracking")
+    assert isinstance(cfg.lens, TrackingLensConfig) and cfg.lens.min_views == 7
+    with pytest.raises(ValueError, match="tracking.lens"):
+        config_from_dict(TrackingConfig, {"lens": {"min_photos": 7}}, "tracking")
 
 
 # ------------------------------------------------------------- the demo scene, through the tool
@@ -218,7 +298,7 @@ def test_a_batch_of_distorted_photos_finds_their_lens(distorted_photos, tmp_path
             f"data.intrinsics.fx={i.fx}", f"data.intrinsics.fy={i.fy}",
             f"data.intrinsics.cx={i.cx_px}", f"data.intrinsics.cy={i.cy_px}",
             f"data.gt.poses_file={ps['gt']}", "data.init=none",
-            f"batch.lens.from_photos={str(on).lower()}", f"output.dir={out}",
+            f"batch.lens.estimate={str(on).lower()}", f"output.dir={out}",
             "output.progress=false", "output.contact_sheet=false", "threads=1"]), out)
     assert doc[False]["summary"]["distortion"] is None
     found = doc[True]["summary"]["distortion"]
@@ -259,7 +339,7 @@ def test_fox_photos_given_no_distortion_find_their_lens(fox_root, tmp_path):
             "data.intrinsics.cx=554.058", "data.intrinsics.cy=964.768",
             "data.intrinsics.width=1080", "data.intrinsics.height=1920", "data.resize=480",
             "data.init=none", f"data.gt.cameras_json={FOX_FIT / 'cameras.json'}",
-            f"batch.lens.from_photos={str(on).lower()}", f"output.dir={out}",
+            f"batch.lens.estimate={str(on).lower()}", f"output.dir={out}",
             "output.progress=false", "output.contact_sheet=false", "threads=2"]), out)
     found = doc[True]["summary"]["distortion"]
     assert doc[False]["summary"]["distortion"] is None

@@ -32,7 +32,7 @@ from ...io.atomic import write_json_atomic
 from ...pose.convert import cameras_extent
 from ..focal import CAMERA_FOCAL_KEY, BatchFocalConfig, photo_focal_scale
 from ..inputs import LensDistortion, ProblemError
-from ..lens import CAMERA_DISTORTION_KEY, BatchLensConfig
+from ..lens import CAMERA_DISTORTION_KEY, LensConfig
 from ..ledger import PosesLedger
 from ..problem import Problem, read_query_image
 from .planning import BatchPlan, PhotoTask
@@ -381,7 +381,7 @@ def run_batch(
     model_folder=None,
     matcher=None,
     focal: Optional[BatchFocalConfig] = None,
-    lens: Optional[BatchLensConfig] = None,
+    lens: Optional[LensConfig] = None,
 ) -> BatchSummary:
     """Localize this shard's unfinished photos of ``plan``, recording each in ``ledger``.
 
@@ -401,7 +401,7 @@ def run_batch(
         focal: the focal length from the photos (``focal.BatchFocalConfig``; None: off). Used
             for photo files given one camera; a dataset folder's views keep their own. The
             adopted one is kept in ``poses.focal.json`` for a resumed run.
-        lens: the lens distortion from the photos (``lens.BatchLensConfig``; None: off). For
+        lens: the lens distortion from the photos (``lens.LensConfig``; None: off). For
             photo files given one camera and no distortion; decided before the focal length
             after each pass, kept in ``poses.focal.json`` too.
     """
@@ -410,7 +410,7 @@ def run_batch(
     mine = [t for t in plan.tasks if t.index % ledger.num_shards == ledger.shard]
     own_camera = bool(mine) and all(t.view is None for t in mine)  # files given one camera
     pool_focal = own_camera and focal is not None and focal.focal_from_photos
-    pool_lens = (own_camera and lens is not None and lens.from_photos
+    pool_lens = (own_camera and lens is not None and lens.estimate
                  and setup.distortion is None)
     pooling = pool_focal or pool_lens
     state_path = _focal_state_path(ledger)
