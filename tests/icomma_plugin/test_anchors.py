@@ -162,3 +162,33 @@ def test_photo_anchors_need_a_view_that_loads(demo):
     p = SourcePhoto.of_view(view)
     assert p.name == "IMG_1.jpg" and np.array_equal(p.c2w, cams[0].c2w)
     assert PhotoAnchors([p], torch.zeros(3)).index_of("IMG_1.png") == 0
+
+
+def test_the_photos_fingerprint_survives_a_copy_not_an_edit(tmp_path):
+    """The candidate index's key of the source photos: by content, so a copied capture keeps it."""
+    import os
+    import shutil
+
+    from icomma_plugin.camera import Intrinsics
+
+    rng = np.random.default_rng(0)
+    a, b = tmp_path / "a", tmp_path / "b"
+    a.mkdir()
+    for i in range(3):
+        (a / f"p{i}.jpg").write_bytes(rng.bytes(200_000))  # larger than both samples
+    shutil.copytree(a, b)
+    os.utime(b / "p1.jpg", (1e9, 1e9))  # a copy made at another time
+
+    def fingerprint(folder):
+        photos = [SourcePhoto(f"p{i}.jpg", np.eye(4), Intrinsics(8, 8, 8.0, 8.0),
+                              SimpleNamespace(image_path=str(folder / f"p{i}.jpg")))
+                  for i in range(3)]
+        return PhotoAnchors(photos, torch.zeros(3)).fingerprint()
+
+    assert fingerprint(a) == fingerprint(b)
+    data = bytearray((b / "p2.jpg").read_bytes())
+    data[-10] ^= 0xFF  # an edit near its end
+    (b / "p2.jpg").write_bytes(bytes(data))
+    assert fingerprint(a) != fingerprint(b)
+    (b / "p2.jpg").unlink()  # a photo gone
+    assert fingerprint(a) != fingerprint(b)
