@@ -99,9 +99,9 @@ class TrackingConfig:
             ``intrinsics`` are those its pose holds with). Off: every frame with the given
             intrinsics.
         lens: the camera's lens distortion from the first frames, when none was given
-            (``lens.TrackingLensConfig``; ``tracking.lens.estimate``): decided once, before the
-            focal length; adopted, those frames are localized again with it and every later
-            frame is undistorted with it (``camera_distortion`` in its row).
+            (``lens.TrackingLensConfig``; ``tracking.lens.estimate``): decided once; adopted,
+            those frames are localized again with it (a focal length adopted from them undone)
+            and every later frame is undistorted with it (``camera_distortion`` in its row).
     """
 
     velocity: bool = True

@@ -41,8 +41,7 @@ from .verify import PoseScore, score_observation
 logger = logging.getLogger(__name__)
 
 __all__ = ["ANCHORS", "GeometricConfig", "GeometricOutcome", "distortion_fits", "focal_fits",
-           "pnp_from_observation",
-           "render_correspondences", "run_geometric"]
+           "pnp_from_observation", "render_correspondences", "run_geometric"]
 
 #: Where the geometric stage's 2D-3D correspondences come from (``GeometricConfig.anchors``).
 ANCHORS = ("renders", "photos", "both")

@@ -70,8 +70,8 @@ class RobustConfig:
         ``refine.can_estimate_focal`` (the refinement's defaults).
     lens_check: the verdict refits the final render's matches with the lens distortion free
         (``signals.distortion``, 3-4 ms a pose), which a batch of photos given one camera pools
-        (``app.lens``); it does not move the verdict. Off in tracking's fast mode (nothing
-        reads it there).
+        (``app.lens``), as a sequence does its first frames'; it does not move the verdict. Off
+        in tracking's fast mode once the sequence's lens is decided.
     verify_geometric: when the refinement takes no step (``refine.iterations`` 0) and the geometric
         stage converged, the verdict is decided on the geometric stage's last render-and-match
         (at most ``geometric.stop_rot_deg`` from the returned pose, the PnP step that ended the
