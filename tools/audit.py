@@ -282,8 +282,9 @@ def summary(doc: Dict[str, Any]) -> str:
             f"  lens: the photos' refits agree on a distortion their dataset does not remove "
             f"(k1, k2, p1, p2 = {k}; {lens['shift_px']:.2f} px, {100 * lens['agree']:.0f} % of "
             f"{lens['views']} runs): check the capture's camera model" if lens["distorted"] else
-            f"  lens: no distortion left in the photos ({lens['shift_px']:.2f} px, "
-            f"{100 * lens['agree']:.0f} % of {lens['views']} runs agreeing)")
+            f"  lens: the photos' refits do not agree on a distortion left in them (their medians "
+            f"{lens['shift_px']:.2f} px, {100 * lens['agree']:.0f} % of {lens['views']} runs "
+            "pointing that way; a batch adopts from 0.5 px and 80 %)")
     if cal.get("stored"):
         moved = ", ".join(f"{k} {a:g} -> {b:g}" for k, (a, b) in cal["changed"].items())
         lines.append(f"  calibration ({cal['counts']['used']} right ok poses): "

@@ -370,7 +370,7 @@ def test_the_corrupted_cameras_are_flagged_and_the_others_are_not(capture, tmp_p
     assert lens["views"] >= 10 and lens["distorted"] is False
     text = audit_tool().summary(doc)
     assert "control: the model's renders at the records come back to" in text
-    assert "lens: no distortion left in the photos" in text
+    assert "lens: the photos' refits do not agree on a distortion" in text
     reading = audit_tool()._control_reading
     assert "agree with their records" in reading(0.02, 0.001)
     assert "disagreement with their records" in reading(0.3, 0.01)
