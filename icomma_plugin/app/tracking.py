@@ -40,7 +40,8 @@ from ..pose.se3 import se3_exp, se3_log
 from .batch import BatchWorker, PhotoTask, failure_row, result_row
 from .focal import CAMERA_FOCAL_KEY, check_pooling, photo_focal_scale, pooled_focal_scale
 from .inputs import LensDistortion, ProblemError, list_photos, start_poses
-from .lens import CAMERA_DISTORTION_KEY, TrackingLensConfig, photo_distortion
+from .lens import (CAMERA_DISTORTION_KEY, NO_CENTRE, TrackingLensConfig, photo_distortion,
+                   principal_point_given)
 from .ledger import PosesLedger
 from .problem import warn_if_rotated
 
@@ -529,6 +530,11 @@ class _Tracker:
             return []
         if photo_distortion(row) is None and row.get("c2w") is not None:
             self.lens_open = False  # a method without the lens check: nothing to decide on
+            self.lens_window = []
+            return []
+        if not principal_point_given(self.intrinsics_of((int(rgb.shape[1]), int(rgb.shape[0])))):
+            logger.info("%s", NO_CENTRE)
+            self.lens_open = False
             self.lens_window = []
             return []
         self.lens_window.append(_Held(index, name, rgb, row))

@@ -110,9 +110,11 @@ class _DistortedWorker:
         return row
 
 
-def _plan(n=6, view=None):
-    tasks = [PhotoTask(i, f"p{i}.png", f"p{i}.png", view, Intrinsics(8, 8, 8.0, 8.0))
-             for i in range(n)]
+CAMERA = Intrinsics(8, 8, 8.0, 8.0, 3.6, 3.4)  # its principal point given
+
+
+def _plan(n=6, view=None, camera=CAMERA):
+    tasks = [PhotoTask(i, f"p{i}.png", f"p{i}.png", view, camera) for i in range(n)]
     return BatchPlan(tasks, "model", None, False, None, "none")
 
 
@@ -149,7 +151,8 @@ def test_a_batch_adopts_the_lens_its_photos_agree_on(tmp_path, monkeypatch):
     assert summ2.distortion_adoptions == 0
 
 
-@pytest.mark.parametrize("case", ["off", "too_few", "dataset_views", "given", "pinhole"])
+@pytest.mark.parametrize("case", ["off", "too_few", "dataset_views", "given", "pinhole",
+                                  "no_centre"])
 def test_a_batch_keeps_its_photos_as_they_are(tmp_path, monkeypatch, case):
     plan, lens, distortion = _plan(), LensConfig(), None
     if case == "off":
@@ -160,6 +163,8 @@ def test_a_batch_keeps_its_photos_as_they_are(tmp_path, monkeypatch, case):
         plan = _plan(view=object())
     elif case == "given":  # the user's coefficients are the photos' lens
         distortion = LensDistortion(FOX_LENS)
+    elif case == "no_centre":  # its error would be taken for a tangential distortion
+        plan = _plan(camera=Intrinsics(8, 8, 8.0, 8.0))
     else:
         monkeypatch.setattr(_DistortedWorker, "LENS", (0.0, 0.0, 0.0, 0.0))
     summ, ledger, calls = _run(tmp_path, monkeypatch, plan=plan, lens=lens,
@@ -211,7 +216,7 @@ def test_a_sequence_adopts_the_lens_of_its_first_frames_and_keeps_it(tmp_path):
     w = _fake_lens_worker(focal_ask=1.1)  # the distorted frames also ask for 10 % more focal
     summ = track(w, FrameSource.open(str(folder), limit=4),
                  PosesLedger(tmp_path / "out", {"kind": "sequence"}, 6),
-                 lambda s: Intrinsics(8, 8, 8.0, 8.0), init_c2w=np.eye(4), cfg=cfg)
+                 lambda s: CAMERA, init_c2w=np.eye(4), cfg=cfg)
     # three frames read as they are agree on the lens: adopted; those three localized again
     # undistorted, with the focal length adopted from them undone (it made up for the lens)
     assert [(c[0], c[3], c[4]) for c in w.calls] == [
@@ -226,15 +231,17 @@ def test_a_sequence_adopts_the_lens_of_its_first_frames_and_keeps_it(tmp_path):
     w2 = _fake_lens_worker()
     summ2 = track(w2, FrameSource.open(str(folder)),
                   PosesLedger(tmp_path / "out", {"kind": "sequence"}, 6),
-                  lambda s: Intrinsics(8, 8, 8.0, 8.0), init_c2w=np.eye(4), cfg=cfg)
+                  lambda s: CAMERA, init_c2w=np.eye(4), cfg=cfg)
     assert [(c[0], c[3]) for c in w2.calls] == [("g4.png", True), ("g5.png", True)]
     assert summ2.distortion == pytest.approx(FOX_LENS) and summ2.distortion_adoptions == 0
-    # off, or a lens given: the frames as they are (or as the given lens makes them)
-    w3 = _fake_lens_worker()
-    track(w3, FrameSource.open(str(folder)), PosesLedger(tmp_path / "out3", {"kind": "sequence"},
-          6), lambda s: Intrinsics(8, 8, 8.0, 8.0), init_c2w=np.eye(4),
-          cfg=TrackingConfig(lens=TrackingLensConfig(estimate=False, min_views=3)))
-    assert {c[3] for c in w3.calls} == {False} and len(w3.calls) == 6
+    # off, or no principal point given: the frames as they are
+    for i, (camera, estimate) in enumerate(((CAMERA, False), (Intrinsics(8, 8, 8.0, 8.0), True))):
+        w3 = _fake_lens_worker()
+        track(w3, FrameSource.open(str(folder)),
+              PosesLedger(tmp_path / f"out_{i}", {"kind": "sequence"}, 6), lambda s: camera,
+              init_c2w=np.eye(4),
+              cfg=TrackingConfig(lens=TrackingLensConfig(estimate=estimate, min_views=3)))
+        assert {c[3] for c in w3.calls} == {False} and len(w3.calls) == 6
 
 
 def test_tracking_lens_config_names_its_group():

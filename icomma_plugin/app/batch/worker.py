@@ -32,7 +32,7 @@ from ...io.atomic import write_json_atomic
 from ...pose.convert import cameras_extent
 from ..focal import CAMERA_FOCAL_KEY, BatchFocalConfig, photo_focal_scale
 from ..inputs import LensDistortion, ProblemError
-from ..lens import CAMERA_DISTORTION_KEY, LensConfig
+from ..lens import CAMERA_DISTORTION_KEY, NO_CENTRE, LensConfig, principal_point_given
 from ..ledger import PosesLedger
 from ..problem import Problem, read_query_image
 from .planning import BatchPlan, PhotoTask
@@ -412,6 +412,10 @@ def run_batch(
     pool_focal = own_camera and focal is not None and focal.focal_from_photos
     pool_lens = (own_camera and lens is not None and lens.estimate
                  and setup.distortion is None)
+    if pool_lens and not all(principal_point_given(t.intrinsics) for t in mine
+                             if t.intrinsics is not None):
+        logger.info("%s", NO_CENTRE)
+        pool_lens = False
     pooling = pool_focal or pool_lens
     state_path = _focal_state_path(ledger)
     state = _read_focal_state(state_path) if pooling else _given_camera()
