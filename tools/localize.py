@@ -306,7 +306,7 @@ def _run_batch(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, Any]:
             "photos_per_minute": summ.photos_per_minute, "seconds": summ.seconds,
             "focal_scale": summ.focal_scale, "focal_adoptions": summ.focal_adoptions,
             "distortion": summ.distortion, "distortion_adoptions": summ.distortion_adoptions,
-            "redone": summ.redone, "rows": rows}
+            "lens_not_estimated": summ.lens_not_estimated, "redone": summ.redone, "rows": rows}
 
 
 def _run_sequence(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, Any]:
@@ -347,7 +347,7 @@ def _run_sequence(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, An
             "relocalized": summ.relocalized, "fast_ok": summ.fast_ok, "files": files,
             "focal_scale": summ.focal_scale, "focal_adoptions": summ.focal_adoptions,
             "distortion": summ.distortion, "distortion_adoptions": summ.distortion_adoptions,
-            "redone": summ.redone, "rows": rows}
+            "lens_not_estimated": summ.lens_not_estimated, "redone": summ.redone, "rows": rows}
 
 
 def _tracking_line(s: Dict[str, Any], rows: List[Dict[str, Any]]) -> str:
@@ -377,6 +377,8 @@ def _focal_line(s: Dict[str, Any], what: str) -> str:
 
 def _lens_line(s: Dict[str, Any], what: str) -> str:
     """The lens distortion a batch or a sequence estimated from its photos ("": none)."""
+    if s.get("lens_not_estimated"):
+        return f"  lens         {s['lens_not_estimated']}"
     if not s.get("distortion"):
         return ""
     k = ",".join(f"{v:.5f}" for v in s["distortion"])

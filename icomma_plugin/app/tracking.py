@@ -300,6 +300,7 @@ class TrackingSummary:
     redone: int = 0  # frames localized again with an adopted focal length or lens
     distortion: Optional[List[float]] = None  # k1, k2, p1, p2 adopted from the frames
     distortion_adoptions: int = 0  # times this call adopted them
+    lens_not_estimated: Optional[str] = None  # why the lens was not estimated when it was asked
 
     @property
     def frames_per_second(self) -> Optional[float]:
@@ -402,6 +403,7 @@ class _Tracker:
         self.lens_window: List[_Held] = []
         self.lens_adoptions = 0
         self.focal_before_lens = self.focal_scale  # what an adopted lens goes back to
+        self.lens_not_estimated: Optional[str] = None
         self.redone = 0
         self.relocalized = 0
         self.fast_settled: set = set()  # names of the frames the cheap localization settled
@@ -534,6 +536,7 @@ class _Tracker:
             return []
         if not principal_point_given(self.intrinsics_of((int(rgb.shape[1]), int(rgb.shape[0])))):
             logger.info("%s", NO_CENTRE)
+            self.lens_not_estimated = NO_CENTRE
             self.lens_open = False
             self.lens_window = []
             return []
@@ -663,7 +666,7 @@ def track(
                            tracker.relocalized, list(rows.values()), len(tracker.fast_settled),
                            tracker.focal_scale, tracker.focal_adoptions, tracker.redone,
                            None if tracker.lens is None else list(tracker.lens),
-                           tracker.lens_adoptions)
+                           tracker.lens_adoptions, tracker.lens_not_estimated)
 
 
 def write_tracking_video(

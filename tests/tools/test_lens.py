@@ -17,7 +17,7 @@ import pytest
 from icomma_plugin.app.batch import BatchPlan, PhotoTask, WorkerSetup, run_batch
 from icomma_plugin.app.batch import worker as batch_worker
 from icomma_plugin.app.inputs import LensDistortion
-from icomma_plugin.app.lens import (LensConfig, PhotoDistortion, photo_distortion,
+from icomma_plugin.app.lens import (NO_CENTRE, LensConfig, PhotoDistortion, photo_distortion,
                                     pooled_distortion)
 from icomma_plugin.app.ledger import PosesLedger
 from icomma_plugin.camera import Intrinsics
@@ -173,6 +173,10 @@ def test_a_batch_keeps_its_photos_as_they_are(tmp_path, monkeypatch, case):
     assert summ.distortion is None and summ.distortion_adoptions == 0
     assert not (tmp_path / "out" / "poses.focal.json").exists()
     assert all("camera_distortion" not in r for r in ledger.all_rows())
+    # the one case the user can mend is said in the summary
+    assert (summ.lens_not_estimated == NO_CENTRE) == (case == "no_centre")
+    line = localize_tool()._lens_line({"lens_not_estimated": summ.lens_not_estimated}, "photos")
+    assert ("data.intrinsics.cx" in line) == (case == "no_centre")
 
 
 # ---------------------------------------------------------- a sequence through a fake lens
@@ -237,11 +241,12 @@ def test_a_sequence_adopts_the_lens_of_its_first_frames_and_keeps_it(tmp_path):
     # off, or no principal point given: the frames as they are
     for i, (camera, estimate) in enumerate(((CAMERA, False), (Intrinsics(8, 8, 8.0, 8.0), True))):
         w3 = _fake_lens_worker()
-        track(w3, FrameSource.open(str(folder)),
-              PosesLedger(tmp_path / f"out_{i}", {"kind": "sequence"}, 6), lambda s: camera,
-              init_c2w=np.eye(4),
-              cfg=TrackingConfig(lens=TrackingLensConfig(estimate=estimate, min_views=3)))
+        summ3 = track(w3, FrameSource.open(str(folder)),
+                      PosesLedger(tmp_path / f"out_{i}", {"kind": "sequence"}, 6),
+                      lambda s: camera, init_c2w=np.eye(4),
+                      cfg=TrackingConfig(lens=TrackingLensConfig(estimate=estimate, min_views=3)))
         assert {c[3] for c in w3.calls} == {False} and len(w3.calls) == 6
+        assert (summ3.lens_not_estimated == NO_CENTRE) == estimate
 
 
 def test_tracking_lens_config_names_its_group():

@@ -256,6 +256,7 @@ class BatchSummary:
     focal_passes: List[Dict[str, Any]] = field(default_factory=list)  # poses.focal.json's passes
     distortion: Optional[List[float]] = None  # k1, k2, p1, p2 adopted from the photos
     distortion_adoptions: int = 0  # times this call adopted them
+    lens_not_estimated: Optional[str] = None  # why the lens was not estimated when it was asked
 
     @property
     def photos_per_minute(self) -> Optional[float]:
@@ -412,10 +413,11 @@ def run_batch(
     pool_focal = own_camera and focal is not None and focal.focal_from_photos
     pool_lens = (own_camera and lens is not None and lens.estimate
                  and setup.distortion is None)
+    lens_skipped = None
     if pool_lens and not all(principal_point_given(t.intrinsics) for t in mine
                              if t.intrinsics is not None):
         logger.info("%s", NO_CENTRE)
-        pool_lens = False
+        pool_lens, lens_skipped = False, NO_CENTRE
     pooling = pool_focal or pool_lens
     state_path = _focal_state_path(ledger)
     state = _read_focal_state(state_path) if pooling else _given_camera()
@@ -483,7 +485,7 @@ def run_batch(
         ledger.counts(), len(latest), skipped or 0, len(latest), time.perf_counter() - t0, latest,
         focal_scale=state["scale"], focal_adoptions=adopted_now, redone=len(redone),
         focal_passes=state["passes"], distortion=state["distortion"],
-        distortion_adoptions=lens_now,
+        distortion_adoptions=lens_now, lens_not_estimated=lens_skipped,
     )
 
 
