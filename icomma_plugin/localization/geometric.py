@@ -279,8 +279,12 @@ def distortion_fits(state: LocalizationState, obs: Observation,
     pts, pix = render_correspondences(state, obs, cfg, subpixel=cfg.subpixel)
     if len(pts) == 0:
         return None
-    args = (pts, pix, obs.w2c, state.intrinsics_at(obs.scale), 3.0 * cfg.ransac_px)
-    free = fit_pose_and_distortion(*args)
+    intr = state.intrinsics_at(obs.scale)
+    args = (pts, pix, obs.w2c, intr, 3.0 * cfg.ransac_px)
+    if intr.cx is None or intr.cy is None:  # the image centre taken: its move with k1, k2 (the
+        free = fit_pose_and_distortion(*args, terms=2, centre=True)  # tangential terms would
+    else:  # stand for it)
+        free = fit_pose_and_distortion(*args)
     fixed = fit_pose_and_distortion(*args, terms=0, max_log_focal=0.0)
     return None if free is None or fixed is None else (free, fixed)
 

@@ -377,6 +377,7 @@ class DistortionFit(NamedTuple):
     median_px: float  # of the correspondences fitted
     rms_px: float  # root mean square: what the fit minimises
     max_radius: float  # the largest normalised radius among them (where they were measured)
+    centre_px: Tuple[float, float] = (0.0, 0.0)  # the principal point's move [px] (0: not fitted)
 
 
 def distort_normalised(xy: np.ndarray, coefficients) -> np.ndarray:
@@ -413,7 +414,8 @@ def distortion_shift_px(coefficients, max_radius: float, focal_px: float) -> flo
 def fit_pose_and_distortion(points_world: np.ndarray, pixels: np.ndarray, w2c: np.ndarray,
                             intrinsics: Intrinsics, threshold_px: float, iterations: int = 30,
                             terms: int = 4, max_coefficient: float = 2.0,
-                            max_log_focal: float = 0.2) -> Optional[DistortionFit]:
+                            max_log_focal: float = 0.2, centre: bool = False
+                            ) -> Optional[DistortionFit]:
     """The pose and the lens distortion that best reproject 2D-3D correspondences.
 
     The photo's pixels are taken as OpenCV's distortion of the pinhole camera ``intrinsics``:
@@ -429,6 +431,8 @@ def fit_pose_and_distortion(points_world: np.ndarray, pixels: np.ndarray, w2c: n
     is not taken for a distortion: given 8 % short, the demo scene's photos fitted k1 0.05 and
     p1 -0.01 without it. On fox's phone photos the tangential terms (p1 = -0.001) matter:
     undistorted without them, its poses ended 0.07 deg off (median) instead of 0.016.
+    ``centre``: the principal point moves too (two pixel offsets): a turn of the camera makes up
+    for its move to first order, so one photo tells it only by the second-order terms.
 
     Returns:
         The :class:`DistortionFit` of those correspondences, or None with fewer than 12 of them.
@@ -445,13 +449,14 @@ def fit_pose_and_distortion(points_world: np.ndarray, pixels: np.ndarray, w2c: n
     c = np.array([float(intrinsics.cx_px), float(intrinsics.cy_px)])
 
     n_focal = 1 if max_log_focal > 0 else 0
+    n_centre = 2 if centre else 0
 
-    def residual(T: np.ndarray, k: np.ndarray, log_s: float):  # [N, 2] px; what J needs
+    def residual(T: np.ndarray, k: np.ndarray, log_s: float, dc: np.ndarray):  # [N, 2] px
         P = X @ T[:3, :3].T + T[:3, 3]
         zs = np.where(np.abs(P[:, 2]) < 1e-12, 1e-12, P[:, 2])
         xn = P[:, :2] / zs[:, None]
         moved = float(np.exp(log_s)) * f * distort_normalised(xn, k)
-        return moved + c - x, (P, zs, xn, moved)
+        return moved + c + dc - x, (P, zs, xn, moved)
 
     def jacobian(k: np.ndarray, parts, log_s: float) -> np.ndarray:  # [2N, 6 + focal + terms]
         P, zs, xn, moved = parts
@@ -476,7 +481,7 @@ def fit_pose_and_distortion(points_world: np.ndarray, pixels: np.ndarray, w2c: n
         C[:, 0, 4], C[:, 0, 5] = P[:, 2], -P[:, 1]
         C[:, 1, 3], C[:, 1, 5] = -P[:, 2], P[:, 0]
         C[:, 2, 3], C[:, 2, 4] = P[:, 1], -P[:, 0]
-        J = np.zeros((n, 2, 6 + n_focal + terms))
+        J = np.zeros((n, 2, 6 + n_focal + terms + n_centre))
         J[:, :, :6] = A @ B @ C
         if n_focal:
             J[:, :, 6] = moved  # d/d(log focal scale)
@@ -485,10 +490,12 @@ def fit_pose_and_distortion(points_world: np.ndarray, pixels: np.ndarray, w2c: n
                 np.stack([r2 + 2.0 * xx * xx, 2.0 * xx * yy], 1))
         for j in range(terms):
             J[:, :, 6 + n_focal + j] = fs * by_k[j]
+        if n_centre:
+            J[:, 0, -2] = J[:, 1, -1] = 1.0
         return J.reshape(2 * n, -1)
 
-    T, k, log_s, lam = np.asarray(w2c, np.float64), np.zeros(4), 0.0, 1e-3
-    r, parts = residual(T, k, log_s)
+    T, k, log_s, dc, lam = np.asarray(w2c, np.float64), np.zeros(4), 0.0, np.zeros(2), 1e-3
+    r, parts = residual(T, k, log_s, dc)
     cost = float((r * r).sum())
     for _ in range(iterations):
         J = jacobian(k, parts, log_s)
@@ -498,13 +505,14 @@ def fit_pose_and_distortion(points_world: np.ndarray, pixels: np.ndarray, w2c: n
         s_try = float(np.clip(log_s + step[6], -max_log_focal, max_log_focal)) if n_focal \
             else 0.0
         k_try = k.copy()
-        k_try[:terms] = np.clip(k[:terms] + step[6 + n_focal:], -max_coefficient,
-                                max_coefficient)
-        r_try, parts_try = residual(T_try, k_try, s_try)
+        k_try[:terms] = np.clip(k[:terms] + step[6 + n_focal:6 + n_focal + terms],
+                                -max_coefficient, max_coefficient)
+        dc_try = dc + step[len(step) - n_centre:] if n_centre else dc
+        r_try, parts_try = residual(T_try, k_try, s_try, dc_try)
         c_try = float((r_try * r_try).sum())
         done = np.abs(step).max() < 1e-9 or abs(cost - c_try) <= 1e-12 * cost
         if c_try < cost:
-            T, k, log_s, cost, lam = T_try, k_try, s_try, c_try, max(lam / 3.0, 1e-9)
+            T, k, log_s, dc, cost, lam = T_try, k_try, s_try, dc_try, c_try, max(lam / 3.0, 1e-9)
             r, parts = r_try, parts_try
         else:
             lam *= 4.0
@@ -514,4 +522,5 @@ def fit_pose_and_distortion(points_world: np.ndarray, pixels: np.ndarray, w2c: n
     err = np.hypot(r[:, 0], r[:, 1])
     reach = float(np.sqrt((parts[2] ** 2).sum(1).max()))
     return DistortionFit(T, tuple(float(v) for v in k), float(np.exp(log_s)),
-                         float(np.median(err)), float(np.sqrt(np.mean(err ** 2))), reach)
+                         float(np.median(err)), float(np.sqrt(np.mean(err ** 2))), reach,
+                         (float(dc[0]), float(dc[1])))

@@ -491,8 +491,11 @@ def _distortion_signal(state: LocalizationState, cfg: RobustConfig, obs: Optiona
     (OpenCV's k1, k2, p1, p2), ``shift_px`` (what they move a pixel by, at most, within the
     matches' reach, at the working size), ``reach`` (that largest normalised radius) and
     ``focal_px`` (the focal length of those pixels), ``rms_px`` and ``rms_px_given`` (the pose
-    alone). None with too few matches. One photo's coefficients scatter with its matches (bird's
-    soft photos, undistorted, fit up to 9 px of it), so a batch pools them (``app.lens``).
+    alone); for a photo given no principal point (the image centre taken) ``centre``, the
+    principal point's move the refit finds, in focal lengths (fitted with k1, k2 only: the
+    tangential terms would stand for it). None with too few matches. One photo's coefficients
+    scatter with its matches (bird's soft photos, undistorted, fit up to 9 px of it), so a batch
+    pools them (``app.lens``).
     """
     if obs is None or obs.matches is None:
         return None
@@ -501,11 +504,15 @@ def _distortion_signal(state: LocalizationState, cfg: RobustConfig, obs: Optiona
     if fits is None:
         return None
     free, fixed = fits
-    focal = float(state.intrinsics_at(obs.scale).fx)
-    return {"coefficients": [round(v, 6) for v in free.coefficients],
-            "shift_px": round(distortion_shift_px(free.coefficients, free.max_radius, focal), 4),
-            "reach": round(free.max_radius, 4), "focal_px": round(focal, 3),
-            "rms_px": round(free.rms_px, 4), "rms_px_given": round(fixed.rms_px, 4)}
+    intr = state.intrinsics_at(obs.scale)
+    focal = float(intr.fx)
+    out = {"coefficients": [round(v, 6) for v in free.coefficients],
+           "shift_px": round(distortion_shift_px(free.coefficients, free.max_radius, focal), 4),
+           "reach": round(free.max_radius, 4), "focal_px": round(focal, 3),
+           "rms_px": round(free.rms_px, 4), "rms_px_given": round(fixed.rms_px, 4)}
+    if intr.cx is None or intr.cy is None:  # the image centre was taken: where the refit puts it
+        out["centre"] = [round(free.centre_px[0] / focal, 6), round(free.centre_px[1] / focal, 6)]
+    return out
 
 
 def _passes_rollback(sc: PoseScore, geo: PoseScore, cfg: RobustConfig) -> bool:
