@@ -461,13 +461,11 @@ def _lens_of(rows: Sequence[Mapping[str, Any]]) -> Optional[Dict[str, Any]]:
     """
     from .lens import LensConfig, lens_evidence, photo_distortion
 
-    rule = LensConfig()
-    photo_runs = [r for r in rows if r.get("start") != CONTROL
+    photo_runs = [dict(r) for r in rows if r.get("start") != CONTROL
                   and not str(r.get("start")).startswith("focal")]
-    ev = lens_evidence([photo_distortion(dict(r)) for r in photo_runs])
+    ev = lens_evidence([photo_distortion(r) for r in photo_runs])
     if ev is not None:
-        ev["distorted"] = bool(ev["views"] >= rule.min_views
-                               and ev["shift_px"] > rule.min_shift_px and ev["agree"] >= rule.agree)
+        ev["distorted"] = LensConfig().adopt(photo_runs, None) is not None
     return ev
 
 

@@ -268,13 +268,15 @@ def focal_fits(state: LocalizationState, obs: Observation,
     return None if free is None or fixed is None else (free, fixed)
 
 
-def distortion_fits(state: LocalizationState, obs: Observation,
-                    cfg: GeometricConfig) -> Optional[Tuple[DistortionFit, DistortionFit]]:
+def distortion_fits(state: LocalizationState, obs: Observation, cfg: GeometricConfig,
+                    rms_given: Optional[float] = None
+                    ) -> Optional[Tuple[DistortionFit, float]]:
     """The matches of ``obs`` fitted by their reprojection with the lens's distortion free.
 
-    ``(free, fixed)``, each a ``geometry.DistortionFit`` (the focal length and k1, k2, p1, p2
-    free; the pose alone), from ``obs``'s pose, on the same correspondences as
-    :func:`focal_fits`; None with too few.
+    ``(free, rms_given)``: the ``geometry.DistortionFit`` with the focal length and k1, k2, p1,
+    p2 free, from ``obs``'s pose, on the same correspondences as :func:`focal_fits`, and the root
+    mean square error of the pose alone there (``rms_given`` when the focal check's fit gave it,
+    else that fit made here); None with too few.
     """
     pts, pix = render_correspondences(state, obs, cfg, subpixel=cfg.subpixel)
     if len(pts) == 0:
@@ -285,8 +287,10 @@ def distortion_fits(state: LocalizationState, obs: Observation,
         free = fit_pose_and_distortion(*args, terms=2, centre=True)  # tangential terms would
     else:  # stand for it)
         free = fit_pose_and_distortion(*args)
-    fixed = fit_pose_and_distortion(*args, terms=0, max_log_focal=0.0)
-    return None if free is None or fixed is None else (free, fixed)
+    if rms_given is None:
+        fixed = fit_pose_and_focal(*args, max_log_focal=0.0)
+        rms_given = None if fixed is None else fixed.rms_px
+    return None if free is None or rms_given is None else (free, rms_given)
 
 
 def pnp_from_observation(state: LocalizationState, obs: Observation, cfg: GeometricConfig,

@@ -482,8 +482,8 @@ def _focal_signal(state: LocalizationState, cfg: RobustConfig, obs: Optional[Obs
             "rms_px_given": round(fixed.rms_px, 4)}, free
 
 
-def _distortion_signal(state: LocalizationState, cfg: RobustConfig, obs: Optional[Observation]
-                       ) -> Optional[Dict[str, Any]]:
+def _distortion_signal(state: LocalizationState, cfg: RobustConfig, obs: Optional[Observation],
+                       focal: Optional[Dict[str, float]] = None) -> Optional[Dict[str, Any]]:
     """The lens check at the final pose: a signal of the verdict, which it does not decide.
 
     The final render's matches fitted with the photo's lens distortion free (a render is a
@@ -491,27 +491,28 @@ def _distortion_signal(state: LocalizationState, cfg: RobustConfig, obs: Optiona
     (OpenCV's k1, k2, p1, p2), ``shift_px`` (what they move a pixel by, at most, within the
     matches' reach, at the working size), ``reach`` (that largest normalised radius) and
     ``focal_px`` (the focal length of those pixels), ``rms_px`` and ``rms_px_given`` (the pose
-    alone); for a photo given no principal point (the image centre taken) ``centre``, the
-    principal point's move the refit finds, in focal lengths (fitted with k1, k2 only: the
-    tangential terms would stand for it). None with too few matches. One photo's coefficients
-    scatter with its matches (bird's soft photos, undistorted, fit up to 9 px of it), so a batch
-    pools them (``app.lens``).
+    alone: the focal check's ``focal`` signal of the same render gives it); for a photo given no
+    principal point (the image centre taken) ``centre``, the principal point's move the refit
+    finds, in focal lengths (fitted with k1, k2 only: the tangential terms would stand for it).
+    None with too few matches. One photo's coefficients scatter with its matches (bird's soft
+    photos, undistorted, fit up to 9 px of it), so a batch pools them (``app.lens``).
     """
     if obs is None or obs.matches is None:
         return None
     with state.timed("verify"):
-        fits = distortion_fits(state, obs, cfg.geometric)
+        fits = distortion_fits(state, obs, cfg.geometric,
+                               None if focal is None else focal.get("rms_px_given"))
     if fits is None:
         return None
-    free, fixed = fits
+    free, rms_given = fits
     intr = state.intrinsics_at(obs.scale)
-    focal = float(intr.fx)
+    fx = float(intr.fx)
     out = {"coefficients": [round(v, 6) for v in free.coefficients],
-           "shift_px": round(distortion_shift_px(free.coefficients, free.max_radius, focal), 4),
-           "reach": round(free.max_radius, 4), "focal_px": round(focal, 3),
-           "rms_px": round(free.rms_px, 4), "rms_px_given": round(fixed.rms_px, 4)}
+           "shift_px": round(distortion_shift_px(free.coefficients, free.max_radius, fx), 4),
+           "reach": round(free.max_radius, 4), "focal_px": round(fx, 3),
+           "rms_px": round(free.rms_px, 4), "rms_px_given": round(rms_given, 4)}
     if intr.cx is None or intr.cy is None:  # the image centre was taken: where the refit puts it
-        out["centre"] = [round(free.centre_px[0] / focal, 6), round(free.centre_px[1] / focal, 6)]
+        out["centre"] = [round(free.centre_px[0] / fx, 6), round(free.centre_px[1] / fx, 6)]
     return out
 
 
@@ -604,7 +605,8 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
             if retried is not None:
                 ref, score, judged, focal = retried
                 w2c, keep = ref.w2c, True
-    distortion = _distortion_signal(state, cfg, judged) if cfg.lens_check else None
+    # (``focal``: the intrinsics check of this same render, whose pose-alone fit it reuses)
+    distortion = _distortion_signal(state, cfg, judged, focal) if cfg.lens_check else None
     extra = {
         "start_render_empty": search.empty_start,
         "hypotheses": len(search.hyps),

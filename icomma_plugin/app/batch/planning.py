@@ -41,7 +41,7 @@ class PhotoTask:
     this reason. focal_scale: the focal length of ``intrinsics`` as a share of the one given
     (``focal.BatchFocalConfig``; ``with_focal_scale``). distortion: OpenCV's ``(k1, k2, p1, p2)``
     the photo is undistorted with, adopted from the batch's photos
-    (``lens.BatchLensConfig``), or None.
+    (``lens.LensConfig``), or None.
     """
 
     index: int
