@@ -306,6 +306,7 @@ def _run_batch(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, Any]:
             "photos_per_minute": summ.photos_per_minute, "seconds": summ.seconds,
             "focal_scale": summ.focal_scale, "focal_adoptions": summ.focal_adoptions,
             "distortion": summ.distortion, "distortion_adoptions": summ.distortion_adoptions,
+            "principal_point": summ.principal_point, "centre_evidence": summ.centre_evidence,
             "lens_not_estimated": summ.lens_not_estimated, "redone": summ.redone, "rows": rows}
 
 
@@ -379,12 +380,18 @@ def _lens_line(s: Dict[str, Any], what: str) -> str:
     """The lens distortion a batch or a sequence estimated from its photos ("": none)."""
     if s.get("lens_not_estimated"):
         return f"  lens         {s['lens_not_estimated']}"
-    if not s.get("distortion"):
-        return ""
-    k = ",".join(f"{v:.5f}" for v in s["distortion"])
-    return (f"  lens         distortion [k1,k2,p1,p2] = [{k}] estimated from the {what} and "
-            f"removed (adopted {s.get('distortion_adoptions', 0)} times this run); give "
-            f"data.intrinsics.distortion=[{k}] for more {what} of this camera")
+    lines = []
+    if s.get("principal_point"):
+        cx, cy = s["principal_point"]
+        lines.append(f"  lens         principal point ({cx:.2f}, {cy:.2f}) px estimated from the "
+                     f"{what} (none was given); give data.intrinsics.cx={cx:.2f} "
+                     f"data.intrinsics.cy={cy:.2f} for more {what} of this camera")
+    if s.get("distortion"):
+        k = ",".join(f"{v:.5f}" for v in s["distortion"])
+        lines.append(f"  lens         distortion [k1,k2,p1,p2] = [{k}] estimated from the {what} "
+                     f"and removed (adopted {s.get('distortion_adoptions', 0)} times this run); "
+                     f"give data.intrinsics.distortion=[{k}] for more {what} of this camera")
+    return "\n".join(lines)
 
 
 def many_summary(doc: Dict[str, Any]) -> str:

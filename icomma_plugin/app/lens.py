@@ -9,7 +9,10 @@ coefficients scatter with its matches (bird's soft photos, which have no distort
 9 px of it), many photos of one camera agree. A batch of photo files given one camera
 (``LensConfig``) pools them (``pooled_distortion``), undistorts its photos with the
 coefficients they agree on and localizes them again. Each row records the coefficients its photo
-was undistorted with (``CAMERA_DISTORTION_KEY``).
+was undistorted with (``CAMERA_DISTORTION_KEY``). Photos given no principal point are refitted
+with it free beside k1 and k2 (the tangential terms would stand for it), and the batch adopts the
+one they agree on (``centre_evidence``, ``LensConfig.adopt_centre``; rows:
+``CAMERA_CENTRE_KEY``).
 """
 
 from __future__ import annotations
@@ -22,13 +25,17 @@ import numpy as np
 from ..checks import check_bool, check_int, check_real
 from ..localization.geometry import distortion_field
 
-__all__ = ["CAMERA_DISTORTION_KEY", "NO_CENTRE", "LensConfig", "PhotoDistortion",
-           "TrackingLensConfig", "lens_evidence", "photo_distortion", "principal_point_given",
-           "pooled_distortion"]
+__all__ = ["CAMERA_CENTRE_KEY", "CAMERA_DISTORTION_KEY", "NO_CENTRE", "LensConfig",
+           "PhotoDistortion", "TrackingLensConfig", "centre_evidence", "lens_evidence",
+           "photo_centre", "photo_distortion", "principal_point_given", "pooled_distortion"]
 
 #: a row's field: OpenCV's ``[k1, k2, p1, p2]`` its photo was undistorted with (adopted from the
 #: photos); absent when none
 CAMERA_DISTORTION_KEY = "camera_distortion"
+
+#: a row's field: the principal point ``[cx, cy]`` (pixels of the photo file) its photo was
+#: localized with, adopted from the photos when none was given; absent when none was adopted
+CAMERA_CENTRE_KEY = "camera_principal_point"
 
 
 @dataclass(frozen=True)
@@ -110,11 +117,48 @@ def pooled_distortion(estimates: Sequence[PhotoDistortion],
     return tuple(ev["coefficients"])
 
 
-#: Why the lens is not estimated without a principal point (logged once by a batch or sequence).
-NO_CENTRE = ("the lens distortion is not estimated from the photos: their principal point was not "
+def photo_centre(row: Dict[str, Any]) -> Optional[Tuple[float, float, float]]:
+    """Where a photo's refit puts its principal point, when none was given.
+
+    ``(dx, dy, focal_px)``: its move from the image centre in focal lengths
+    (``signals.distortion.centre``) and the focal length of the refit's pixels; None for a failed
+    photo or one without it (a principal point given, or too few matches).
+    """
+    if row.get("status") == "failed" or row.get("c2w") is None:
+        return None
+    sig = (row.get("signals") or {}).get("distortion") or {}
+    try:
+        dx, dy = (float(v) for v in sig["centre"])
+        focal = float(sig["focal_px"])
+    except (KeyError, TypeError, ValueError):
+        return None
+    return (dx, dy, focal) if np.isfinite([dx, dy, focal]).all() and focal > 0 else None
+
+
+def centre_evidence(rows: Sequence[Dict[str, Any]]) -> Optional[Dict[str, Any]]:
+    """What the photos' refits say of their principal point together; None without any.
+
+    ``{"offset"`` (the median move of each axis from the image centre, in focal lengths),
+    ``"shift_px"`` (its length in pixels of the refits' median focal length), ``"agree"`` (the
+    share of the photos whose own move points the same way: a positive inner product with it),
+    ``"views"}``.
+    """
+    est = [c for c in map(photo_centre, rows) if c is not None]
+    if not est:
+        return None
+    moves = np.array([c[:2] for c in est], np.float64)
+    offset = np.median(moves, axis=0)
+    focal = float(np.median([c[2] for c in est]))
+    return {"offset": [float(v) for v in offset],
+            "shift_px": float(np.linalg.norm(offset) * focal),
+            "agree": float(np.mean(moves @ offset > 0.0)), "views": len(est)}
+
+
+#: Why a sequence's lens is not estimated without a principal point (logged once).
+NO_CENTRE = ("the lens distortion is not estimated from the frames: their principal point was not "
              "given (the image centre is taken), and its error would be taken for a tangential "
              "distortion (fox's phone photos given the centre: 0.48 -> 0.61 deg with it); give "
-             "data.intrinsics.cx and cy (or a camera of the source dataset) to estimate it")
+             "data.intrinsics.cx and cy (a batch of photo files estimates it)")
 
 
 def principal_point_given(intrinsics) -> bool:
@@ -134,10 +178,14 @@ class LensConfig:
         second round, on the photos undistorted, moved fox's frames' estimate away from its
         calibration: k1 0.058 -> 0.066, docs/BATCHES.md). This
         is decided before the focal length (``batch.focal_from_photos``), whose refits a
-        distortion left in the photos pulls. A sharded run decides per shard. Not without a
-        principal point (``NO_CENTRE``): fox's photos given the image centre instead of theirs
-        (14.5 and 4.8 px off at 1080x1920) adopted p1, p2 of -0.0023 that stood for it, and ended
-        0.61 deg off instead of 0.48.
+        distortion left in the photos pulls. A sharded run decides per shard. Photos given no
+        principal point are refitted with it free and k1, k2 alone (a principal point off the
+        image centre turns the camera, and p1, p2 would stand for what is left: fox's photos
+        given the image centre, 14.5 and 4.8 px from theirs at 1080x1920, adopted p1, p2 of
+        -0.0023 and ended 0.61 deg off instead of 0.48); its median move is adopted with the same
+        rules (``adopt_centre``) when it is longer than ``min_centre_move`` focal lengths: a
+        shorter one is within what a lens's tangential terms put there (the demo scene's photos
+        through p1 0.002, p2 -0.001, principal point centred: 0.0046; fox's 0.0116, truth 0.011).
     """
 
     #: the config group its settings are named by in errors
@@ -148,6 +196,7 @@ class LensConfig:
     min_shift_px: float = 0.5
     agree: float = 0.8
     rounds: int = 1
+    min_centre_move: float = 0.006
 
     def __post_init__(self):
         g = self.GROUP
@@ -156,6 +205,7 @@ class LensConfig:
         check_real(self.min_shift_px, f"{g}.min_shift_px", 0.0, lo_open=True)
         check_real(self.agree, f"{g}.agree", 0.5, 1.0)
         check_int(self.rounds, f"{g}.rounds", 1)
+        check_real(self.min_centre_move, f"{g}.min_centre_move", 0.0)
 
     def adopt(self, rows: Sequence[Dict[str, Any]], current: Optional[Sequence[float]]
               ) -> Optional[Tuple[float, float, float, float]]:
@@ -165,6 +215,20 @@ class LensConfig:
             return None
         return pooled_distortion(est, (0.0,) * 4 if current is None else current,
                                  self.min_shift_px, self.agree)
+
+    def adopt_centre(self, rows: Sequence[Dict[str, Any]]) -> Optional[Tuple[float, float]]:
+        """The principal point the views of ``rows`` agree on, or None.
+
+        Its move from the image centre in focal lengths (:func:`centre_evidence`), when at
+        least ``min_views`` photos measured it, it moves pixels by more than ``min_shift_px``
+        and ``agree`` of them point the same way.
+        """
+        ev = centre_evidence(rows) if self.estimate else None
+        if (ev is None or ev["views"] < self.min_views or ev["shift_px"] <= self.min_shift_px
+                or ev["agree"] < self.agree
+                or float(np.hypot(*ev["offset"])) <= self.min_centre_move):
+            return None
+        return tuple(ev["offset"])
 
 
 @dataclass

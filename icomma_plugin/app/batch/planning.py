@@ -41,7 +41,9 @@ class PhotoTask:
     this reason. focal_scale: the focal length of ``intrinsics`` as a share of the one given
     (``focal.BatchFocalConfig``; ``with_focal_scale``). distortion: OpenCV's ``(k1, k2, p1, p2)``
     the photo is undistorted with, adopted from the batch's photos
-    (``lens.LensConfig``), or None.
+    (``lens.LensConfig``), or None. centre: the principal point's move from the image centre in
+    focal lengths, adopted from the batch's photos when their intrinsics gave none
+    (``with_centre``), or None.
     """
 
     index: int
@@ -54,6 +56,7 @@ class PhotoTask:
     error: Optional[str] = None
     focal_scale: float = 1.0
     distortion: Optional[Tuple[float, ...]] = None
+    centre: Optional[Tuple[float, float]] = None
 
     def with_focal_scale(self, scale: float, init_c2w: Optional[np.ndarray]) -> "PhotoTask":
         """This photo with ``scale`` x the given focal length, started from ``init_c2w``."""
@@ -62,6 +65,21 @@ class PhotoTask:
         given = self.intrinsics.with_focal_scale(1.0 / self.focal_scale)
         return replace(self, intrinsics=given.with_focal_scale(scale), init_c2w=init_c2w,
                        focal_scale=scale)
+
+    def with_centre(self, centre: Optional[Tuple[float, float]]) -> "PhotoTask":
+        """This photo with its principal point ``centre`` focal lengths from the image centre.
+
+        (None: as planned.) Its intrinsics must have given none (``cx``, ``cy`` None).
+        """
+        if centre is None or self.intrinsics is None:
+            return replace(self, centre=None if centre is None else tuple(centre))
+        intr = self.intrinsics
+        if intr.cx is not None and self.centre is None:
+            raise ValueError(f"the photo {self.name} has a principal point of its own")
+        f = intr.fx / self.focal_scale  # the given one: a focal length adopted later keeps it
+        centred = replace(intr, cx=None, cy=None)
+        return replace(self, centre=tuple(centre), intrinsics=replace(
+            intr, cx=centred.cx_px + centre[0] * f, cy=centred.cy_px + centre[1] * f))
 
 
 @dataclass

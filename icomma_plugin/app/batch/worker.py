@@ -32,7 +32,8 @@ from ...io.atomic import write_json_atomic
 from ...pose.convert import cameras_extent
 from ..focal import CAMERA_FOCAL_KEY, BatchFocalConfig, photo_focal_scale
 from ..inputs import LensDistortion, ProblemError
-from ..lens import CAMERA_DISTORTION_KEY, NO_CENTRE, LensConfig, principal_point_given
+from ..lens import (CAMERA_CENTRE_KEY, CAMERA_DISTORTION_KEY, LensConfig, centre_evidence,
+                    principal_point_given)
 from ..ledger import PosesLedger
 from ..problem import Problem, read_query_image
 from .planning import BatchPlan, PhotoTask
@@ -208,11 +209,14 @@ class BatchWorker:
 def _camera_of(row: Dict[str, Any], task: PhotoTask) -> Dict[str, Any]:
     """``row`` with the camera its photo was localized with.
 
-    The focal length's share of the given one, and the adopted lens distortion when there is one.
+    The focal length's share of the given one, and the adopted lens distortion and principal
+    point when there are.
     """
     row[CAMERA_FOCAL_KEY] = task.focal_scale
     if task.distortion is not None:
         row[CAMERA_DISTORTION_KEY] = [float(v) for v in task.distortion]
+    if task.centre is not None and task.intrinsics is not None:
+        row[CAMERA_CENTRE_KEY] = [float(task.intrinsics.cx), float(task.intrinsics.cy)]
     return row
 
 
@@ -257,6 +261,8 @@ class BatchSummary:
     distortion: Optional[List[float]] = None  # k1, k2, p1, p2 adopted from the photos
     distortion_adoptions: int = 0  # times this call adopted them
     lens_not_estimated: Optional[str] = None  # why the lens was not estimated when it was asked
+    principal_point: Optional[List[float]] = None  # [cx, cy] adopted (the first photo's pixels)
+    centre_evidence: Optional[Dict[str, Any]] = None  # the photos' principal point (lens.py)
 
     @property
     def photos_per_minute(self) -> Optional[float]:
@@ -274,11 +280,24 @@ def _same_lens(row: Dict[str, Any], k: Optional[Tuple[float, ...]]) -> bool:
     return all(abs(float(a) - float(b)) < 1e-12 for a, b in zip(used, k))
 
 
+def _same_centre(row: Dict[str, Any], task: PhotoTask) -> bool:
+    """Whether ``row``'s photo was localized with the principal point ``task`` adopted (or none)."""
+    used = row.get(CAMERA_CENTRE_KEY)
+    if task.intrinsics is None:  # a photo planned as failed: no camera
+        return True
+    if used is None or task.centre is None:
+        return used is None and task.centre is None
+    return all(abs(float(a) - float(b)) < 1e-6
+               for a, b in zip(used, (task.intrinsics.cx, task.intrinsics.cy)))
+
+
 def _todo(mine: List[PhotoTask], ledger: PosesLedger, retry_failed: bool, scale: float,
-          lens: Optional[Tuple[float, ...]] = None) -> Tuple[List[PhotoTask], int]:
+          lens: Optional[Tuple[float, ...]] = None, centre: Optional[Tuple[float, float]] = None
+          ) -> Tuple[List[PhotoTask], int]:
     """(the photos of ``mine`` without a row at this camera, how many have one).
 
-    The camera: the focal ``scale`` and the adopted ``lens`` coefficients (None: none).
+    The camera: the focal ``scale``, the adopted ``lens`` coefficients and principal point
+    ``centre`` (``PhotoTask.with_centre``; None: none).
     """
     done = ledger.finished()
     if retry_failed:
@@ -288,7 +307,7 @@ def _todo(mine: List[PhotoTask], ledger: PosesLedger, retry_failed: bool, scale:
     def held(t: PhotoTask) -> bool:
         row = done.get(t.name)
         return (row is not None and abs(float(row.get(CAMERA_FOCAL_KEY) or 1.0) - scale) < 1e-9
-                and _same_lens(row, lens))
+                and _same_lens(row, lens) and _same_centre(row, t.with_centre(centre)))
 
     todo = [t for t in mine if not held(t)]
     if len(mine) > len(todo):
@@ -337,15 +356,17 @@ def _focal_state_path(ledger: PosesLedger) -> Path:
 def _read_focal_state(path: Path) -> Dict[str, Any]:
     """The camera a batch adopted from its photos (``poses.focal.json``; none yet: the given one).
 
-    ``{"scale", "adoptions", "passes", "distortion", "distortion_adoptions"}``.
+    ``{"scale", "adoptions", "passes", "distortion", "distortion_adoptions", "centre"}``
+    (``centre``: the principal point's move from the image centre, in focal lengths, or None).
     """
     try:
         state = json.loads(path.read_text())
-        k = state.get("distortion")
+        k, c = state.get("distortion"), state.get("centre")
         return {"scale": float(state["scale"]), "adoptions": int(state["adoptions"]),
                 "passes": list(state.get("passes") or []),
                 "distortion": None if k is None else [float(v) for v in k],
-                "distortion_adoptions": int(state.get("distortion_adoptions") or 0)}
+                "distortion_adoptions": int(state.get("distortion_adoptions") or 0),
+                "centre": None if c is None else [float(v) for v in c]}
     except FileNotFoundError:
         return _given_camera()
     except (OSError, ValueError, KeyError, TypeError) as e:
@@ -356,18 +377,20 @@ def _read_focal_state(path: Path) -> Dict[str, Any]:
 def _given_camera() -> Dict[str, Any]:
     """The camera state of a batch that adopted nothing from its photos."""
     return {"scale": 1.0, "adoptions": 0, "passes": [], "distortion": None,
-            "distortion_adoptions": 0}
+            "distortion_adoptions": 0, "centre": None}
 
 
 def _as_camera(task: PhotoTask, scale: float, lens: Optional[Tuple[float, ...]],
-               again: Optional[Dict[str, Any]]) -> PhotoTask:
+               centre: Optional[Tuple[float, float]], again: Optional[Dict[str, Any]]
+               ) -> PhotoTask:
     """``task`` with the batch's camera.
 
     A photo localized again (``again``: its last row) starts from its last pose.
     """
-    if scale == 1.0 and lens is None and again is None:
+    if scale == 1.0 and lens is None and centre is None and again is None:
         return task
-    return replace(task.with_focal_scale(scale, _start_of(again, task)), distortion=lens)
+    return replace(task.with_focal_scale(scale, _start_of(again, task)),
+                   distortion=lens).with_centre(centre)
 
 
 def run_batch(
@@ -404,7 +427,8 @@ def run_batch(
             adopted one is kept in ``poses.focal.json`` for a resumed run.
         lens: the lens distortion from the photos (``lens.LensConfig``; None: off). For
             photo files given one camera and no distortion; decided before the focal length
-            after each pass, kept in ``poses.focal.json`` too.
+            after each pass, kept in ``poses.focal.json`` too. Photos given no principal point
+            have it adopted from their refits with the lens (``LensConfig.adopt_centre``).
     """
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers must be a positive int, got {workers!r}")
@@ -413,11 +437,10 @@ def run_batch(
     pool_focal = own_camera and focal is not None and focal.focal_from_photos
     pool_lens = (own_camera and lens is not None and lens.estimate
                  and setup.distortion is None)
-    lens_skipped = None
-    if pool_lens and not all(principal_point_given(t.intrinsics) for t in mine
-                             if t.intrinsics is not None):
-        logger.info("%s", NO_CENTRE)
-        pool_lens, lens_skipped = False, NO_CENTRE
+    # no principal point given: the refits measure it with k1, k2 (the tangential terms would
+    # stand for it), and it is adopted with them
+    pool_centre = pool_lens and not all(principal_point_given(t.intrinsics) for t in mine
+                                        if t.intrinsics is not None)
     pooling = pool_focal or pool_lens
     state_path = _focal_state_path(ledger)
     state = _read_focal_state(state_path) if pooling else _given_camera()
@@ -428,14 +451,16 @@ def run_batch(
     with _executor(setup, workers, threads_per_worker, len(mine), model_folder,
                    matcher) as localize:
         adopted_now = lens_now = 0
+        evidence = None
         while True:
-            scale, k = state["scale"], state["distortion"]
+            scale, k, c = state["scale"], state["distortion"], state["centre"]
             k = None if k is None else tuple(float(v) for v in k)
-            todo, held = _todo(mine, ledger, retry_failed and skipped is None, scale, k)
+            c = None if c is None or not pool_centre else tuple(float(v) for v in c)
+            todo, held = _todo(mine, ledger, retry_failed and skipped is None, scale, k, c)
             skipped = held if skipped is None else skipped
             done = ledger.finished()
             # a photo localized again with a new camera starts from its last pose
-            tasks = [_as_camera(t, scale, k, done.get(t.name)) for t in todo]
+            tasks = [_as_camera(t, scale, k, c, done.get(t.name)) for t in todo]
             if progress is not None:
                 progress({"row": None, "counts": ledger.counts(), "done": 0, "todo": len(tasks),
                           "skipped": held, "focal_scale": scale})
@@ -456,21 +481,33 @@ def run_batch(
             # the lens first: a distortion left in the photos pulls their focal refits
             new_k = None if not pool_lens or state["distortion_adoptions"] >= lens.rounds \
                 else lens.adopt(now, state["distortion"])
+            new_c = None
+            if pool_centre and state["centre"] is None:
+                evidence = centre_evidence(now) or evidence
+                new_c = lens.adopt_centre(now)
+            if new_c is not None:
+                cx, cy = _centre_px(mine, new_c)
+                logger.info("the photos' refits (%d) agree on a principal point (%.2f, %.2f) "
+                            "px, %.2f px from the image centre at their working size: the batch "
+                            "takes it, and localizes them again", evidence["views"], cx, cy,
+                            evidence["shift_px"])
+                state.update(centre=list(new_c))
             if new_k is not None:
                 logger.info("the photos' refits (%d) agree on a lens distortion (k1, k2, p1, p2) "
                             "%s: the batch undistorts them with it, and localizes them again",
                             len(now), ", ".join(f"{v:.5f}" for v in new_k))
                 state.update(distortion=list(new_k),
                              distortion_adoptions=state["distortion_adoptions"] + 1)
-                write_json_atomic(state_path, state)
                 lens_now += 1
+            if new_c is not None or new_k is not None:
+                write_json_atomic(state_path, state)
                 continue
             new = None if not pool_focal or state["adoptions"] >= focal.focal_rounds \
                 else focal.adopt(now, scale, state["adoptions"] > 0)
             if state["adoptions"] or new is not None:  # the record of the passes (focal.png)
                 _record_pass(state, scale, now)
             if new is None:
-                if state["adoptions"] or state["distortion_adoptions"]:
+                if state["adoptions"] or state["distortion_adoptions"] or state["centre"]:
                     write_json_atomic(state_path, state)
                 break
             logger.info("the photos' refits (%d) agree on a focal length %.4f x the given one "
@@ -485,8 +522,20 @@ def run_batch(
         ledger.counts(), len(latest), skipped or 0, len(latest), time.perf_counter() - t0, latest,
         focal_scale=state["scale"], focal_adoptions=adopted_now, redone=len(redone),
         focal_passes=state["passes"], distortion=state["distortion"],
-        distortion_adoptions=lens_now, lens_not_estimated=lens_skipped,
+        distortion_adoptions=lens_now,
+        principal_point=(None if state["centre"] is None or not pool_centre
+                         else list(_centre_px(mine, state["centre"]))),
+        centre_evidence=evidence,
     )
+
+
+def _centre_px(tasks: List[PhotoTask], centre) -> Tuple[float, float]:
+    """The principal point ``centre`` (focal lengths from the image centre) in pixels.
+
+    Those of the first photo with intrinsics (the batch's camera: all its photos share it).
+    """
+    t = next(t for t in tasks if t.intrinsics is not None).with_centre(tuple(centre))
+    return float(t.intrinsics.cx), float(t.intrinsics.cy)
 
 
 def _record_pass(state: Dict[str, Any], scale: float, rows: List[Dict[str, Any]]) -> None:
