@@ -307,7 +307,7 @@ def _run_batch(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, Any]:
             "focal_scale": summ.focal_scale, "focal_adoptions": summ.focal_adoptions,
             "distortion": summ.distortion, "distortion_adoptions": summ.distortion_adoptions,
             "principal_point": summ.principal_point, "centre_evidence": summ.centre_evidence,
-            "lens_not_estimated": summ.lens_not_estimated, "redone": summ.redone, "rows": rows}
+            "redone": summ.redone, "rows": rows}
 
 
 def _run_sequence(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, Any]:
@@ -348,7 +348,7 @@ def _run_sequence(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, An
             "relocalized": summ.relocalized, "fast_ok": summ.fast_ok, "files": files,
             "focal_scale": summ.focal_scale, "focal_adoptions": summ.focal_adoptions,
             "distortion": summ.distortion, "distortion_adoptions": summ.distortion_adoptions,
-            "lens_not_estimated": summ.lens_not_estimated, "redone": summ.redone, "rows": rows}
+            "principal_point": summ.principal_point, "redone": summ.redone, "rows": rows}
 
 
 def _tracking_line(s: Dict[str, Any], rows: List[Dict[str, Any]]) -> str:
@@ -378,8 +378,6 @@ def _focal_line(s: Dict[str, Any], what: str) -> str:
 
 def _lens_line(s: Dict[str, Any], what: str) -> str:
     """The lens distortion a batch or a sequence estimated from its photos ("": none)."""
-    if s.get("lens_not_estimated"):
-        return f"  lens         {s['lens_not_estimated']}"
     lines = []
     if s.get("principal_point"):
         cx, cy = s["principal_point"]

@@ -25,7 +25,7 @@ import numpy as np
 from ..checks import check_bool, check_int, check_real
 from ..localization.geometry import distortion_field
 
-__all__ = ["CAMERA_CENTRE_KEY", "CAMERA_DISTORTION_KEY", "NO_CENTRE", "LensConfig",
+__all__ = ["CAMERA_CENTRE_KEY", "CAMERA_DISTORTION_KEY", "LensConfig",
            "PhotoDistortion", "TrackingLensConfig", "centre_evidence", "lens_evidence",
            "photo_centre", "photo_distortion", "principal_point_given", "pooled_distortion"]
 
@@ -154,13 +154,6 @@ def centre_evidence(rows: Sequence[Dict[str, Any]]) -> Optional[Dict[str, Any]]:
             "agree": float(np.mean(moves @ offset > 0.0)), "views": len(est)}
 
 
-#: Why a sequence's lens is not estimated without a principal point (logged once).
-NO_CENTRE = ("the lens distortion is not estimated from the frames: their principal point was not "
-             "given (the image centre is taken), and its error would be taken for a tangential "
-             "distortion (fox's phone photos given the centre: 0.48 -> 0.61 deg with it); give "
-             "data.intrinsics.cx and cy (a batch of photo files estimates it)")
-
-
 def principal_point_given(intrinsics) -> bool:
     """Whether ``intrinsics`` (an ``Intrinsics`` or None) hold a principal point of their own."""
     return intrinsics is not None and intrinsics.cx is not None and intrinsics.cy is not None
@@ -239,7 +232,8 @@ class TrackingLensConfig(LensConfig):
     refits: in the tracking mode too until then, on sub-pixel keypoints); when adopted, those
     frames are localized again with it from their poses, and every later frame is undistorted
     with it; a focal length adopted from the distorted frames is undone and estimated again from
-    the undistorted ones. Fox's 50 photos as frames: the first 20
+    the undistorted ones; frames given no principal point have the one they agree on adopted
+    with it (``adopt_centre``). Fox's 50 photos as frames: the first 20
     gave k1 0.058, k2 -0.079 (its calibration: 0.058, -0.081), the first 10 0.055, -0.075.
     """
 

@@ -40,8 +40,8 @@ from ..pose.se3 import se3_exp, se3_log
 from .batch import BatchWorker, PhotoTask, failure_row, result_row
 from .focal import CAMERA_FOCAL_KEY, check_pooling, photo_focal_scale, pooled_focal_scale
 from .inputs import LensDistortion, ProblemError, list_photos, start_poses
-from .lens import (CAMERA_DISTORTION_KEY, NO_CENTRE, TrackingLensConfig, photo_distortion,
-                   principal_point_given)
+from .lens import (CAMERA_CENTRE_KEY, CAMERA_DISTORTION_KEY, TrackingLensConfig,
+                   photo_distortion, principal_point_given)
 from .ledger import PosesLedger
 from .problem import warn_if_rotated
 
@@ -102,7 +102,9 @@ class TrackingConfig:
         lens: the camera's lens distortion from the first frames, when none was given
             (``lens.TrackingLensConfig``; ``tracking.lens.estimate``): decided once; adopted,
             those frames are localized again with it (a focal length adopted from them undone)
-            and every later frame is undistorted with it (``camera_distortion`` in its row).
+            and every later frame is undistorted with it (``camera_distortion`` in its row);
+            frames given no principal point have theirs adopted with it
+            (``camera_principal_point``).
     """
 
     velocity: bool = True
@@ -300,7 +302,7 @@ class TrackingSummary:
     redone: int = 0  # frames localized again with an adopted focal length or lens
     distortion: Optional[List[float]] = None  # k1, k2, p1, p2 adopted from the frames
     distortion_adoptions: int = 0  # times this call adopted them
-    lens_not_estimated: Optional[str] = None  # why the lens was not estimated when it was asked
+    principal_point: Optional[List[float]] = None  # [cx, cy] adopted from the frames [px]
 
     @property
     def frames_per_second(self) -> Optional[float]:
@@ -403,7 +405,9 @@ class _Tracker:
         self.lens_window: List[_Held] = []
         self.lens_adoptions = 0
         self.focal_before_lens = self.focal_scale  # what an adopted lens goes back to
-        self.lens_not_estimated: Optional[str] = None
+        # the principal point adopted with the lens when none was given ([cx, cy] of the frames)
+        centres = [r[CAMERA_CENTRE_KEY] for r in done if r.get(CAMERA_CENTRE_KEY)]
+        self.centre_px = tuple(float(v) for v in centres[-1]) if centres else None
         self.redone = 0
         self.relocalized = 0
         self.fast_settled: set = set()  # names of the frames the cheap localization settled
@@ -419,8 +423,13 @@ class _Tracker:
         return fast
 
     def _intrinsics(self, rgb: np.ndarray) -> Intrinsics:
-        """A frame's intrinsics: the given ones with the sequence's focal length."""
+        """A frame's intrinsics: the given ones, with the sequence's focal length.
+
+        And with its principal point, when one was adopted from the frames.
+        """
         given = self.intrinsics_of((int(rgb.shape[1]), int(rgb.shape[0])))
+        if self.centre_px is not None:
+            given = dataclasses.replace(given, cx=self.centre_px[0], cy=self.centre_px[1])
         return given.with_focal_scale(self.focal_scale)
 
     def _distortion(self):
@@ -509,6 +518,8 @@ class _Tracker:
         row[CAMERA_FOCAL_KEY] = self.focal_scale
         if self.lens is not None:
             row[CAMERA_DISTORTION_KEY] = list(self.lens)
+        if self.centre_px is not None:
+            row[CAMERA_CENTRE_KEY] = list(self.centre_px)
         again = bool(self.history) and self.history[-1][0] >= index
         if again:  # a frame localized again (``settle_focal``): its new pose replaces the old
             self.history = [h for h in self.history if h[0] != index]
@@ -525,7 +536,8 @@ class _Tracker:
         Once ``lens.min_views`` frames are in, the lens their refits agree on
         (``LensConfig.adopt``) is adopted and they are localized again with it from their own
         poses, at most ``lens.rounds`` times; then the lens is decided for the sequence (the
-        focal length's window starts again, on undistorted frames).
+        focal length's window starts again, on undistorted frames). Frames given no principal
+        point have the one their refits agree on adopted with it (``LensConfig.adopt_centre``).
         """
         cfg = self.cfg.lens
         if not self.lens_open:
@@ -534,25 +546,29 @@ class _Tracker:
             self.lens_open = False  # a method without the lens check: nothing to decide on
             self.lens_window = []
             return []
-        if not principal_point_given(self.intrinsics_of((int(rgb.shape[1]), int(rgb.shape[0])))):
-            logger.info("%s", NO_CENTRE)
-            self.lens_not_estimated = NO_CENTRE
-            self.lens_open = False
-            self.lens_window = []
-            return []
         self.lens_window.append(_Held(index, name, rgb, row))
         if len(self.lens_window) < cfg.min_views:
             return []
+        given = self.intrinsics_of((int(rgb.shape[1]), int(rgb.shape[0])))
         redone: Dict[str, Dict[str, Any]] = {}
         for _ in range(cfg.rounds):
-            new = cfg.adopt([h.row for h in self.lens_window], self.lens)
-            if new is None:
+            rows = [h.row for h in self.lens_window]
+            new = cfg.adopt(rows, self.lens)
+            new_c = None if principal_point_given(given) or self.centre_px is not None \
+                else cfg.adopt_centre(rows)
+            if new is None and new_c is None:
                 break
-            logger.info("%d frames agree on a lens distortion (k1, k2, p1, p2) %s: the sequence "
-                        "undistorts its frames with it, and localizes these again",
-                        len(self.lens_window), ", ".join(f"{v:.5f}" for v in new))
-            self.lens = new
-            self.lens_adoptions += 1
+            if new_c is not None:
+                self.centre_px = (given.cx_px + new_c[0] * given.fx,
+                                  given.cy_px + new_c[1] * given.fx)
+                logger.info("%d frames agree on a principal point (%.2f, %.2f) px: the sequence "
+                            "takes it, and localizes these again", len(rows), *self.centre_px)
+            if new is not None:
+                logger.info("%d frames agree on a lens distortion (k1, k2, p1, p2) %s: the "
+                            "sequence undistorts its frames with it, and localizes these again",
+                            len(rows), ", ".join(f"{v:.5f}" for v in new))
+                self.lens = new
+                self.lens_adoptions += 1
             # a focal length adopted from these distorted frames is undone (it made up for part
             # of the distortion: fox's 1.011); the undistorted frames to come estimate it again
             self.focal_scale = self.focal_before_lens
@@ -666,7 +682,8 @@ def track(
                            tracker.relocalized, list(rows.values()), len(tracker.fast_settled),
                            tracker.focal_scale, tracker.focal_adoptions, tracker.redone,
                            None if tracker.lens is None else list(tracker.lens),
-                           tracker.lens_adoptions, tracker.lens_not_estimated)
+                           tracker.lens_adoptions,
+                           None if tracker.centre_px is None else list(tracker.centre_px))
 
 
 def write_tracking_video(

@@ -17,7 +17,7 @@ import pytest
 from icomma_plugin.app.batch import BatchPlan, PhotoTask, WorkerSetup, run_batch
 from icomma_plugin.app.batch import worker as batch_worker
 from icomma_plugin.app.inputs import LensDistortion
-from icomma_plugin.app.lens import (NO_CENTRE, LensConfig, PhotoDistortion, centre_evidence,
+from icomma_plugin.app.lens import (LensConfig, PhotoDistortion, centre_evidence,
                                     photo_centre, photo_distortion, pooled_distortion)
 from icomma_plugin.app.ledger import PosesLedger
 from icomma_plugin.camera import Intrinsics
@@ -238,7 +238,7 @@ def test_a_batch_keeps_its_photos_as_they_are(tmp_path, monkeypatch, case):
     assert not (tmp_path / "out" / "poses.focal.json").exists()
     assert all("camera_distortion" not in r and "camera_principal_point" not in r
                for r in ledger.all_rows())
-    assert summ.principal_point is None and summ.lens_not_estimated is None
+    assert summ.principal_point is None
 
 
 # ---------------------------------------------------------- a sequence through a fake lens
@@ -254,8 +254,12 @@ def _lens_frames(tmp_path, n):
     return folder
 
 
-def _fake_lens_worker(focal_ask=1.0):
-    """The tracking tests' fake worker whose frames see fox's lens until undistorted."""
+def _fake_lens_worker(focal_ask=1.0, centre=(0.0, 0.0)):
+    """The tracking tests' fake worker whose frames see fox's lens until undistorted.
+
+    A frame given no principal point sees k1, k2 alone and the principal point ``centre`` (its
+    move from the image centre in focal lengths) until it is given one.
+    """
     from tests.tools.test_tracking import _FakeWorker
 
     class _Worker(_FakeWorker):
@@ -263,11 +267,14 @@ def _fake_lens_worker(focal_ask=1.0):
             res = super().result(query, init_c2w, fast)
             undistorted = query.valid is not None  # (a remapped 8x8 frame loses its corners)
             left = [0.0] * 4 if undistorted else list(FOX_LENS)
-            res.verdict.signals["distortion"] = {"coefficients": left, "reach": 0.7,
-                                                 "focal_px": 340.0}  # (a phone's, in px)
+            sig = {"coefficients": left, "reach": 0.7, "focal_px": 340.0}  # (a phone's, in px)
+            if query.intrinsics.cx is None:
+                sig["coefficients"][2:] = [0.0, 0.0]
+                sig["centre"] = list(centre)
+            res.verdict.signals["distortion"] = sig
             res.verdict.signals["focal"] = {"scale": focal_ask, "rms_px": 0.5,
                                             "rms_px_given": 0.6}
-            self.calls[-1] += (undistorted, round(query.intrinsics.fx, 6))
+            self.calls[-1] += (undistorted, round(query.intrinsics.fx, 6), query.intrinsics.cx)
             return res
 
     return _Worker({f"g{i}.png": np.eye(4) for i in range(8)})
@@ -300,15 +307,44 @@ def test_a_sequence_adopts_the_lens_of_its_first_frames_and_keeps_it(tmp_path):
                   lambda s: CAMERA, init_c2w=np.eye(4), cfg=cfg)
     assert [(c[0], c[3]) for c in w2.calls] == [("g4.png", True), ("g5.png", True)]
     assert summ2.distortion == pytest.approx(FOX_LENS) and summ2.distortion_adoptions == 0
-    # off, or no principal point given: the frames as they are
-    for i, (camera, estimate) in enumerate(((CAMERA, False), (Intrinsics(8, 8, 8.0, 8.0), True))):
-        w3 = _fake_lens_worker()
-        summ3 = track(w3, FrameSource.open(str(folder)),
-                      PosesLedger(tmp_path / f"out_{i}", {"kind": "sequence"}, 6),
-                      lambda s: camera, init_c2w=np.eye(4),
-                      cfg=TrackingConfig(lens=TrackingLensConfig(estimate=estimate, min_views=3)))
-        assert {c[3] for c in w3.calls} == {False} and len(w3.calls) == 6
-        assert (summ3.lens_not_estimated == NO_CENTRE) == estimate
+    # off: the frames as they are
+    w3 = _fake_lens_worker()
+    summ3 = track(w3, FrameSource.open(str(folder)),
+                  PosesLedger(tmp_path / "out_off", {"kind": "sequence"}, 6),
+                  lambda s: CAMERA, init_c2w=np.eye(4),
+                  cfg=TrackingConfig(lens=TrackingLensConfig(estimate=False, min_views=3)))
+    assert {c[3] for c in w3.calls} == {False} and len(w3.calls) == 6
+    assert summ3.distortion is None and summ3.principal_point is None
+
+
+def test_a_sequence_given_no_principal_point_adopts_one_with_its_lens(tmp_path):
+    from icomma_plugin.app.lens import TrackingLensConfig
+    from icomma_plugin.app.tracking import FrameSource, TrackingConfig, track
+
+    folder = _lens_frames(tmp_path, 5)
+    cfg = TrackingConfig(lens=TrackingLensConfig(min_views=3))
+    centred = Intrinsics(8, 8, 8.0, 8.0)  # the image centre (3.5, 3.5) taken
+    w = _fake_lens_worker(centre=(0.05, -0.03))
+    summ = track(w, FrameSource.open(str(folder), limit=4),
+                 PosesLedger(tmp_path / "out", {"kind": "sequence"}, 5),
+                 lambda s: centred, init_c2w=np.eye(4), cfg=cfg)
+    # the first three frames' refits agree on the principal point and on k1, k2: both adopted,
+    # those three localized again with them, and the next frame with them too
+    assert [(c[0], c[3], c[5]) for c in w.calls] == [
+        ("g0.png", False, None), ("g1.png", False, None), ("g2.png", False, None),
+        ("g0.png", True, pytest.approx(3.9)), ("g1.png", True, pytest.approx(3.9)),
+        ("g2.png", True, pytest.approx(3.9)), ("g3.png", True, pytest.approx(3.9))]
+    assert summ.principal_point == pytest.approx([3.9, 3.26])
+    assert summ.distortion == pytest.approx(FOX_LENS[:2] + (0.0, 0.0))
+    rows = PosesLedger(tmp_path / "out", {"kind": "sequence"}, 5).all_rows()
+    assert all(r["camera_principal_point"] == pytest.approx([3.9, 3.26]) for r in rows)
+    # a resumed run goes on with them
+    w2 = _fake_lens_worker(centre=(0.05, -0.03))
+    summ2 = track(w2, FrameSource.open(str(folder)),
+                  PosesLedger(tmp_path / "out", {"kind": "sequence"}, 5),
+                  lambda s: centred, init_c2w=np.eye(4), cfg=cfg)
+    assert [(c[0], c[3], c[5]) for c in w2.calls] == [("g4.png", True, pytest.approx(3.9))]
+    assert summ2.principal_point == pytest.approx([3.9, 3.26])
 
 
 def test_tracking_lens_config_names_its_group():

@@ -260,7 +260,6 @@ class BatchSummary:
     focal_passes: List[Dict[str, Any]] = field(default_factory=list)  # poses.focal.json's passes
     distortion: Optional[List[float]] = None  # k1, k2, p1, p2 adopted from the photos
     distortion_adoptions: int = 0  # times this call adopted them
-    lens_not_estimated: Optional[str] = None  # why the lens was not estimated when it was asked
     principal_point: Optional[List[float]] = None  # [cx, cy] adopted (the first photo's pixels)
     centre_evidence: Optional[Dict[str, Any]] = None  # the photos' principal point (lens.py)
 
