@@ -201,7 +201,7 @@ def test_a_photos_principal_point_and_the_photos_together():
     assert LensConfig().adopt_centre(rows) == pytest.approx(tuple(ev["offset"]))
     assert LensConfig(estimate=False).adopt_centre(rows) is None
     assert LensConfig(min_views=21).adopt_centre(rows) is None
-    # a move shorter than min_centre_move (0.006 focal lengths): what a tangential distortion makes
+    # a move shorter than min_centre_move (0.008 focal lengths): what a tangential distortion makes
     near = [{**row, "signals": {"distortion": {"centre": list(c), "focal_px": 300.0}}}
             for c in (0.004, 0.0) + 0.0005 * rng.standard_normal((20, 2))]
     assert centre_evidence(near)["agree"] == 1.0 and centre_evidence(near)["shift_px"] > 1.0
