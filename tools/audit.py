@@ -285,6 +285,15 @@ def summary(doc: Dict[str, Any]) -> str:
             f"  lens: the photos' refits do not agree on a distortion left in them (their medians "
             f"{lens['shift_px']:.2f} px, {100 * lens['agree']:.0f} % of {lens['views']} runs "
             "pointing that way; a batch adopts from 0.5 px and 80 %)")
+    centre = s.get("principal_point")
+    if centre:
+        move = (f"{centre['shift_px']:.2f} px from the image centre, {100 * centre['agree']:.0f} % "
+                f"of {centre['views']} runs that way")
+        lines.append(
+            f"  principal point: the dataset gives none and the photos' refits put it {move}: "
+            "check the capture's camera model" if centre["off"] else
+            f"  principal point: the dataset gives none; the photos' refits put it {move} (a "
+            "batch adopts from 0.008 focal lengths, 0.5 px and 80 %)")
     if cal.get("stored"):
         moved = ", ".join(f"{k} {a:g} -> {b:g}" for k, (a, b) in cal["changed"].items())
         lines.append(f"  calibration ({cal['counts']['used']} right ok poses): "

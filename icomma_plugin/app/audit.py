@@ -450,6 +450,9 @@ def audit_summary(cameras: Sequence[Mapping[str, Any]], rows: Sequence[Mapping[s
         # the lens the photos' refits agree on beyond their dataset's undistortion (the photo
         # runs, not the control's renders nor the focal check's scaled cameras)
         "lens": _lens_of(rows),
+        # where the refits put the principal point of photos whose dataset gives none (LLFF,
+        # Blender: the image centre taken)
+        "principal_point": _centre_of(rows),
     }
 
 
@@ -461,12 +464,32 @@ def _lens_of(rows: Sequence[Mapping[str, Any]]) -> Optional[Dict[str, Any]]:
     """
     from .lens import LensConfig, lens_evidence, photo_distortion
 
-    photo_runs = [dict(r) for r in rows if r.get("start") != CONTROL
-                  and not str(r.get("start")).startswith("focal")]
+    photo_runs = _photo_runs(rows)
     ev = lens_evidence([photo_distortion(r) for r in photo_runs])
     if ev is not None:
         ev["distorted"] = LensConfig().adopt(photo_runs, None) is not None
     return ev
+
+
+def _centre_of(rows: Sequence[Mapping[str, Any]]) -> Optional[Dict[str, Any]]:
+    """``lens.centre_evidence`` of the photo runs, and whether it says the centre is ``off``.
+
+    ``off``: whether a batch's rule (``LensConfig.adopt_centre``'s defaults) would adopt it. None
+    when the photos have a principal point of their own (their refits do not free it).
+    """
+    from .lens import LensConfig, centre_evidence
+
+    photo_runs = _photo_runs(rows)
+    ev = centre_evidence(photo_runs)
+    if ev is not None:
+        ev["off"] = LensConfig().adopt_centre(photo_runs) is not None
+    return ev
+
+
+def _photo_runs(rows: Sequence[Mapping[str, Any]]) -> List[Dict[str, Any]]:
+    """The runs of the photos themselves: not the control's renders nor the focal check's."""
+    return [dict(r) for r in rows if r.get("start") != CONTROL
+            and not str(r.get("start")).startswith("focal")]
 
 
 # ---------------------------------------------------------------------------------- resume

@@ -368,7 +368,11 @@ def test_the_corrupted_cameras_are_flagged_and_the_others_are_not(capture, tmp_p
     # the photos are pinhole renders: no lens distortion left in them (their 12 runs' refits)
     lens = doc["summary"]["lens"]
     assert lens["views"] >= 10 and lens["distorted"] is False
+    # rendered at the image centre, which their dataset leaves to it: not off
+    centre = doc["summary"]["principal_point"]
+    assert centre["views"] >= 10 and centre["off"] is False, centre
     text = audit_tool().summary(doc)
+    assert "principal point: the dataset gives none; the photos' refits put it" in text
     assert "control: the model's renders at the records come back to" in text
     assert "lens: the photos' refits do not agree on a distortion" in text
     reading = audit_tool()._control_reading
