@@ -402,6 +402,22 @@ def distorted_photos(tmp_path_factory):
     return _lens_photos(tmp_path_factory.mktemp("lens_batch"))
 
 
+def _lens_runs(ps, tmp_path, camera):
+    """The tool's batch of ``ps``'s photos given ``camera`` (its overrides).
+
+    ``{estimate: poses.json}``, without and with the lens estimated.
+    """
+    doc = {}
+    for on in (False, True):
+        out = tmp_path / f"out_{on}"
+        doc[on] = localize_tool().run(compose([
+            "data=model_folder", f"data.model_path={ps['model']}", f"data.queries={ps['photos']}",
+            *camera, f"data.gt.poses_file={ps['gt']}", "data.init=none",
+            f"batch.lens.estimate={str(on).lower()}", f"output.dir={out}",
+            "output.progress=false", "output.contact_sheet=false", "threads=1"]), out)
+    return doc
+
+
 def test_a_batch_of_distorted_photos_finds_their_lens(distorted_photos, tmp_path):
     """Photos through a lens, given their pinhole intrinsics alone.
 
@@ -409,16 +425,9 @@ def test_a_batch_of_distorted_photos_finds_their_lens(distorted_photos, tmp_path
     truth.
     """
     ps, i = distorted_photos, distorted_photos["intrinsics"]
-    doc = {}
-    for on in (False, True):
-        out = tmp_path / f"out_{on}"
-        doc[on] = localize_tool().run(compose([
-            "data=model_folder", f"data.model_path={ps['model']}", f"data.queries={ps['photos']}",
-            f"data.intrinsics.fx={i.fx}", f"data.intrinsics.fy={i.fy}",
-            f"data.intrinsics.cx={i.cx_px}", f"data.intrinsics.cy={i.cy_px}",
-            f"data.gt.poses_file={ps['gt']}", "data.init=none",
-            f"batch.lens.estimate={str(on).lower()}", f"output.dir={out}",
-            "output.progress=false", "output.contact_sheet=false", "threads=1"]), out)
+    doc = _lens_runs(ps, tmp_path, [f"data.intrinsics.fx={i.fx}", f"data.intrinsics.fy={i.fy}",
+                                    f"data.intrinsics.cx={i.cx_px}",
+                                    f"data.intrinsics.cy={i.cy_px}"])
     assert doc[False]["summary"]["distortion"] is None
     found = doc[True]["summary"]["distortion"]
     assert found is not None and doc[True]["summary"]["distortion_adoptions"] >= 1
@@ -443,15 +452,7 @@ def test_distorted_photos_given_no_principal_point_find_it(tmp_path_factory, tmp
     """
     ps = _lens_photos(tmp_path_factory.mktemp("lens_centre"), (5.0, -3.0))
     i = ps["intrinsics"]
-    doc = {}
-    for on in (False, True):
-        out = tmp_path / f"out_{on}"
-        doc[on] = localize_tool().run(compose([
-            "data=model_folder", f"data.model_path={ps['model']}", f"data.queries={ps['photos']}",
-            f"data.intrinsics.fx={i.fx}", f"data.intrinsics.fy={i.fy}",
-            f"data.gt.poses_file={ps['gt']}", "data.init=none",
-            f"batch.lens.estimate={str(on).lower()}", f"output.dir={out}",
-            "output.progress=false", "output.contact_sheet=false", "threads=1"]), out)
+    doc = _lens_runs(ps, tmp_path, [f"data.intrinsics.fx={i.fx}", f"data.intrinsics.fy={i.fy}"])
     summ = doc[True]["summary"]
     assert doc[False]["summary"]["principal_point"] is None
     assert summ["principal_point"] == pytest.approx([i.cx, i.cy], abs=1.5)
