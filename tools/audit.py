@@ -275,6 +275,9 @@ def summary(doc: Dict[str, Any]) -> str:
                      "photos explained better at another focal length than their record's"
                      + "".join(f"\n    {c['camera']}: {_focal_reading(c['focal'])}"
                                for c in doc["cameras"] if (c.get("focal") or {}).get("disagrees")))
+    from icomma_plugin.app.lens import LensConfig
+
+    rule = LensConfig()  # what a batch adopts from
     lens = s.get("lens")
     if lens:
         k = ", ".join(f"{v:.4f}" for v in lens["coefficients"])
@@ -284,7 +287,8 @@ def summary(doc: Dict[str, Any]) -> str:
             f"{lens['views']} runs): check the capture's camera model" if lens["distorted"] else
             f"  lens: the photos' refits do not agree on a distortion left in them (their medians "
             f"{lens['shift_px']:.2f} px, {100 * lens['agree']:.0f} % of {lens['views']} runs "
-            "pointing that way; a batch adopts from 0.5 px and 80 %)")
+            f"pointing that way; a batch adopts from {rule.min_shift_px:g} px and "
+            f"{100 * rule.agree:.0f} %)")
     centre = s.get("principal_point")
     if centre:
         move = (f"{centre['shift_px']:.2f} px from the image centre, {100 * centre['agree']:.0f} % "
@@ -293,7 +297,8 @@ def summary(doc: Dict[str, Any]) -> str:
             f"  principal point: the dataset gives none and the photos' refits put it {move}: "
             "check the capture's camera model" if centre["off"] else
             f"  principal point: the dataset gives none; the photos' refits put it {move} (a "
-            "batch adopts from 0.008 focal lengths, 0.5 px and 80 %)")
+            f"batch adopts from {rule.min_centre_move:g} focal lengths, {rule.min_shift_px:g} px "
+            f"and {100 * rule.agree:.0f} %)")
     if cal.get("stored"):
         moved = ", ".join(f"{k} {a:g} -> {b:g}" for k, (a, b) in cal["changed"].items())
         lines.append(f"  calibration ({cal['counts']['used']} right ok poses): "
