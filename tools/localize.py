@@ -379,11 +379,16 @@ def _focal_line(s: Dict[str, Any], what: str) -> str:
 def _lens_line(s: Dict[str, Any], what: str) -> str:
     """The lens distortion a batch or a sequence estimated from its photos ("": none)."""
     lines = []
+    ev = s.get("centre_evidence")
     if s.get("principal_point"):
         cx, cy = s["principal_point"]
         lines.append(f"  lens         principal point ({cx:.2f}, {cy:.2f}) px estimated from the "
                      f"{what} (none was given); give data.intrinsics.cx={cx:.2f} "
                      f"data.intrinsics.cy={cy:.2f} for more {what} of this camera")
+    elif ev:  # measured and not adopted: say so, the user gave none
+        lines.append(f"  lens         principal point: none was given and the image centre is "
+                     f"kept (the {what}' refits put it {ev['shift_px']:.2f} px from it, "
+                     f"{100 * ev['agree']:.0f} % of {ev['views']} the same way)")
     if s.get("distortion"):
         k = ",".join(f"{v:.5f}" for v in s["distortion"])
         lines.append(f"  lens         distortion [k1,k2,p1,p2] = [{k}] estimated from the {what} "

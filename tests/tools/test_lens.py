@@ -239,6 +239,9 @@ def test_a_batch_keeps_its_photos_as_they_are(tmp_path, monkeypatch, case):
     assert all("camera_distortion" not in r and "camera_principal_point" not in r
                for r in ledger.all_rows())
     assert summ.principal_point is None
+    line = localize_tool()._lens_line({"centre_evidence": summ.centre_evidence}, "photos")
+    # the one case that measured the principal point (none given) says it kept the centre
+    assert ("the image centre is kept" in line) == (case == "centred"), line
 
 
 # ---------------------------------------------------------- a sequence through a fake lens
