@@ -348,7 +348,8 @@ def _run_sequence(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, An
             "relocalized": summ.relocalized, "fast_ok": summ.fast_ok, "files": files,
             "focal_scale": summ.focal_scale, "focal_adoptions": summ.focal_adoptions,
             "distortion": summ.distortion, "distortion_adoptions": summ.distortion_adoptions,
-            "principal_point": summ.principal_point, "redone": summ.redone, "rows": rows}
+            "principal_point": summ.principal_point, "centre_evidence": summ.centre_evidence,
+            "redone": summ.redone, "rows": rows}
 
 
 def _tracking_line(s: Dict[str, Any], rows: List[Dict[str, Any]]) -> str:

@@ -41,7 +41,7 @@ from .batch import BatchWorker, PhotoTask, failure_row, result_row
 from .focal import CAMERA_FOCAL_KEY, check_pooling, photo_focal_scale, pooled_focal_scale
 from .inputs import LensDistortion, ProblemError, list_photos, start_poses
 from .lens import (CAMERA_CENTRE_KEY, CAMERA_DISTORTION_KEY, TrackingLensConfig,
-                   photo_distortion, principal_point_given)
+                   centre_evidence, photo_distortion, principal_point_given)
 from .ledger import PosesLedger
 from .problem import warn_if_rotated
 
@@ -303,6 +303,7 @@ class TrackingSummary:
     distortion: Optional[List[float]] = None  # k1, k2, p1, p2 adopted from the frames
     distortion_adoptions: int = 0  # times this call adopted them
     principal_point: Optional[List[float]] = None  # [cx, cy] adopted from the frames [px]
+    centre_evidence: Optional[Dict[str, Any]] = None  # the window's principal point (lens.py)
 
     @property
     def frames_per_second(self) -> Optional[float]:
@@ -408,6 +409,7 @@ class _Tracker:
         # the principal point adopted with the lens when none was given ([cx, cy] of the frames)
         centres = [r[CAMERA_CENTRE_KEY] for r in done if r.get(CAMERA_CENTRE_KEY)]
         self.centre_px = tuple(float(v) for v in centres[-1]) if centres else None
+        self.centre_evidence: Optional[Dict[str, Any]] = None  # what the window's refits said
         self.redone = 0
         self.relocalized = 0
         self.fast_settled: set = set()  # names of the frames the cheap localization settled
@@ -550,6 +552,7 @@ class _Tracker:
         if len(self.lens_window) < cfg.min_views:
             return []
         given = self.intrinsics_of((int(rgb.shape[1]), int(rgb.shape[0])))
+        self.centre_evidence = centre_evidence([h.row for h in self.lens_window])
         redone: Dict[str, Dict[str, Any]] = {}
         for _ in range(cfg.rounds):
             rows = [h.row for h in self.lens_window]
@@ -683,7 +686,8 @@ def track(
                            tracker.focal_scale, tracker.focal_adoptions, tracker.redone,
                            None if tracker.lens is None else list(tracker.lens),
                            tracker.lens_adoptions,
-                           None if tracker.centre_px is None else list(tracker.centre_px))
+                           None if tracker.centre_px is None else list(tracker.centre_px),
+                           tracker.centre_evidence)
 
 
 def write_tracking_video(

@@ -338,6 +338,7 @@ def test_a_sequence_given_no_principal_point_adopts_one_with_its_lens(tmp_path):
         ("g0.png", True, pytest.approx(3.9)), ("g1.png", True, pytest.approx(3.9)),
         ("g2.png", True, pytest.approx(3.9)), ("g3.png", True, pytest.approx(3.9))]
     assert summ.principal_point == pytest.approx([3.9, 3.26])
+    assert summ.centre_evidence["views"] == 3 and summ.centre_evidence["agree"] == 1.0
     assert summ.distortion == pytest.approx(FOX_LENS[:2] + (0.0, 0.0))
     rows = PosesLedger(tmp_path / "out", {"kind": "sequence"}, 5).all_rows()
     assert all(r["camera_principal_point"] == pytest.approx([3.9, 3.26]) for r in rows)
