@@ -20,14 +20,18 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Dict, Optional, Sequence, Tuple
 
+import dataclasses
+
 import numpy as np
 
+from ..camera import Intrinsics
 from ..checks import check_bool, check_int, check_real
 from ..localization.geometry import distortion_field
 
 __all__ = ["CAMERA_CENTRE_KEY", "CAMERA_DISTORTION_KEY", "LensConfig",
            "PhotoDistortion", "TrackingLensConfig", "centre_evidence", "lens_evidence",
-           "photo_centre", "photo_distortion", "principal_point_given", "pooled_distortion"]
+           "moved_centre", "photo_centre", "photo_distortion", "principal_point_given",
+           "pooled_distortion"]
 
 #: a row's field: OpenCV's ``[k1, k2, p1, p2]`` its photo was undistorted with (adopted from the
 #: photos); absent when none
@@ -133,6 +137,19 @@ def photo_centre(row: Dict[str, Any]) -> Optional[Tuple[float, float, float]]:
     except (KeyError, TypeError, ValueError):
         return None
     return (dx, dy, focal) if np.isfinite([dx, dy, focal]).all() and focal > 0 else None
+
+
+def moved_centre(intrinsics: Intrinsics, offset: Sequence[float],
+                 focal_px: Optional[float] = None) -> Intrinsics:
+    """``intrinsics`` with the principal point ``offset`` focal lengths from the image centre.
+
+    Both axes in units of ``focal_px`` (default: its ``fx``), as the refits measure it
+    (``signals.distortion.centre``); from the image centre whatever ``cx``, ``cy`` it had.
+    """
+    f = float(intrinsics.fx if focal_px is None else focal_px)
+    centred = dataclasses.replace(intrinsics, cx=None, cy=None)
+    return dataclasses.replace(intrinsics, cx=centred.cx_px + float(offset[0]) * f,
+                               cy=centred.cy_px + float(offset[1]) * f)
 
 
 def centre_evidence(rows: Sequence[Dict[str, Any]]) -> Optional[Dict[str, Any]]:

@@ -41,7 +41,7 @@ from .batch import BatchWorker, PhotoTask, failure_row, result_row
 from .focal import CAMERA_FOCAL_KEY, check_pooling, photo_focal_scale, pooled_focal_scale
 from .inputs import LensDistortion, ProblemError, list_photos, start_poses
 from .lens import (CAMERA_CENTRE_KEY, CAMERA_DISTORTION_KEY, TrackingLensConfig,
-                   centre_evidence, photo_distortion, principal_point_given)
+                   centre_evidence, moved_centre, photo_distortion, principal_point_given)
 from .ledger import PosesLedger
 from .problem import warn_if_rotated
 
@@ -562,8 +562,8 @@ class _Tracker:
             if new is None and new_c is None:
                 break
             if new_c is not None:
-                self.centre_px = (given.cx_px + new_c[0] * given.fx,
-                                  given.cy_px + new_c[1] * given.fx)
+                moved = moved_centre(given, new_c)
+                self.centre_px = (moved.cx, moved.cy)
                 logger.info("%d frames agree on a principal point (%.2f, %.2f) px: the sequence "
                             "takes it, and localizes these again", len(rows), *self.centre_px)
             if new is not None:

@@ -377,7 +377,7 @@ class DistortionFit(NamedTuple):
     median_px: float  # of the correspondences fitted
     rms_px: float  # root mean square: what the fit minimises
     max_radius: float  # the largest normalised radius among them (where they were measured)
-    centre_px: Tuple[float, float] = (0.0, 0.0)  # the principal point's move [px] (0: not fitted)
+    centre_px: Optional[Tuple[float, float]] = None  # the principal point's move [px] (None: kept)
 
 
 def distort_normalised(xy: np.ndarray, coefficients) -> np.ndarray:
@@ -523,4 +523,4 @@ def fit_pose_and_distortion(points_world: np.ndarray, pixels: np.ndarray, w2c: n
     reach = float(np.sqrt((parts[2] ** 2).sum(1).max()))
     return DistortionFit(T, tuple(float(v) for v in k), float(np.exp(log_s)),
                          float(np.median(err)), float(np.sqrt(np.mean(err ** 2))), reach,
-                         (float(dc[0]), float(dc[1])))
+                         (float(dc[0]), float(dc[1])) if centre else None)

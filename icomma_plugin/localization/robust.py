@@ -511,7 +511,7 @@ def _distortion_signal(state: LocalizationState, cfg: RobustConfig, obs: Optiona
            "shift_px": round(distortion_shift_px(free.coefficients, free.max_radius, fx), 4),
            "reach": round(free.max_radius, 4), "focal_px": round(fx, 3),
            "rms_px": round(free.rms_px, 4), "rms_px_given": round(rms_given, 4)}
-    if intr.cx is None or intr.cy is None:  # the image centre was taken: where the refit puts it
+    if free.centre_px is not None:  # the image centre was taken: where the refit puts it
         out["centre"] = [round(free.centre_px[0] / fx, 6), round(free.centre_px[1] / fx, 6)]
     return out
 

@@ -26,6 +26,7 @@ from ..inputs import (
     start_poses,
     truths,
 )
+from ..lens import moved_centre
 from ..problem import open_model_folder, photo_camera, scene_centre_of
 
 __all__ = ["BatchPlan", "PhotoTask", "plan_batch", "run_identity", "select"]
@@ -76,10 +77,9 @@ class PhotoTask:
         intr = self.intrinsics
         if intr.cx is not None and self.centre is None:
             raise ValueError(f"the photo {self.name} has a principal point of its own")
-        f = intr.fx / self.focal_scale  # the given one: a focal length adopted later keeps it
-        centred = replace(intr, cx=None, cy=None)
-        return replace(self, centre=tuple(centre), intrinsics=replace(
-            intr, cx=centred.cx_px + centre[0] * f, cy=centred.cy_px + centre[1] * f))
+        # in the given focal length: a focal length adopted later keeps the pixels
+        return replace(self, centre=tuple(centre),
+                       intrinsics=moved_centre(intr, centre, intr.fx / self.focal_scale))
 
 
 @dataclass
