@@ -72,6 +72,10 @@ class Intrinsics:
         """The same image seen through both focal lengths times ``scale`` (principal point kept)."""
         return self if scale == 1.0 else replace(self, fx=self.fx * scale, fy=self.fy * scale)
 
+    def centred(self) -> "Intrinsics":
+        """The same camera with its principal point at the image centre (upstream 3DGS's)."""
+        return self if self.cx is None and self.cy is None else replace(self, cx=None, cy=None)
+
     def resized_to(self, width: int, height: int) -> "Intrinsics":
         """Intrinsics of the image resized to ``width x height`` (each axis by its own ratio).
 

@@ -94,7 +94,7 @@ def _photos_to_audit(cfg: DictConfig, mf, white: bool):
             f"{mf.cfg.get('source_path')!r} is not a folder here): set dataset=<folder>")
     root = Path(str(root)).expanduser()
     try:
-        scene = read_dataset(root, white_background=white)
+        scene = read_dataset(root, white_background=white, principal_point=mf.principal_point)
     except ValueError as e:
         raise common.UserError(f"dataset: {e}") from None
     if not scene.train:
@@ -174,7 +174,8 @@ def _run(cfg: DictConfig, out: Path) -> Dict[str, Any]:
     plan, rule = _plan_and_rule(cfg)
     calibration = _calibration_settings(cfg)
     mf, white = open_model_folder({"model_path": _model_path(cfg), "iteration": cfg.iteration,
-                                   "white_background": cfg.white_background})
+                                   "white_background": cfg.white_background,
+                                   "principal_point": cfg.get("principal_point")})
     root, train = _photos_to_audit(cfg, mf, white)
     records = record_precision(root)  # {} unless the capture has COLMAP tracks
     views = select_views(train, plan.sample)
@@ -194,6 +195,7 @@ def _run(cfg: DictConfig, out: Path) -> Dict[str, Any]:
     doc = run_audit(localizer, views, plan, rule, out, scene_scale=scale,
                     scene_centre=scene_centre_of(mf.model), image_scale=image_scale,
                     settings={"config": common.container(cfg), **identity,
+                              "model_principal_point": mf.principal_point,
                               "train_photos": len(train)},
                     identity=identity, on_camera=hook, progress=bool(oc.get("progress")),
                     records=records)
@@ -293,12 +295,17 @@ def summary(doc: Dict[str, Any]) -> str:
     if centre:
         move = (f"{centre['shift_px']:.2f} px from the image centre, {100 * centre['agree']:.0f} % "
                 f"of {centre['views']} runs that way")
+        fitted_centred = (doc.get("settings") or {}).get("model_principal_point") == "centre"
+        why = ("the model was fitted with the image centre (upstream 3DGS's camera; "
+               "principal_point=dataset if its trainer took the dataset's)" if fitted_centred
+               else "the dataset gives none")
         lines.append(
-            f"  principal point: the dataset gives none and the photos' refits put it {move}: "
-            "check the capture's camera model" if centre["off"] else
-            f"  principal point: the dataset gives none; the photos' refits put it {move} (a "
-            f"batch adopts from {rule.min_centre_move:g} focal lengths, {rule.min_shift_px:g} px "
-            f"and {100 * rule.agree:.0f} %)")
+            f"  principal point: {why}, and the photos' refits put it {move}: check the "
+            "capture's camera model" + (" or the model's principal_point" if fitted_centred
+                                        else "") if centre["off"] else
+            f"  principal point: {why}; the photos' refits put it {move} (a batch adopts from "
+            f"{rule.min_centre_move:g} focal lengths, {rule.min_shift_px:g} px and "
+            f"{100 * rule.agree:.0f} %)")
     if cal.get("stored"):
         moved = ", ".join(f"{k} {a:g} -> {b:g}" for k, (a, b) in cal["changed"].items())
         lines.append(f"  calibration ({cal['counts']['used']} right ok poses): "

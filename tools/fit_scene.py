@@ -7,6 +7,7 @@ r"""Fit a 3DGS model to a posed image set on CPU (gaussian_renderer_pose) and wr
     python tools/fit_scene.py -s DATA -m OUT --set densify_grad_threshold=1e-4 \
         --set max_gaussians=80000
     python tools/fit_scene.py -m OUT/fox_270 --evaluate     # PSNRs + OUT/fox_270/eval_test_grid.png
+    python tools/fit_scene.py -s DATA -m OUT --set principal_point=centre  # upstream's camera
 
 Input: any folder `icomma_plugin.io.datasets.read_dataset` reads (COLMAP, Blender, instant-ngp /
 nerfstudio transforms.json, LLFF). Distorted photos are undistorted and the pixels that fall
@@ -16,7 +17,10 @@ point cloud starts from a plane sweep over its training views (fit.init.initial_
 Output (upstream 3DGS layout, loadable by icomma_plugin.io.model_folder.load_model_folder and by
 upstream render.py): cfg_args, cameras.json, input.ply, point_cloud/iteration_N/point_cloud.ply,
 plus metrics.json (train and test PSNR on valid pixels, iterations, Gaussian count, wall and CPU
-seconds, resolution). An existing model folder is replaced only with --overwrite.
+seconds, resolution). An existing model folder is replaced only with --overwrite. cfg_args also
+says which principal point the views were fitted with (`principal_point`: `dataset`, their files'
+cx, cy, by default; `centre`, the image centre, as upstream 3DGS fits every capture, with --set
+principal_point=centre), and the localizer takes the dataset's views at the same one.
 
 Schedule (--recipe capture, the default): FitConfig.for_capture: the iterations from the photo
 count and size unless --iterations is given, the densification / opacity-reset / SH schedule

@@ -144,7 +144,8 @@ def _expand(spec: str, what: str) -> List[Path]:
 
 
 def list_photos(
-    spec, what: str = "data.queries", split: str = "all", white_background: Optional[bool] = None
+    spec, what: str = "data.queries", split: str = "all", white_background: Optional[bool] = None,
+    principal_point: str = "dataset",
 ) -> PhotoList:
     """The photos named by ``spec`` (see the module docstring), in order.
 
@@ -153,6 +154,8 @@ def list_photos(
         what: the config key, for messages.
         split: with a dataset folder: ``train``, ``test`` or ``all`` (train then test).
         white_background: composite RGBA dataset images over white (Blender scenes).
+        principal_point: a dataset's views' principal point (``read_dataset``'s): the model's
+            (``ModelFolder.principal_point``).
     """
     if spec is None or (isinstance(spec, str) and not spec.strip()):
         raise ProblemError(
@@ -161,7 +164,7 @@ def list_photos(
     if isinstance(spec, str):
         root = Path(spec).expanduser()
         if not _GLOB.search(spec) and root.is_dir() and _dataset_kind(root):
-            return _dataset_photos(root, what, split, white_background)
+            return _dataset_photos(root, what, split, white_background, principal_point)
         specs = [spec]
     elif isinstance(spec, (list, tuple)):
         specs = [str(s) for s in spec]
@@ -184,14 +187,15 @@ def list_photos(
 
 
 def _dataset_photos(
-    root: Path, what: str, split: str, white_background: Optional[bool]
+    root: Path, what: str, split: str, white_background: Optional[bool], principal_point: str
 ) -> PhotoList:
     from ..io.datasets import read_dataset
 
     if split not in ("train", "test", "all"):
         raise ProblemError(f"data.queries_split must be train, test or all, got {split!r}")
     try:
-        scene = read_dataset(root, white_background=white_background)
+        scene = read_dataset(root, white_background=white_background,
+                             principal_point=principal_point)
     except ValueError as e:
         raise ProblemError(f"{what}: {e}") from None
     views = {"train": scene.train, "test": scene.test, "all": scene.train + scene.test}[split]

@@ -147,7 +147,7 @@ def moved_centre(intrinsics: Intrinsics, offset: Sequence[float],
     (``signals.distortion.centre``); from the image centre whatever ``cx``, ``cy`` it had.
     """
     f = float(intrinsics.fx if focal_px is None else focal_px)
-    centred = dataclasses.replace(intrinsics, cx=None, cy=None)
+    centred = intrinsics.centred()
     return dataclasses.replace(intrinsics, cx=centred.cx_px + float(offset[0]) * f,
                                cy=centred.cy_px + float(offset[1]) * f)
 

@@ -188,6 +188,10 @@ def open_model_folder(data: Dict[str, Any]):
     if not mp.is_dir():
         raise ProblemError(f"data.model_path: model folder not found: {mp}")
     mf = load_model_folder(mp, iteration=data.get("iteration"))
+    try:
+        mf = mf.with_principal_point(data.get("principal_point"))
+    except ValueError as e:
+        raise ProblemError(f"data.principal_point: {e}") from None
     white = (
         mf.white_background
         if data.get("white_background") is None
@@ -218,7 +222,8 @@ def _dataset(q: Dict[str, Any], mf, white: bool, what: str):
             f"{what} needs the source images: set data.query.dataset (cfg_args source_path "
             f"{mf.cfg.get('source_path')!r} is not a folder here) or data.query.image"
         )
-    return read_dataset(Path(str(root)).expanduser(), white_background=white)
+    return read_dataset(Path(str(root)).expanduser(), white_background=white,
+                        principal_point=mf.principal_point)
 
 
 def photo_camera(data: Dict[str, Any], mf, white: bool
@@ -234,6 +239,9 @@ def photo_camera(data: Dict[str, Any], mf, white: bool
     """
     it = data.get("intrinsics") or {}
     lens = LensDistortion.from_config(it)
+    if it.get("fx") is not None and mf.principal_point == "centre" and (
+            it.get("cx") is not None or it.get("cy") is not None):
+        _centred_model_note(str(mf.path))
     if it.get("fx") is not None or it.get("camera") is None:
         return None, lens
     q = data.get("query") or {}
@@ -243,12 +251,23 @@ def photo_camera(data: Dict[str, Any], mf, white: bool
         return None, lens
     entry = _entry(mf, it["camera"], "data.intrinsics.camera")
     view = _view_named(str(Path(str(root)).expanduser().resolve()),
-                       os.path.splitext(entry.img_name)[0], white)
+                       os.path.splitext(entry.img_name)[0], white, mf.principal_point)
     if view is None:
         return None, lens
     if lens is None and view.distortion is not None and any(view.distortion):
         lens = LensDistortion(tuple(float(v) for v in view.distortion), view.distortion_model)
     return view.intrinsics, lens
+
+
+@functools.lru_cache(maxsize=8)
+def _centred_model_note(path: str) -> None:
+    """Say once that photos given a principal point meet a model fitted with the image centre."""
+    logger.warning(
+        "data.intrinsics.cx/cy: the model %s was fitted with the image centre as its views' "
+        "principal point (upstream 3DGS's camera; data.principal_point=dataset if its trainer "
+        "took its photos' own), so photos of its capture's camera come back to their records "
+        "through the centre, not through their calibration (fox: 0.025 deg against 0.54): "
+        "leave cx, cy out (a batch then measures the principal point against the model)", path)
 
 
 @functools.lru_cache(maxsize=8)
@@ -262,12 +281,12 @@ def _no_dataset(root: str, no_lens: bool) -> None:
 
 
 @functools.lru_cache(maxsize=8)
-def _view_named(root: str, stem: str, white: bool):
+def _view_named(root: str, stem: str, white: bool, principal_point: str):
     """The view of the dataset at ``root`` whose name has ``stem``, or None (read once)."""
     from ..io.datasets import read_dataset
 
     try:
-        scene = read_dataset(Path(root), white_background=white)
+        scene = read_dataset(Path(root), white_background=white, principal_point=principal_point)
     except Exception as e:  # noqa: BLE001 - cameras.json still gives the focal lengths
         logger.warning("could not read the source dataset %s for data.intrinsics.camera (%s: %s):"
                        " the principal point is taken at the centre, no distortion removed",

@@ -225,7 +225,7 @@ def load_model_folder_scene(
                 "another kind"
             )
         kw["test_split"] = "val"
-    sd = read_dataset(root, white_background=white, **kw)
+    sd = read_dataset(root, white_background=white, principal_point=mf.principal_point, **kw)
     split_of_views = "test" if split == "val" else split
     views = getattr(sd, split_of_views)
     if not views:

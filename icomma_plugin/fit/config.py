@@ -87,6 +87,9 @@ class FitConfig:
     backend: str = "auto"
     # a random background colour at every step (upstream --random_background; the capture recipe)
     random_background: bool = False
+    # the views' principal point: "dataset" (their files' cx, cy) or "centre" (the image centre,
+    # as upstream 3DGS fits every capture); written to cfg_args, where the localizer reads it
+    principal_point: str = "dataset"
     # evaluation / saving
     eval_interval: int = 0  # 0: evaluate on the test split only at the end
     eval_views: int = 0  # 0: all test views, else this many evenly spaced
@@ -126,6 +129,9 @@ class FitConfig:
         if self.box_init not in ("views", "random"):
             raise ValueError(f"FitConfig.box_init must be 'views' or 'random', got "
                              f"{self.box_init!r}")
+        if self.principal_point not in ("dataset", "centre"):
+            raise ValueError(f"FitConfig.principal_point must be 'dataset' or 'centre', got "
+                             f"{self.principal_point!r}")
         if self.backend not in ("auto", "reference", "cpu", "cuda"):
             raise ValueError(
                 f"FitConfig.backend must be auto|reference|cpu|cuda, got {self.backend!r}"

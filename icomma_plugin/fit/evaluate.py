@@ -206,7 +206,7 @@ def evaluate_model_folder(model_path: PathLike, source_path: Optional[PathLike] 
                          "source_path")
     res = folder.cfg.get("resolution", -1) if resolution is None else resolution
     white = bool(folder.cfg.get("white_background", False))
-    scene = read_dataset(src, white_background=white)
+    scene = read_dataset(src, white_background=white, principal_point=folder.principal_point)
     if scene.train and tiny_resolution_message(res, None, scene.train[0].intrinsics):
         log.warning("%s", tiny_resolution_message(res, None, scene.train[0].intrinsics))
     bg = (1.0, 1.0, 1.0) if white else (0.0, 0.0, 0.0)

@@ -114,7 +114,8 @@ def _check_paths(source_path: PathLike, model_path: PathLike, overwrite: bool):
     return src, final
 
 
-def _read_scene(src: Path, white_background: Optional[bool], dataset_kwargs: Optional[dict]):
+def _read_scene(src: Path, white_background: Optional[bool], dataset_kwargs: Optional[dict],
+                principal_point: str = "dataset"):
     """The dataset, white for Blender scenes unless told (the NeRF convention)."""
     from ..io.datasets import detect_dataset_kind, read_dataset
 
@@ -123,7 +124,7 @@ def _read_scene(src: Path, white_background: Optional[bool], dataset_kwargs: Opt
         white_background = kind == "blender"
     kwargs = dict(dataset_kwargs or {})
     kwargs.setdefault("white_background", bool(white_background))
-    scene = read_dataset(src, kind=kind, **kwargs)
+    scene = read_dataset(src, kind=kind, principal_point=principal_point, **kwargs)
     if not scene.train:
         raise ValueError(f"source_path {str(src)!r}: the dataset has no training views")
     return scene
@@ -182,7 +183,7 @@ def fit_scene(
     if torch.device(device if device is not None else "cpu").type == "cuda":
         check_backend_here("cuda", "device")
     src, final = _check_paths(source_path, model_path, overwrite)
-    scene = _read_scene(src, white_background, dataset_kwargs)
+    scene = _read_scene(src, white_background, dataset_kwargs, config.principal_point)
     bg = (1.0, 1.0, 1.0) if scene.white_background else (0.0, 0.0, 0.0)
     dev = torch.device(device) if device is not None else torch.device("cpu")
     train, test = _load_views(scene, config, resolution, downscale, bg, dev)
@@ -199,6 +200,7 @@ def fit_scene(
         "eval": True,
         "images": "images",
         "model_path": str(final),
+        "principal_point": config.principal_point,
         "resolution": cfg_resolution_value(resolution, downscale, w0),
         "sh_degree": int(config.sh_degree),
         "source_path": str(src),

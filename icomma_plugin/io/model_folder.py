@@ -14,6 +14,7 @@ Layout::
 from __future__ import annotations
 
 import ast
+import dataclasses
 import logging
 import math
 import os
@@ -86,6 +87,31 @@ class ModelFolder:
             return None
         e = self.cameras[0]
         return max(1, int(round(max(e.width, e.height) * self.training_scale(e.width))))
+
+    @property
+    def principal_point(self) -> str:
+        """Where the model's fit put its views' principal point: ``"dataset"`` or ``"centre"``.
+
+        cfg_args ``principal_point`` when it says (``icomma-fit`` writes it); else ``"dataset"``
+        for a folder with ``metrics.json`` (``icomma-fit`` before it wrote the key, with the
+        dataset's cx, cy) and ``"centre"`` for any other (upstream 3DGS ignores cx, cy: its
+        cameras hold field-of-view angles alone).
+        """
+        said = self.cfg.get("principal_point")
+        if said in ("dataset", "centre"):
+            return said
+        return "dataset" if (self.path / "metrics.json").is_file() else "centre"
+
+    def with_principal_point(self, value: Optional[str]) -> "ModelFolder":
+        """This folder with its fit's principal point said (``"dataset"`` / ``"centre"``).
+
+        None or ``"auto"``: as it is (`principal_point` reads the folder).
+        """
+        if value is None or value == "auto":
+            return self
+        if value not in ("dataset", "centre"):
+            raise ValueError(f"principal_point must be auto, dataset or centre, got {value!r}")
+        return dataclasses.replace(self, cfg={**self.cfg, "principal_point": value})
 
     @property
     def white_background(self) -> bool:

@@ -96,7 +96,8 @@ def source_photos(mf, white_background: bool) -> Optional[List[SourcePhoto]]:
     if not src or not Path(str(src)).expanduser().is_dir():
         return None
     try:
-        scene = read_dataset(Path(str(src)).expanduser(), white_background=white_background)
+        scene = read_dataset(Path(str(src)).expanduser(), white_background=white_background,
+                             principal_point=mf.principal_point)
     except (ValueError, OSError) as e:
         logger.warning("the model's source photos at %s cannot be read (%s): renders only", src, e)
         return None

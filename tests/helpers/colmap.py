@@ -114,18 +114,20 @@ def qvec_tvec(w2c) -> Tuple[List[float], List[float]]:
 def write_colmap_dataset(root: Path, photos) -> None:
     """A COLMAP dataset folder: ``images/<name>`` and ``sparse/0`` (binary, no points).
 
-    ``photos``: ``(name, [H, W, 3] uint8 RGB, c2w, fx, fy)``, each with its own PINHOLE camera
-    (COLMAP's per-image intrinsics), principal point at the image centre.
+    ``photos``: ``(name, [H, W, 3] uint8 RGB, c2w, fx, fy[, cx, cy])``, each with its own PINHOLE
+    camera (COLMAP's per-image intrinsics); the principal point in COLMAP's pixels (the image
+    spans [0, W]), at the image centre unless given.
     """
     import numpy as np
     from PIL import Image
 
     (root / "images").mkdir(parents=True, exist_ok=True)
     cameras, images = [], []
-    for i, (name, rgb, c2w, fx, fy) in enumerate(photos, 1):
+    for i, (name, rgb, c2w, fx, fy, *pp) in enumerate(photos, 1):
         h, w = rgb.shape[:2]
         Image.fromarray(rgb).save(root / "images" / name)
-        cameras.append((i, "PINHOLE", w, h, [float(fx), float(fy), w / 2.0, h / 2.0]))
+        cx, cy = pp if pp else (w / 2.0, h / 2.0)
+        cameras.append((i, "PINHOLE", w, h, [float(fx), float(fy), float(cx), float(cy)]))
         q, t = qvec_tvec(np.linalg.inv(np.asarray(c2w, np.float64)))
         images.append((i, q, t, i, name, []))
     write_colmap_bin(root / "sparse" / "0", cameras, images, [])

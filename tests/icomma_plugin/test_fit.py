@@ -482,6 +482,7 @@ def test_fit_scene_writes_loadable_model_folder(tiny_dataset, tmp_path):
     assert folder.cfg["source_path"] == str(tiny_dataset.resolve())
     assert folder.cfg["eval"] is True and folder.cfg["sh_degree"] == 1
     assert folder.cfg["white_background"] is False
+    assert folder.cfg["principal_point"] == "dataset" and folder.principal_point == "dataset"
     names = [c.img_name for c in folder.cameras]
     assert names == ["v6", "v7", "v0", "v1", "v2", "v3", "v4", "v5"]  # test first, then train
     m = folder.model
@@ -519,6 +520,8 @@ def test_bad_inputs(tmp_path, tiny_dataset):
         FitConfig(iterations=0)
     with pytest.raises(ValueError, match="sh_degree"):
         FitConfig(sh_degree=4)
+    with pytest.raises(ValueError, match="principal_point must be 'dataset' or 'centre'"):
+        FitConfig(principal_point="center")
     assert resolution_scale(-1, None, 400) == 1.0
     assert resolution_scale(2, None, 400) == 0.5
     assert resolution_scale(200, None, 400) == 0.5

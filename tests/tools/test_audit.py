@@ -372,7 +372,10 @@ def test_the_corrupted_cameras_are_flagged_and_the_others_are_not(capture, tmp_p
     centre = doc["summary"]["principal_point"]
     assert centre["views"] >= 10 and centre["off"] is False, centre
     text = audit_tool().summary(doc)
-    assert "principal point: the dataset gives none; the photos' refits put it" in text
+    # (the demo folder has no metrics.json: upstream's convention, the image centre)
+    assert doc["settings"]["model_principal_point"] == "centre"
+    assert ("principal point: the model was fitted with the image centre (upstream 3DGS's camera;"
+            in text and "; the photos' refits put it" in text)
     assert "control: the model's renders at the records come back to" in text
     assert "lens: the photos' refits do not agree on a distortion" in text
     reading = audit_tool()._control_reading

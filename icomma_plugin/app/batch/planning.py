@@ -141,8 +141,8 @@ def plan_batch(data: Dict[str, Any], mf=None) -> Tuple[BatchPlan, Any]:
             else bool(data["white_background"])
     every, limit = _positive(data, "every", 1), _positive(data, "limit")
     photos = list_photos(
-        data.get("queries"), "data.queries", str(data.get("queries_split") or "all"), white
-    )
+        data.get("queries"), "data.queries", str(data.get("queries_split") or "all"), white,
+        mf.principal_point)
     keep = select(photos.names, every, limit)
     names = [photos.names[i] for i in keep]
     paths = [photos.paths[i] for i in keep]

@@ -59,6 +59,8 @@ class WorkerSetup:
     lod: the Localizer's level of detail (``auto``, ``off`` or ``LodConfig`` fields).
     distortion: the photo files' lens distortion (``inputs.LensDistortion``, removed before a
         photo is localized), or None.
+    principal_point: the model's fit's principal point (``data.principal_point``: auto, dataset
+        or centre; ``ModelFolder.with_principal_point``), for its source photos.
     """
 
     model_path: str
@@ -80,6 +82,7 @@ class WorkerSetup:
     verdict: Any = "auto"
     lod: Any = "auto"
     distortion: Any = None
+    principal_point: Optional[str] = None
 
 
 @contextlib.contextmanager
@@ -106,7 +109,7 @@ class BatchWorker:
 
         self.setup = setup
         self.mf = model_folder if model_folder is not None else load_model_folder(
-            setup.model_path, setup.iteration)
+            setup.model_path, setup.iteration).with_principal_point(setup.principal_point)
         matcher = matcher if matcher is not None else matcher_from_config(setup.matcher)
         self.localizer = Localizer.from_model_folder(
             self.mf, matcher, setup.method, white_background=setup.white_background,

@@ -51,6 +51,7 @@ from .transforms_json import read_transforms_json
 __all__ = [
     "DatasetError",
     "IMAGE_EXTENSIONS",
+    "PRINCIPAL_POINTS",
     "READERS",
     "SceneData",
     "View",
@@ -119,8 +120,14 @@ def detect_dataset_kind(path) -> str:
     raise DatasetError(f"unrecognised dataset folder {root}: looked for {_LOOKED_FOR}; found none")
 
 
+#: Where a dataset's views put their principal point: ``dataset``, as its files give it (a COLMAP
+#: or transforms.json camera's cx, cy); ``centre``, at the image centre, as upstream 3DGS trains and
+#: renders every view whatever its files say (its cameras hold field-of-view angles alone).
+PRINCIPAL_POINTS = ("dataset", "centre")
+
+
 def read_dataset(path, kind: Optional[str] = None, *, white_background: Optional[bool] = None,
-                 **kwargs: Any) -> SceneData:
+                 principal_point: str = "dataset", **kwargs: Any) -> SceneData:
     """Read any supported dataset folder.
 
     Args:
@@ -129,6 +136,9 @@ def read_dataset(path, kind: Optional[str] = None, *, white_background: Optional
             None detects it (`detect_dataset_kind`).
         white_background: composite RGBA images over white (True) or black (False); None keeps
             the reader's default. Formats whose images have no alpha ignore it.
+        principal_point: ``"dataset"`` or ``"centre"`` (`PRINCIPAL_POINTS`): ``"centre"`` moves
+            every view's principal point to its image centre, the camera a model fitted by
+            upstream 3DGS was fitted with (the images and the lens distortion stay as read).
         **kwargs: passed to that reader.
 
     Raises:
@@ -146,6 +156,13 @@ def read_dataset(path, kind: Optional[str] = None, *, white_background: Optional
     if unknown:
         raise ValueError(f"{reader.__name__} ({kind} dataset at {path}) does not take {unknown}; "
                          f"it accepts {accepted}")
+    if principal_point not in PRINCIPAL_POINTS:
+        raise ValueError(f"principal_point must be one of {list(PRINCIPAL_POINTS)}, got "
+                         f"{principal_point!r}")
     if white_background is not None and "white_background" in accepted:
         kwargs["white_background"] = bool(white_background)
-    return reader(path, **kwargs)
+    scene = reader(path, **kwargs)
+    if principal_point == "centre":
+        for view in scene.train + scene.test:
+            view.intrinsics = view.intrinsics.centred()
+    return scene

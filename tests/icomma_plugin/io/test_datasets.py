@@ -702,3 +702,16 @@ def test_a_photo_with_an_exif_rotation_is_read_as_stored_and_said_once(tmp_path,
             assert tuple(rgb.shape) == (3, 20, 30) and float(rgb[:, :, :10].mean()) > 0.9
     said = [r.getMessage() for r in caplog.records if "EXIF orientation 6" in r.getMessage()]
     assert len(said) == 1 and "p0.jpg" in said[0] and "as stored" in said[0], said
+
+
+def test_read_dataset_puts_the_principal_point_at_the_centre_when_asked(tmp_path):
+    """``principal_point="centre"``: upstream 3DGS's camera for every view; the rest as read."""
+    colmap_scene(tmp_path, "bin")
+    given, centred = (read_dataset(tmp_path, principal_point=pp) for pp in ("dataset", "centre"))
+    assert any(v.intrinsics.cx is not None for v in given.train + given.test)
+    for a, b in zip(given.train + given.test, centred.train + centred.test):
+        assert b.intrinsics.cx is None and b.intrinsics.cy is None
+        assert (b.intrinsics.fx, b.intrinsics.width) == (a.intrinsics.fx, a.intrinsics.width)
+        np.testing.assert_array_equal(a.w2c, b.w2c)
+    with pytest.raises(ValueError, match="principal_point must be one of.*'middle'"):
+        read_dataset(tmp_path, principal_point="middle")

@@ -278,3 +278,21 @@ def test_never_overwrites_iteration_silently(tmp_path, caplog):
     assert not [p for p in root.rglob("*.tmp")]
     with pytest.raises(ValueError, match="iteration"):
         write_model_folder(root, random_gaussians(6), {}, [], -5)
+
+
+def test_the_fits_principal_point_convention(tmp_path):
+    """cfg_args says; else metrics.json (an icomma fit before it said) means the dataset's."""
+    root = tmp_path / "m"
+    _write(root, iterations=(30000,))
+    mf = load_model_folder(root)
+    assert mf.principal_point == "centre"  # upstream's train.py: cx, cy ignored
+    (root / "metrics.json").write_text("{}")
+    assert load_model_folder(root).principal_point == "dataset"
+    assert load_model_folder(root).with_principal_point("centre").principal_point == "centre"
+    assert mf.with_principal_point("auto") is mf and mf.with_principal_point(None) is mf
+    with pytest.raises(ValueError, match="auto, dataset or centre.*'middle'"):
+        mf.with_principal_point("middle")
+    _write(tmp_path / "said", iterations=(30000,),
+           cfg=CFG_2023.replace("Namespace(", "Namespace(principal_point='centre', "))
+    (tmp_path / "said" / "metrics.json").write_text("{}")
+    assert load_model_folder(tmp_path / "said").principal_point == "centre"

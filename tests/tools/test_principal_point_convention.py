@@ -1,0 +1,117 @@
+"""A model's principal point convention: upstream 3DGS fits every view with the image centre.
+
+A capture whose files give a principal point off the centre (a COLMAP PINHOLE camera after
+undistortion, fox's transforms.json) is fitted by upstream 3DGS as if it were centred: its
+cameras are field-of-view angles alone. The model explains each photo at its recorded pose
+through a centred camera, so the localizer must localize that capture's views through the same
+camera to come back to their records (``ModelFolder.principal_point``, ``data.principal_point``).
+
+The photos here are rendered from the demo model through centred cameras (what such a model
+gives back at the records), and the COLMAP files say the principal point is 3 px off.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from tests.helpers.demo import demo_model, photo
+
+SIZE = 100
+SHIFT_PX = (3.0, -2.0)  # the files' principal point from the image centre (COLMAP pixels)
+
+pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    """The demo model folder (upstream's: no metrics.json) and a COLMAP capture of 3 photos."""
+    from icomma_plugin.camera import Intrinsics
+    from icomma_plugin.pose.convert import look_at_c2w
+    from tests.helpers.colmap import write_colmap_dataset
+
+    root = tmp_path_factory.mktemp("pp")
+    s, model = demo_model(root / "model", SIZE)
+    f0 = float(s.intrinsics.fx)
+    photos = []
+    for i in range(3):
+        az = 0.4 + 1.1 * i
+        c2w = look_at_c2w(np.array([3.8 * math.cos(az), 3.8 * math.sin(az), 2.0]),
+                          np.array([0.0, 0.0, 0.4]))
+        rgb = photo(model, Intrinsics(SIZE, SIZE, f0, f0), c2w)
+        photos.append((f"v{i}.png", rgb, c2w, f0, f0,
+                       SIZE / 2 + SHIFT_PX[0], SIZE / 2 + SHIFT_PX[1]))
+    write_colmap_dataset(root / "dataset", photos)
+    return {"model": s.path, "dataset": root / "dataset", "c2w": {p[0]: p[2] for p in photos},
+            "f0": f0}
+
+
+def _plan(capture, principal_point):
+    from icomma_plugin.app.batch import plan_batch
+
+    data = {"kind": "model_folder", "model_path": str(capture["model"]),
+            "queries": str(capture["dataset"]), "init": {"rot_deg": 5.0, "seed": 1}}
+    if principal_point is not None:
+        data["principal_point"] = principal_point
+    return plan_batch(data)
+
+
+def test_an_upstream_model_folder_takes_its_views_principal_point_at_the_centre(capture):
+    from icomma_plugin.app.problem import open_model_folder
+
+    mf, _ = open_model_folder({"model_path": str(capture["model"])})
+    assert mf.principal_point == "centre"  # no metrics.json, no cfg_args key: upstream's
+    plan, _ = _plan(capture, None)
+    assert all(t.intrinsics.cx is None and t.intrinsics.cy is None for t in plan.tasks)
+    plan, _ = _plan(capture, "dataset")
+    np.testing.assert_allclose([(t.intrinsics.cx_px, t.intrinsics.cy_px) for t in plan.tasks],
+                               [(SIZE / 2 + SHIFT_PX[0] - 0.5, SIZE / 2 + SHIFT_PX[1] - 0.5)] * 3)
+
+
+def test_a_bad_principal_point_setting_names_the_key(capture):
+    from icomma_plugin.app.inputs import ProblemError
+    from icomma_plugin.app.problem import open_model_folder
+
+    with pytest.raises(ProblemError, match="data.principal_point.*auto, dataset or centre"):
+        open_model_folder({"model_path": str(capture["model"]), "principal_point": "middle"})
+
+
+def test_views_localized_through_the_models_convention_come_back_to_their_records(capture,
+                                                                                 tmp_path):
+    """Through the centre (the model's): at the records; through the files' point: turned."""
+    from icomma_plugin.app.batch import BatchWorker, WorkerSetup
+    from icomma_plugin.localize import RobustConfig
+    from icomma_plugin.matchers import make_matcher
+
+    matcher = make_matcher("xfeat")
+    errs = {}
+    for pp in ("auto", "dataset"):
+        plan, mf = _plan(capture, pp)
+        setup = WorkerSetup(model_path=plan.model_path, method=RobustConfig(), matcher=None,
+                            out_dir=str(tmp_path / pp), thumbs=False, cache_dir=False,
+                            principal_point=pp)
+        worker = BatchWorker(setup, mf, matcher)
+        rows = [worker.run(t) for t in plan.tasks]
+        assert all(np.allclose(r["gt_c2w"], capture["c2w"][r["name"]]) for r in rows)
+        errs[pp] = np.array([r["rot_err_deg"] for r in rows])
+    # 3.6 px at a focal length of ~100 px turns the camera by ~2 deg
+    turn = math.degrees(math.atan(math.hypot(*SHIFT_PX) / capture["f0"]))
+    assert errs["auto"].max() < 0.1, errs
+    assert np.all(errs["dataset"] > 0.5 * turn), (errs, turn)
+
+
+def test_photos_given_a_principal_point_are_told_when_the_model_took_the_centre(capture, caplog):
+    from icomma_plugin.app import problem
+
+    mf, _ = problem.open_model_folder({"model_path": str(capture["model"])})
+    given = {"intrinsics": {"fx": 100.0, "fy": 100.0, "cx": 52.0, "cy": 48.0}}
+    problem._centred_model_note.cache_clear()
+    with caplog.at_level("WARNING", logger="icomma_plugin.app.problem"):
+        problem.photo_camera(given, mf.with_principal_point("dataset"), False)
+        assert "fitted with the image centre" not in caplog.text
+        problem.photo_camera({"intrinsics": {"fx": 100.0}}, mf, False)  # no cx, cy: nothing
+        assert "fitted with the image centre" not in caplog.text
+        problem.photo_camera(given, mf, False)
+    assert "fitted with the image centre" in caplog.text and "leave cx, cy out" in caplog.text
