@@ -270,10 +270,14 @@ def _run_batch(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, Any]:
     from icomma_plugin.app.focal import BatchFocalConfig
     from icomma_plugin.app.lens import LensConfig
     from icomma_plugin.app.ledger import PosesLedger
+    from icomma_plugin.app.problem import source_camera_like
     from icomma_plugin.checks import config_from_dict
 
     workers = int(cfg.get("workers") or 1)
     plan, _ = plan_batch(data, mf)
+    first = next((t.intrinsics for t in plan.tasks if t.intrinsics is not None), None)
+    like = None if first is None or plan.tasks[0].view is not None else \
+        source_camera_like(data, mf, setup.white_background, first)
     group = dict(common.container(cfg.get("batch")) or {})
     lens = config_from_dict(LensConfig, group.pop("lens", None), "batch.lens")
     focal = config_from_dict(BatchFocalConfig, group, "batch")
@@ -307,7 +311,7 @@ def _run_batch(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, Any]:
             "focal_scale": summ.focal_scale, "focal_adoptions": summ.focal_adoptions,
             "distortion": summ.distortion, "distortion_adoptions": summ.distortion_adoptions,
             "principal_point": summ.principal_point, "centre_evidence": summ.centre_evidence,
-            "redone": summ.redone, "rows": rows}
+            "source_camera": like, "redone": summ.redone, "rows": rows}
 
 
 def _run_sequence(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, Any]:
@@ -398,6 +402,17 @@ def _lens_line(s: Dict[str, Any], what: str) -> str:
     return "\n".join(lines)
 
 
+def _source_camera_line(like: Dict[str, Any]) -> str:
+    """The source dataset's camera the photos look taken with (``problem.source_camera_like``)."""
+    name = str(like["camera"])
+    arg = f"'{name}'" if name.isdigit() and not name.startswith("0") else name  # else an id
+    what = " and ".join(w for w, v in (("a principal point", like["principal_point"]),
+                                        ("a lens distortion", like["distortion"])) if v)
+    return (f"  camera       the model's source dataset has a camera of these photos' size and "
+            f"focal length with {what} they were not given (view {name}): if they were taken "
+            f"with it, data.intrinsics.camera={arg} (instead of fx, fy) gives its calibration")
+
+
 def many_summary(doc: Dict[str, Any]) -> str:
     """The console summary of a batch or a sequence (poses.json's counts, rate and errors)."""
     s = doc.get("summary", {})
@@ -432,6 +447,8 @@ def many_summary(doc: Dict[str, Any]) -> str:
         lines.append(_focal_line(s, "photos"))
     if s.get("kind") == "batch" and _lens_line(s, "photos"):
         lines.append(_lens_line(s, "photos"))
+    if s.get("source_camera"):
+        lines.append(_source_camera_line(s["source_camera"]))
     for f, paths in (s.get("exports") or {}).items():
         lines.append(f"  export {f}: {', '.join(paths)}")
     lines.append(f"  outputs in {s.get('output_dir')} (poses.json, poses.csv)")

@@ -115,3 +115,32 @@ def test_photos_given_a_principal_point_are_told_when_the_model_took_the_centre(
         assert "fitted with the image centre" not in caplog.text
         problem.photo_camera(given, mf, False)
     assert "fitted with the image centre" in caplog.text and "leave cx, cy out" in caplog.text
+
+
+def test_photos_given_a_focal_length_hear_of_the_source_camera_that_has_more(capture):
+    """A source camera of the photos' shape and focal length with a principal point is named."""
+    from icomma_plugin.app import problem
+    from icomma_plugin.camera import Intrinsics
+    from tests.helpers.tools import localize_tool
+
+    mf, _ = problem.open_model_folder({"model_path": str(capture["model"])})
+    f0 = capture["f0"]
+    # the photos at twice the dataset's size: the camera is compared at theirs
+    given = Intrinsics(2 * SIZE, 2 * SIZE, 2 * f0, 2 * f0)
+
+    def like(folder, it=None, at=given):
+        data = {"intrinsics": it or {"fx": at.fx, "fy": at.fy},
+                "query": {"dataset": str(capture["dataset"])}}
+        return problem.source_camera_like(data, folder, False, at)
+
+    found = like(mf.with_principal_point("dataset"))
+    assert found["camera"] in ("v0", "v1", "v2") and found["distortion"] is None
+    np.testing.assert_allclose(found["principal_point"],
+                               [2 * (SIZE / 2 + s) - 0.5 for s in SHIFT_PX])
+    line = localize_tool()._source_camera_line(found)
+    assert f"data.intrinsics.camera={found['camera']} " in line and "a principal point" in line
+    assert like(mf) is None  # fitted with the centre: the dataset's camera has nothing more
+    assert like(mf.with_principal_point("dataset"),
+                at=Intrinsics(2 * SIZE, 2 * SIZE, 2.1 * f0, 2.1 * f0)) is None  # 5 % off
+    assert like(mf.with_principal_point("dataset"),
+                {"fx": 2 * f0, "fy": 2 * f0, "cx": 99.5, "cy": 99.5}) is None  # given one
