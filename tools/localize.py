@@ -316,9 +316,9 @@ def _run_batch(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, Any]:
 
 def _run_sequence(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, Any]:
     from icomma_plugin.app.batch import BatchWorker, run_identity
-    from icomma_plugin.app.inputs import intrinsics_for_photos
+    from icomma_plugin.app.inputs import PhotoMismatch, intrinsics_for_photos
     from icomma_plugin.app.ledger import PosesLedger
-    from icomma_plugin.app.problem import photo_camera, scene_centre_of
+    from icomma_plugin.app.problem import photo_camera, scene_centre_of, source_camera_like
     from icomma_plugin.app.tracking import (
         FrameSource,
         TrackingConfig,
@@ -344,12 +344,20 @@ def _run_sequence(cfg, data, mf, setup, matcher, out: Path, bar) -> Dict[str, An
     ledger.total = max(ledger.total, len(ledger.all_rows()))
     ledger.flush()
     rows = ledger.all_rows()
+    size = next(((r["intrinsics"]["width"], r["intrinsics"]["height"]) for r in rows
+                 if r.get("intrinsics")), None)
+    try:  # the given camera at the frames' size (the first row's)
+        like = None if size is None else source_camera_like(data, mf, setup.white_background,
+                                                            intrinsics_of(size))
+    except PhotoMismatch:
+        like = None
     files = sequence_pictures(out, worker, source, rows, intrinsics_of,
                               common.container(cfg.output), f"{len(rows)} frames of "
                               f"{data['sequence']}")
     return {"kind": "sequence", "done_now": summ.done_now, "skipped": summ.skipped,
             "frames_per_second": summ.frames_per_second, "seconds": summ.seconds,
             "relocalized": summ.relocalized, "fast_ok": summ.fast_ok, "files": files,
+            "source_camera": like,
             "focal_scale": summ.focal_scale, "focal_adoptions": summ.focal_adoptions,
             "distortion": summ.distortion, "distortion_adoptions": summ.distortion_adoptions,
             "principal_point": summ.principal_point, "centre_evidence": summ.centre_evidence,
