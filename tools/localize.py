@@ -410,7 +410,7 @@ def _lens_line(s: Dict[str, Any], what: str) -> str:
     return "\n".join(lines)
 
 
-def _source_camera_line(like: Dict[str, Any]) -> str:
+def _source_camera_line(like: Dict[str, Any], what: str = "photos") -> str:
     """The source dataset's camera the photos look taken with (``problem.source_camera_like``)."""
     name = str(like["camera"])
     arg = f"'{name}'" if name.isdigit() and not name.startswith("0") else name  # else an id
