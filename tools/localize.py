@@ -414,10 +414,10 @@ def _source_camera_line(like: Dict[str, Any], what: str = "photos") -> str:
     """The source dataset's camera the photos look taken with (``problem.source_camera_like``)."""
     name = str(like["camera"])
     arg = f"'{name}'" if name.isdigit() and not name.startswith("0") else name  # else an id
-    what = " and ".join(w for w, v in (("a principal point", like["principal_point"]),
+    more = " and ".join(w for w, v in (("a principal point", like["principal_point"]),
                                         ("a lens distortion", like["distortion"])) if v)
-    return (f"  camera       the model's source dataset has a camera of these photos' size and "
-            f"focal length with {what} they were not given (view {name}): if they were taken "
+    return (f"  camera       the model's source dataset has a camera of these {what}' size and "
+            f"focal length with {more} they were not given (view {name}): if they were taken "
             f"with it, data.intrinsics.camera={arg} (instead of fx, fy) gives its calibration")
 
 
@@ -456,7 +456,8 @@ def many_summary(doc: Dict[str, Any]) -> str:
     if s.get("kind") == "batch" and _lens_line(s, "photos"):
         lines.append(_lens_line(s, "photos"))
     if s.get("source_camera"):
-        lines.append(_source_camera_line(s["source_camera"]))
+        lines.append(_source_camera_line(
+            s["source_camera"], "frames" if s.get("kind") == "sequence" else "photos"))
     for f, paths in (s.get("exports") or {}).items():
         lines.append(f"  export {f}: {', '.join(paths)}")
     lines.append(f"  outputs in {s.get('output_dir')} (poses.json, poses.csv)")
