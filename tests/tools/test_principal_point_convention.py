@@ -144,3 +144,28 @@ def test_photos_given_a_focal_length_hear_of_the_source_camera_that_has_more(cap
                 at=Intrinsics(2 * SIZE, 2 * SIZE, 2.1 * f0, 2.1 * f0)) is None  # 5 % off
     assert like(mf.with_principal_point("dataset"),
                 {"fx": 2 * f0, "fy": 2 * f0, "cx": 99.5, "cy": 99.5}) is None  # given one
+
+
+@pytest.mark.parametrize("pp", ["auto", "dataset"])
+def test_every_reader_of_the_models_dataset_takes_its_principal_point(capture, pp):
+    """The benchmark's queries, the source photos and a single dataset view alike."""
+    import dataclasses
+
+    from icomma_plugin.app import problem
+    from icomma_plugin.benchmark.scene import load_model_folder_scene
+    from icomma_plugin.localization.localizer import source_photos
+
+    centred = pp == "auto"  # the demo folder is upstream's: the image centre
+    mf, _ = problem.open_model_folder({"model_path": str(capture["model"]),
+                                       "principal_point": pp})
+    with_source = dataclasses.replace(mf, cfg={**mf.cfg, "source_path": str(capture["dataset"])})
+    photos = source_photos(with_source, False)
+    view = problem._query_view({"dataset": str(capture["dataset"]), "index": 0, "split": "train"},
+                               mf, False, None)
+    found = [p.intrinsics for p in photos] + [view.intrinsics]
+    if pp == "auto":  # the benchmark reads its model folder as it is
+        bench = load_model_folder_scene(capture["model"], capture["dataset"], num_queries=1,
+                                        split="train", image_scale=1.0)
+        found += [q.query.intrinsics for q in bench.queries]
+    assert len(found) >= 3
+    assert all((i.cx is None) == centred for i in found), found
