@@ -9,8 +9,8 @@ of the ``data`` group that caused it, so the tools print it as one line.
 from __future__ import annotations
 
 import functools
-import math
 import logging
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path

@@ -12,6 +12,7 @@ from dataclasses import asdict, dataclass, fields
 from typing import Optional, Tuple
 
 from ..checks import check_bool
+from ..io.datasets import PRINCIPAL_POINTS
 
 
 @dataclass
@@ -129,7 +130,7 @@ class FitConfig:
         if self.box_init not in ("views", "random"):
             raise ValueError(f"FitConfig.box_init must be 'views' or 'random', got "
                              f"{self.box_init!r}")
-        if self.principal_point not in ("dataset", "centre"):
+        if self.principal_point not in PRINCIPAL_POINTS:
             raise ValueError(f"FitConfig.principal_point must be 'dataset' or 'centre', got "
                              f"{self.principal_point!r}")
         if self.backend not in ("auto", "reference", "cpu", "cuda"):

@@ -26,6 +26,7 @@ from typing import Any, Dict, List, Optional, Sequence, Union
 from ..gaussians import GaussianModel
 from .atomic import write_text_atomic
 from .cameras_json import CameraEntry, read_cameras_json, write_cameras_json
+from .datasets import PRINCIPAL_POINTS
 from .ply import read_gaussian_ply, write_gaussian_ply, write_points_ply
 
 log = logging.getLogger(__name__)
@@ -98,7 +99,7 @@ class ModelFolder:
         cameras hold field-of-view angles alone).
         """
         said = self.cfg.get("principal_point")
-        if said in ("dataset", "centre"):
+        if said in PRINCIPAL_POINTS:
             return said
         return "dataset" if (self.path / "metrics.json").is_file() else "centre"
 
@@ -109,7 +110,7 @@ class ModelFolder:
         """
         if value is None or value == "auto":
             return self
-        if value not in ("dataset", "centre"):
+        if value not in PRINCIPAL_POINTS:
             raise ValueError(f"principal_point must be auto, dataset or centre, got {value!r}")
         return dataclasses.replace(self, cfg={**self.cfg, "principal_point": value})
 
