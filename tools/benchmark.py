@@ -49,6 +49,7 @@ from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from icomma_plugin.benchmark import (  # noqa: E402
     ProtocolSpec, ResultsWriter, load_done, load_model_folder_scene, run_protocol, synthetic_scene,
 )
+from icomma_plugin.io.datasets import PRINCIPAL_POINTS  # noqa: E402
 from icomma_plugin.localize import LocalizerConfig, RobustConfig  # noqa: E402
 
 log = logging.getLogger("benchmark")
@@ -86,6 +87,10 @@ def load_scene(cfg: DictConfig, spec: ProtocolSpec, backend: str):
         q = s.query
         idx = None if q.indices is None else [int(i) for i in q.indices]
         no_start = any(iv.no_start for iv in spec.intervals)
+        pp = s.get("principal_point")
+        if pp not in (None, "auto", *PRINCIPAL_POINTS):
+            raise common.UserError(f"scene.principal_point must be auto, "
+                                   f"{' or '.join(PRINCIPAL_POINTS)}, got {pp!r}")
         return load_model_folder_scene(
             s.model_path,
             dataset=q.dataset,
@@ -98,6 +103,7 @@ def load_scene(cfg: DictConfig, spec: ProtocolSpec, backend: str):
             translation_unit=str(s.translation_unit),
             no_start_queries=spec.num_queries * spec.poses_per_query if no_start else 0,
             photos=str(s.get("photos") or "auto"),
+            principal_point=pp,
         )
     raise common.UserError(f"scene.kind must be model_folder or synthetic, got {s.kind!r}")
 

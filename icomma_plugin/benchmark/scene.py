@@ -173,6 +173,7 @@ def load_model_folder_scene(
     query_indices: Optional[Sequence[int]] = None, image_scale: Optional[float] = None,
     white_background: Optional[bool] = None, iteration: Optional[int] = None,
     translation_unit: str = "world", no_start_queries: int = 0, photos: str = "none",
+    principal_point: Optional[str] = None,
 ) -> BenchScene:
     """Model folder + the dataset's ``split`` views as queries.
 
@@ -193,6 +194,9 @@ def load_model_folder_scene(
             pose (they have nothing random to vary, so each run takes another view).
         photos: ``auto``: the split's training views (the photos the model was fitted from)
             anchor the default method; ``none``: renders only.
+        principal_point: the principal point the model was fitted with, which the views take
+            (``dataset`` or ``centre``); None or ``auto``: as the folder says
+            (``ModelFolder.principal_point``).
     """
     if photos not in ("auto", "none"):
         raise ValueError(f"photos must be auto or none, got {photos!r}")
@@ -205,7 +209,7 @@ def load_model_folder_scene(
     mp = Path(str(model_path)).expanduser()
     if not mp.is_dir():
         raise FileNotFoundError(f"model folder not found: {mp}")
-    mf = load_model_folder(mp, iteration=iteration)
+    mf = load_model_folder(mp, iteration=iteration).with_principal_point(principal_point)
     white = mf.white_background if white_background is None else bool(white_background)
     if dataset is None:
         src = mf.cfg.get("source_path")

@@ -162,10 +162,30 @@ def test_every_reader_of_the_models_dataset_takes_its_principal_point(capture, p
     photos = source_photos(with_source, False)
     view = problem._query_view({"dataset": str(capture["dataset"]), "index": 0, "split": "train"},
                                mf, False, None)
-    found = [p.intrinsics for p in photos] + [view.intrinsics]
-    if pp == "auto":  # the benchmark reads its model folder as it is
-        bench = load_model_folder_scene(capture["model"], capture["dataset"], num_queries=1,
-                                        split="train", image_scale=1.0)
-        found += [q.query.intrinsics for q in bench.queries]
+    bench = load_model_folder_scene(capture["model"], capture["dataset"], num_queries=1,
+                                    split="train", image_scale=1.0, principal_point=pp)
+    found = [p.intrinsics for p in photos] + [view.intrinsics] + [
+        q.query.intrinsics for q in bench.queries] + [p.intrinsics for p in bench.photos or []]
     assert len(found) >= 3
     assert all((i.cx is None) == centred for i in found), found
+
+
+def test_the_benchmark_takes_the_principal_point_of_its_scene_group(capture):
+    from icomma_plugin.benchmark import ProtocolSpec
+    from tests.helpers.tools import compose
+    from tools import _common as common
+    from tools.benchmark import load_scene
+
+    def scene(pp):
+        cfg = compose([f"scene.model_path={capture['model']}",
+                       f"scene.query.dataset={capture['dataset']}", "scene.query.split=train",
+                       "scene.query.image_scale=1.0", f"scene.principal_point={pp}"],
+                      name="benchmark")
+        spec = ProtocolSpec.from_dict(common.container(cfg.benchmark_protocol), quick=True)
+        return load_scene(cfg, spec, "cpu")
+
+    assert scene("auto").queries[0].query.intrinsics.cx is None  # upstream's folder: the centre
+    assert scene("dataset").queries[0].query.intrinsics.cx is not None
+    with pytest.raises(common.UserError, match="scene.principal_point must be auto, dataset or "
+                                               "centre, got 'middle'"):
+        scene("middle")
