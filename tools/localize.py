@@ -220,6 +220,7 @@ def _worker_setup(cfg: DictConfig, data: Dict[str, Any], out: Path, sequence: bo
         seed=int(cfg.seed), cache_dir=_cache_dir(cfg),
         photos=str(data.get("photos") or "auto").lower(), verdict=_verdict(cfg), lod=_lod(cfg),
         distortion=photo_camera(data, mf, white)[1], principal_point=mf.principal_point,
+        dataset=(data.get("query") or {}).get("dataset"),
     )
     return setup, mf, matcher
 

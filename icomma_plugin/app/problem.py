@@ -444,11 +444,15 @@ def _truth(d: Dict[str, Any], name: str, view, cam, mf) -> Optional[np.ndarray]:
 
 
 def photos_of(data: Dict[str, Any], mf, white: bool):
-    """The model's source photos as ``data.photos`` asks (``auto`` | ``none``)."""
+    """The model's source photos as ``data.photos`` asks (``auto`` | ``none``).
+
+    From ``data.query.dataset`` when given (the source dataset on this machine), else cfg_args.
+    """
     mode = str(data.get("photos") or "auto").lower()
     if mode not in ("auto", "none"):
         raise ProblemError(f"data.photos must be auto or none, got {data.get('photos')!r}")
-    return source_photos(mf, white) if mode == "auto" else None
+    dataset = (data.get("query") or {}).get("dataset")
+    return source_photos(mf, white, dataset) if mode == "auto" else None
 
 
 def _model_folder(d: Dict[str, Any]) -> Problem:

@@ -84,15 +84,16 @@ def _camera_parts(cameras) -> Tuple[List[np.ndarray], List[str], List[Optional[I
     return c2ws, names, intrs
 
 
-def source_photos(mf, white_background: bool) -> Optional[List[SourcePhoto]]:
+def source_photos(mf, white_background: bool, dataset=None) -> Optional[List[SourcePhoto]]:
     """The photos a model folder was fitted from: the train views of its ``source_path``.
 
-    None when ``cfg_args`` names no dataset folder that exists here (or it cannot be read: said in
-    the log, the localizer then works with renders only).
+    ``dataset``: that dataset's folder on this machine, when cfg_args' path is another machine's
+    (a model trained elsewhere). None when neither names a folder that exists here (or it cannot
+    be read: said in the log, the localizer then works with renders only).
     """
     from ..io.datasets import read_dataset
 
-    src = mf.cfg.get("source_path")
+    src = dataset or mf.cfg.get("source_path")
     if not src or not Path(str(src)).expanduser().is_dir():
         return None
     try:

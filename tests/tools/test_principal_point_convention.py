@@ -189,3 +189,21 @@ def test_the_benchmark_takes_the_principal_point_of_its_scene_group(capture):
     with pytest.raises(common.UserError, match="scene.principal_point must be auto, dataset or "
                                                "centre, got 'middle'"):
         scene("middle")
+
+
+def test_a_model_trained_elsewhere_finds_its_photos_in_the_dataset_given(capture, tmp_path):
+    """cfg_args' source_path is the training machine's: ``data.query.dataset`` stands for it."""
+    from icomma_plugin.app import problem
+    from icomma_plugin.app.batch import BatchWorker, WorkerSetup
+    from icomma_plugin.localize import RobustConfig
+
+    mf, _ = problem.open_model_folder({"model_path": str(capture["model"])})
+    assert problem.photos_of({}, mf, False) is None  # the demo folder names no dataset
+    data = {"query": {"dataset": str(capture["dataset"])}}
+    names = sorted(p.name for p in problem.photos_of(data, mf, False))
+    assert len(names) >= 2 and set(names) <= {"v0.png", "v1.png", "v2.png"}
+    setup = WorkerSetup(model_path=str(capture["model"]), method=RobustConfig(), matcher=None,
+                        out_dir=str(tmp_path), thumbs=False, cache_dir=False,
+                        dataset=str(capture["dataset"]))
+    worker = BatchWorker(setup, mf, matcher=object())
+    assert sorted(p.name for p in worker.localizer.photos.photos) == names

@@ -25,7 +25,7 @@ from typing import Any, Callable, Dict, Iterator, List, Optional, Tuple
 import numpy as np
 import torch
 
-from ...localization.localizer import Localizer
+from ...localization.localizer import Localizer, source_photos
 from ...localization.types import LocalizationResult, Query
 from ...matchers import matcher_from_config
 from ...io.atomic import write_json_atomic
@@ -61,6 +61,8 @@ class WorkerSetup:
         photo is localized), or None.
     principal_point: the model's fit's principal point (``data.principal_point``: auto, dataset
         or centre; ``ModelFolder.with_principal_point``), for its source photos.
+    dataset: the model's source dataset on this machine (``data.query.dataset``), where its
+        photos are read from instead of cfg_args ``source_path``; None: cfg_args'.
     """
 
     model_path: str
@@ -83,6 +85,7 @@ class WorkerSetup:
     lod: Any = "auto"
     distortion: Any = None
     principal_point: Optional[str] = None
+    dataset: Optional[str] = None
 
 
 @contextlib.contextmanager
@@ -114,8 +117,8 @@ class BatchWorker:
         self.localizer = Localizer.from_model_folder(
             self.mf, matcher, setup.method, white_background=setup.white_background,
             backend=setup.backend, cache_dir=setup.cache_dir,
-            photos="auto" if setup.photos == "auto" else None, verdict=setup.verdict,
-            lod=setup.lod)
+            photos=source_photos(self.mf, setup.white_background, setup.dataset)
+            if setup.photos == "auto" else None, verdict=setup.verdict, lod=setup.lod)
         self.model, self.bg = self.localizer.model, self.localizer.background
         self.cameras = list(self.mf.cameras or [])
         self.scene_scale = cameras_extent([e.c2w for e in self.cameras]) if self.cameras else None
