@@ -111,7 +111,8 @@ def main(argv=None) -> int:
               file=sys.stderr)
         return 1
     out = a.out.expanduser()
-    cfg = dict(mf.cfg, model_path=str(out))
+    # the source's principal point said outright: the split has no metrics.json to tell it by
+    cfg = dict(mf.cfg, model_path=str(out), principal_point=mf.principal_point)
     try:
         ply = write_model_folder(out, split, cfg, mf.cameras, mf.iteration, overwrite=a.overwrite)
     except ValueError as e:

@@ -26,6 +26,8 @@ def test_split_checked_and_written(demo_folder, tmp_path, capsys):
     folder = load_model_folder(out)
     assert folder.model.num_gaussians == 2 * P + 3
     assert len(folder.cameras) == len(load_model_folder(src).cameras)
+    # the source's principal point said in cfg_args (the demo folder's: upstream's centre)
+    assert folder.cfg["principal_point"] == load_model_folder(src).principal_point == "centre"
     info = json.loads((out / "split.json").read_text())
     assert info["gaussians"] == 2 * P + 3 and info["mode"] == "preserve"
     assert len(info["checks"]) == 2 and info["min_psnr_db"] >= 35.0
