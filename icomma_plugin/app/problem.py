@@ -194,6 +194,10 @@ def open_model_folder(data: Dict[str, Any]):
         mf = mf.with_principal_point(data.get("principal_point"))
     except ValueError as e:
         raise ProblemError(f"data.principal_point: {e}") from None
+    if mf.principal_point_assumed:
+        logger.info("model folder %s: nothing says which principal point its views were fitted "
+                    "with; taken as upstream 3DGS's, the image centre, for its dataset's views "
+                    "(data.principal_point=dataset if its trainer took the dataset's cx, cy)", mp)
     white = (
         mf.white_background
         if data.get("white_background") is None

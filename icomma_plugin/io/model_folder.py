@@ -103,6 +103,12 @@ class ModelFolder:
             return said
         return "dataset" if (self.path / "metrics.json").is_file() else "centre"
 
+    @property
+    def principal_point_assumed(self) -> bool:
+        """Whether `principal_point` is upstream's by default: nothing in the folder says."""
+        return (self.cfg.get("principal_point") not in PRINCIPAL_POINTS
+                and not (self.path / "metrics.json").is_file())
+
     def with_principal_point(self, value: Optional[str]) -> "ModelFolder":
         """This folder with its fit's principal point said (``"dataset"`` / ``"centre"``).
 

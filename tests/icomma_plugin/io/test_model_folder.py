@@ -285,9 +285,10 @@ def test_the_fits_principal_point_convention(tmp_path):
     root = tmp_path / "m"
     _write(root, iterations=(30000,))
     mf = load_model_folder(root)
-    assert mf.principal_point == "centre"  # upstream's train.py: cx, cy ignored
+    assert mf.principal_point == "centre" and mf.principal_point_assumed  # upstream's train.py
     (root / "metrics.json").write_text("{}")
     assert load_model_folder(root).principal_point == "dataset"
+    assert not load_model_folder(root).principal_point_assumed
     assert load_model_folder(root).with_principal_point("centre").principal_point == "centre"
     assert mf.with_principal_point("auto") is mf and mf.with_principal_point(None) is mf
     with pytest.raises(ValueError, match="auto, dataset or centre.*'middle'"):
