@@ -399,6 +399,12 @@ def _lens_line(s: Dict[str, Any], what: str) -> str:
         lines.append(f"  lens         principal point ({cx:.2f}, {cy:.2f}) px estimated from the "
                      f"{what} (none was given); give data.intrinsics.cx={cx:.2f} "
                      f"data.intrinsics.cy={cy:.2f} for more {what} of this camera")
+    elif ev and ev.get("views_centred"):  # a dataset's views at the image centre: where it is
+        lines.append(f"  lens         principal point: the views were taken at the image centre "
+                     f"and their refits put it {ev['shift_px']:.2f} px from it, "
+                     f"{100 * ev['agree']:.0f} % of {ev['views']} the same way"
+                     + (": off; if the model was fitted with the dataset's own, "
+                        "data.principal_point=dataset" if ev["off"] else ""))
     elif ev:  # measured and not adopted: say so, the user gave none
         lines.append(f"  lens         principal point: none was given and the image centre is "
                      f"kept (the {what}' refits put it {ev['shift_px']:.2f} px from it, "

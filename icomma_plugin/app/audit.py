@@ -477,13 +477,9 @@ def _centre_of(rows: Sequence[Mapping[str, Any]]) -> Optional[Dict[str, Any]]:
     ``off``: whether a batch's rule (``LensConfig.adopt_centre``'s defaults) would adopt it. None
     when the photos have a principal point of their own (their refits do not free it).
     """
-    from .lens import LensConfig, centre_evidence
+    from .lens import centre_reading
 
-    photo_runs = _photo_runs(rows)
-    ev = centre_evidence(photo_runs)
-    if ev is not None:
-        ev["off"] = LensConfig().adopt_centre(photo_runs) is not None
-    return ev
+    return centre_reading(_photo_runs(rows))
 
 
 def _photo_runs(rows: Sequence[Mapping[str, Any]]) -> List[Dict[str, Any]]:

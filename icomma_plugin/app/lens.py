@@ -29,7 +29,8 @@ from ..checks import check_bool, check_int, check_real
 from ..localization.geometry import distortion_field
 
 __all__ = ["CAMERA_CENTRE_KEY", "CAMERA_DISTORTION_KEY", "LensConfig",
-           "PhotoDistortion", "TrackingLensConfig", "centre_evidence", "lens_evidence",
+           "PhotoDistortion", "TrackingLensConfig", "centre_evidence", "centre_reading",
+           "lens_evidence",
            "moved_centre", "photo_centre", "photo_distortion", "principal_point_given",
            "pooled_distortion"]
 
@@ -259,3 +260,17 @@ class TrackingLensConfig(LensConfig):
     GROUP = "tracking.lens"
 
     min_views: int = 20
+
+
+def centre_reading(rows: Sequence[Dict[str, Any]],
+                   cfg: Optional[LensConfig] = None) -> Optional[Dict[str, Any]]:
+    """:func:`centre_evidence` of ``rows`` with ``"off"``: whether ``cfg``'s rule would adopt it.
+
+    For photos taken at the image centre that no batch pools (a dataset's views, the audit's):
+    whether their refits agree on a principal point elsewhere (``LensConfig.adopt_centre``; the
+    defaults when ``cfg`` is None).
+    """
+    ev = centre_evidence(rows)
+    if ev is not None:
+        ev["off"] = (cfg or LensConfig()).adopt_centre(rows) is not None
+    return ev

@@ -207,3 +207,52 @@ def test_a_model_trained_elsewhere_finds_its_photos_in_the_dataset_given(capture
                         dataset=str(capture["dataset"]))
     worker = BatchWorker(setup, mf, matcher=object())
     assert sorted(p.name for p in worker.localizer.photos.photos) == names
+
+
+@pytest.fixture(scope="module")
+def off_centre_capture(tmp_path_factory, capture):
+    """A capture fitted with its own principal point: 6 photos and files saying it.
+
+    Rendered through a camera whose principal point is 3, -2 px off the centre.
+    """
+    from icomma_plugin.camera import Intrinsics
+    from icomma_plugin.io.model_folder import load_model_folder
+    from icomma_plugin.pose.convert import look_at_c2w
+    from tests.helpers.colmap import write_colmap_dataset
+
+    model = load_model_folder(capture["model"]).model
+    f0 = capture["f0"]
+    cx, cy = SIZE / 2 + SHIFT_PX[0], SIZE / 2 + SHIFT_PX[1]  # COLMAP's pixels
+    cam = Intrinsics(SIZE, SIZE, f0, f0, cx - 0.5, cy - 0.5)
+    photos = []
+    for i in range(6):
+        az = 0.2 + 1.0 * i
+        c2w = look_at_c2w(np.array([3.8 * math.cos(az), 3.8 * math.sin(az), 2.0]),
+                          np.array([0.0, 0.0, 0.4]))
+        photos.append((f"w{i}.png", photo(model, cam, c2w), c2w, f0, f0, cx, cy))
+    root = tmp_path_factory.mktemp("off") / "dataset"
+    write_colmap_dataset(root, photos)
+    return root
+
+
+def test_a_batch_of_views_read_at_the_wrong_principal_point_says_so(capture, off_centre_capture,
+                                                                   tmp_path):
+    """Views whose camera is off the centre, read at the centre: every pose turned, and said."""
+    from tests.helpers.tools import compose, localize_tool
+
+    doc = {}
+    for pp in ("centre", "dataset"):
+        out = tmp_path / pp
+        doc[pp] = localize_tool().run(compose([
+            "data=model_folder", f"data.model_path={capture['model']}",
+            f"data.queries={off_centre_capture}", "data.init.rot_deg=5.0",
+            f"data.principal_point={pp}", f"output.dir={out}", "output.progress=false",
+            "output.contact_sheet=false", "threads=1"]), out)
+    wrong, right = doc["centre"]["summary"], doc["dataset"]["summary"]
+    ev = wrong["centre_evidence"]
+    assert ev["views_centred"] and ev["off"] and ev["views"] == 6, ev
+    assert ev["shift_px"] == pytest.approx(math.hypot(*SHIFT_PX), abs=1.0)
+    assert "data.principal_point=dataset" in localize_tool().many_summary(doc["centre"])
+    assert right["centre_evidence"] is None
+    errs = {pp: np.median([r["rot_err_deg"] for r in doc[pp]["photos"]]) for pp in doc}
+    assert errs["dataset"] < 0.1 < errs["centre"], errs

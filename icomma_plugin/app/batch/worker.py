@@ -33,7 +33,7 @@ from ...pose.convert import cameras_extent
 from ..focal import CAMERA_FOCAL_KEY, BatchFocalConfig, photo_focal_scale
 from ..inputs import LensDistortion, ProblemError
 from ..lens import (CAMERA_CENTRE_KEY, CAMERA_DISTORTION_KEY, LensConfig, centre_evidence,
-                    principal_point_given)
+                    centre_reading, principal_point_given)
 from ..ledger import PosesLedger
 from ..problem import Problem, read_query_image
 from .planning import BatchPlan, PhotoTask
@@ -523,6 +523,8 @@ def run_batch(
             adopted_now += 1
     ledger.flush()
     latest = list({r["name"]: r for r in rows}.values())  # a photo localized again: its last row
+    if _centred_views(mine):
+        evidence = _centred_views_reading(ledger, mine, lens)
     return BatchSummary(
         ledger.counts(), len(latest), skipped or 0, len(latest), time.perf_counter() - t0, latest,
         focal_scale=state["scale"], focal_adoptions=adopted_now, redone=len(redone),
@@ -532,6 +534,35 @@ def run_batch(
                          else list(_centre_px(mine, state["centre"]))),
         centre_evidence=evidence,
     )
+
+
+def _centred_views(tasks: List[PhotoTask]) -> bool:
+    """Whether ``tasks`` are a dataset's views all taken at the image centre."""
+    return bool(tasks) and all(t.view is not None and t.intrinsics is not None
+                               and not principal_point_given(t.intrinsics) for t in tasks)
+
+
+def _centred_views_reading(ledger: PosesLedger, tasks: List[PhotoTask],
+                           lens: Optional[LensConfig]) -> Optional[Dict[str, Any]]:
+    """Where the refits of a dataset's views taken at the image centre put the principal point.
+
+    ``lens.centre_reading`` of their rows (``views_centred`` set); a warning when they agree on
+    one off the centre (a dataset whose camera has one, read for a model said to be fitted with
+    the image centre: every pose turned and still ``ok``; the views are not localized again).
+    """
+    finished = ledger.finished()
+    ev = centre_reading([finished[t.name] for t in tasks if t.name in finished], lens)
+    if ev is None:
+        return None
+    ev["views_centred"] = True
+    if ev["off"]:
+        logger.warning(
+            "the views were taken at the image centre (their dataset gives none, or the model "
+            "is taken as fitted with it: data.principal_point) and their refits agree on a "
+            "principal point %.2f px from it (%d%% of %d the same way): if the model was fitted "
+            "with the dataset's own, data.principal_point=dataset", ev["shift_px"],
+            round(100 * ev["agree"]), ev["views"])
+    return ev
 
 
 def _centre_px(tasks: List[PhotoTask], centre) -> Tuple[float, float]:
