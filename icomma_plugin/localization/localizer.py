@@ -84,6 +84,14 @@ def _camera_parts(cameras) -> Tuple[List[np.ndarray], List[str], List[Optional[I
     return c2ws, names, intrs
 
 
+@functools.lru_cache(maxsize=8)
+def _photos_not_here(src: str) -> None:
+    """Say once that the model's source photos are not on this machine."""
+    logger.info("the model's source photos %s are not a folder here: the candidate views are "
+                "ranked by their renders alone (data.query.dataset=<folder> says where they are)",
+                src)
+
+
 def source_photos(mf, white_background: bool, dataset=None) -> Optional[List[SourcePhoto]]:
     """The photos a model folder was fitted from: the train views of its ``source_path``.
 
@@ -95,6 +103,8 @@ def source_photos(mf, white_background: bool, dataset=None) -> Optional[List[Sou
 
     src = dataset or mf.cfg.get("source_path")
     if not src or not Path(str(src)).expanduser().is_dir():
+        if src:  # a model trained elsewhere names that machine's folder
+            _photos_not_here(str(src))
         return None
     try:
         scene = read_dataset(Path(str(src)).expanduser(), white_background=white_background,

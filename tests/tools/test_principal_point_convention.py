@@ -191,14 +191,22 @@ def test_the_benchmark_takes_the_principal_point_of_its_scene_group(capture):
         scene("middle")
 
 
-def test_a_model_trained_elsewhere_finds_its_photos_in_the_dataset_given(capture, tmp_path):
+def test_a_model_trained_elsewhere_finds_its_photos_in_the_dataset_given(capture, tmp_path,
+                                                                         caplog):
     """cfg_args' source_path is the training machine's: ``data.query.dataset`` stands for it."""
+    import dataclasses
+
     from icomma_plugin.app import problem
     from icomma_plugin.app.batch import BatchWorker, WorkerSetup
     from icomma_plugin.localize import RobustConfig
 
     mf, _ = problem.open_model_folder({"model_path": str(capture["model"])})
     assert problem.photos_of({}, mf, False) is None  # the demo folder names no dataset
+    elsewhere = dataclasses.replace(mf, cfg={**mf.cfg, "source_path": "/home/someone/garden"})
+    with caplog.at_level("INFO", logger="icomma_plugin.localization.localizer"):
+        assert problem.photos_of({}, elsewhere, False) is None
+    assert "/home/someone/garden are not a folder here" in caplog.text
+    assert "data.query.dataset=<folder>" in caplog.text
     data = {"query": {"dataset": str(capture["dataset"])}}
     names = sorted(p.name for p in problem.photos_of(data, mf, False))
     assert len(names) >= 2 and set(names) <= {"v0.png", "v1.png", "v2.png"}
