@@ -298,6 +298,7 @@ def load_model_folder_scene(
             "split": split,
             "image_scale": float(image_scale),
             "white_background": white,
+            "principal_point": mf.principal_point,  # the views' (the model's fit's)
             "candidate_cameras": len(cams),
             "records_with_precision": len(records),
         },

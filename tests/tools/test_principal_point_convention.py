@@ -184,8 +184,10 @@ def test_the_benchmark_takes_the_principal_point_of_its_scene_group(capture):
         spec = ProtocolSpec.from_dict(common.container(cfg.benchmark_protocol), quick=True)
         return load_scene(cfg, spec, "cpu")
 
-    assert scene("auto").queries[0].query.intrinsics.cx is None  # upstream's folder: the centre
-    assert scene("dataset").queries[0].query.intrinsics.cx is not None
+    auto, given = scene("auto"), scene("dataset")
+    assert auto.queries[0].query.intrinsics.cx is None  # upstream's folder: the centre
+    assert given.queries[0].query.intrinsics.cx is not None
+    assert (auto.info["principal_point"], given.info["principal_point"]) == ("centre", "dataset")
     with pytest.raises(common.UserError, match="scene.principal_point must be auto, dataset or "
                                                "centre, got 'middle'"):
         scene("middle")
