@@ -414,6 +414,8 @@ def audit_summary(cameras: Sequence[Mapping[str, Any]], rows: Sequence[Mapping[s
     ``ok_off_record_unflagged``: ``ok`` poses away from the record on unflagged cameras (the
     verdict's wrong ``ok`` if the records there are right).
     """
+    from .lens import centre_reading
+
     flagged = {c["camera"] for c in cameras if c.get("flag")}
     ok = [r for r in rows if r.get("status") == "ok"]
     return {
@@ -450,9 +452,10 @@ def audit_summary(cameras: Sequence[Mapping[str, Any]], rows: Sequence[Mapping[s
         # the lens the photos' refits agree on beyond their dataset's undistortion (the photo
         # runs, not the control's renders nor the focal check's scaled cameras)
         "lens": _lens_of(rows),
-        # where the refits put the principal point of photos whose dataset gives none (LLFF,
-        # Blender: the image centre taken)
-        "principal_point": _centre_of(rows),
+        # where the refits put the principal point of photos taken at the image centre (LLFF,
+        # Blender, a model fitted with it), ``off`` when a batch's rule would adopt it; None when
+        # the photos have one of their own (their refits do not free it)
+        "principal_point": centre_reading(_photo_runs(rows)),
     }
 
 
@@ -469,17 +472,6 @@ def _lens_of(rows: Sequence[Mapping[str, Any]]) -> Optional[Dict[str, Any]]:
     if ev is not None:
         ev["distorted"] = LensConfig().adopt(photo_runs, None) is not None
     return ev
-
-
-def _centre_of(rows: Sequence[Mapping[str, Any]]) -> Optional[Dict[str, Any]]:
-    """``lens.centre_evidence`` of the photo runs, and whether it says the centre is ``off``.
-
-    ``off``: whether a batch's rule (``LensConfig.adopt_centre``'s defaults) would adopt it. None
-    when the photos have a principal point of their own (their refits do not free it).
-    """
-    from .lens import centre_reading
-
-    return centre_reading(_photo_runs(rows))
 
 
 def _photo_runs(rows: Sequence[Mapping[str, Any]]) -> List[Dict[str, Any]]:

@@ -17,10 +17,9 @@ one they agree on (``centre_evidence``, ``LensConfig.adopt_centre``; rows:
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any, Dict, Optional, Sequence, Tuple
-
-import dataclasses
 
 import numpy as np
 
@@ -236,9 +235,12 @@ class LensConfig:
         least ``min_views`` photos measured it, it moves pixels by more than ``min_shift_px``
         and ``agree`` of them point the same way.
         """
-        ev = centre_evidence(rows) if self.estimate else None
-        if (ev is None or ev["views"] < self.min_views or ev["shift_px"] <= self.min_shift_px
-                or ev["agree"] < self.agree
+        return self.centre_agreed(centre_evidence(rows))
+
+    def centre_agreed(self, ev: Optional[Dict[str, Any]]) -> Optional[Tuple[float, float]]:
+        """:meth:`adopt_centre`'s rule on the photos' :func:`centre_evidence` ``ev``."""
+        if (not self.estimate or ev is None or ev["views"] < self.min_views
+                or ev["shift_px"] <= self.min_shift_px or ev["agree"] < self.agree
                 or float(np.hypot(*ev["offset"])) <= self.min_centre_move):
             return None
         return tuple(ev["offset"])
@@ -272,5 +274,5 @@ def centre_reading(rows: Sequence[Dict[str, Any]],
     """
     ev = centre_evidence(rows)
     if ev is not None:
-        ev["off"] = (cfg or LensConfig()).adopt_centre(rows) is not None
+        ev["off"] = (cfg or LensConfig()).centre_agreed(ev) is not None
     return ev

@@ -488,8 +488,9 @@ def run_batch(
                 else lens.adopt(now, state["distortion"])
             new_c = None
             if pool_centre and state["centre"] is None:
-                evidence = centre_evidence(now) or evidence
-                new_c = lens.adopt_centre(now)
+                measured = centre_evidence(now)
+                evidence = measured or evidence
+                new_c = lens.centre_agreed(measured)
             if new_c is not None:
                 cx, cy = _centre_px(mine, new_c)
                 logger.info("the photos' refits (%d) agree on a principal point (%.2f, %.2f) "
