@@ -458,10 +458,8 @@ def many_summary(doc: Dict[str, Any]) -> str:
         )
     if s.get("kind") == "sequence":
         lines.append(_tracking_line(s, rows))
-    elif s.get("kind") == "batch" and _focal_line(s, "photos"):
-        lines.append(_focal_line(s, "photos"))
-    if s.get("kind") == "batch" and _lens_line(s, "photos"):
-        lines.append(_lens_line(s, "photos"))
+    elif s.get("kind") == "batch":
+        lines += [x for x in (_focal_line(s, "photos"), _lens_line(s, "photos")) if x]
     if s.get("source_camera"):
         lines.append(_source_camera_line(
             s["source_camera"], "frames" if s.get("kind") == "sequence" else "photos"))

@@ -554,11 +554,14 @@ class _Tracker:
         given = self.intrinsics_of((int(rgb.shape[1]), int(rgb.shape[0])))
         self.centre_evidence = centre_evidence([h.row for h in self.lens_window])
         redone: Dict[str, Dict[str, Any]] = {}
-        for _ in range(cfg.rounds):
+        for round_ in range(cfg.rounds):
             rows = [h.row for h in self.lens_window]
             new = cfg.adopt(rows, self.lens)
-            new_c = None if principal_point_given(given) or self.centre_px is not None \
-                else cfg.adopt_centre(rows)
+            new_c = None
+            if not principal_point_given(given) and self.centre_px is None:
+                # the first round's rows are those measured above; later rounds' were redone
+                ev = self.centre_evidence if round_ == 0 else centre_evidence(rows)
+                new_c = cfg.centre_agreed(ev)
             if new is None and new_c is None:
                 break
             if new_c is not None:
