@@ -308,6 +308,7 @@ def run_start(scene, st: Start, method: str, cfg, matcher, args) -> Dict[str, An
         ),
         "c2w": res.c2w.tolist(),
         "lod_stages": (res.details.get("lod") or {}).get("stages"),
+        "verified_on": res.details.get("verified_on"),
         "trace_stages": trace_stages(res.trace),
     }
 

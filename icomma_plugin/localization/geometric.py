@@ -41,7 +41,7 @@ from .verify import PoseScore, score_observation
 logger = logging.getLogger(__name__)
 
 __all__ = ["ANCHORS", "GeometricConfig", "GeometricOutcome", "distortion_fits", "focal_fits",
-           "pnp_from_observation", "render_correspondences", "run_geometric"]
+           "pnp_from_observation", "pose_motion", "render_correspondences", "run_geometric"]
 
 #: Where the geometric stage's 2D-3D correspondences come from (``GeometricConfig.anchors``).
 ANCHORS = ("renders", "photos", "both")
@@ -198,7 +198,8 @@ class GeometricOutcome:
 JOIN_DEPTH_SHARE = 0.1
 
 
-def _motion(w2c_a: np.ndarray, w2c_b: np.ndarray):
+def pose_motion(w2c_a: np.ndarray, w2c_b: np.ndarray) -> Tuple[float, float]:
+    """(rotation [deg], camera-centre distance [world units]) between two w2c poses."""
     ca, cb = invert_rigid(w2c_a), invert_rigid(w2c_b)
     return float(rotation_error_deg(ca, cb)), float(np.linalg.norm(ca[:3, 3] - cb[:3, 3]))
 
@@ -378,11 +379,11 @@ def run_geometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Geometri
             first_inliers = n_pnp
         if pnp is None:
             break
-        drot, dtrans = _motion(w2c, pnp.w2c)
+        drot, dtrans = pose_motion(w2c, pnp.w2c)
         depth = scene_depth if scene_depth else median_depth(obs.depth, obs.alpha)
         small = drot < cfg.stop_rot_deg and dtrans < cfg.stop_trans_rel * depth  # (the stop)
         if join is not None:
-            jrot, jtrans = _motion(join[0], pnp.w2c)
+            jrot, jtrans = pose_motion(join[0], pnp.w2c)
             if jrot < join[1] and jtrans < JOIN_DEPTH_SHARE * depth:
                 joined = True
                 break

@@ -31,7 +31,7 @@ from ..checks import check_bool, check_choice, check_int, check_real, config_fro
 from ..pose.convert import invert_rigid, rotation_error_deg
 from .candidates import CandidateConfig, usable
 from .geometric import (GeometricConfig, GeometricOutcome, distortion_fits, focal_fits,
-                        run_geometric)
+                        pose_motion, run_geometric)
 from .geometry import FocalFit, distortion_shift_px, median_depth
 from .refine import RefineConfig, refine_photometric
 from .state import LocalizationState, Observation
@@ -77,6 +77,15 @@ class RobustConfig:
         (at most ``geometric.stop_rot_deg`` from the returned pose, the PnP step that ended the
         stage) instead of a new render-and-match at the returned pose. Tracking's fast mode sets
         it (one matcher call a frame instead of two; docs/SPEED.md); the result's
+        ``details["verified_on"]`` says which render decided.
+    verify_near: when the refined pose is within the geometric stage's stop (``geometric.
+        stop_rot_deg``, ``stop_trans_rel`` of the scene depth) of the stage's last render-and-match,
+        and that render's score alone would be ``ok``, the verdict is decided on it too (as
+        ``verify_geometric``) instead of a new render-and-match at the returned pose: a pose that
+        close to a render the verdict calls right is right, and the matcher's second call at
+        nearly the same pose costs a pose 7-10 % (docs/SPEED.md). A refinement that moved
+        further, a render that is not ``ok`` alone, or a render of a reduced model (a level of
+        detail) is checked as before, and so can be rolled back.
         ``details["verified_on"]`` says which render decided.
     refine_reduced: with a level of detail, the photometric refinement renders the reduced model
         too (its check and the verdict always render the full model). Off by default: the pose is
@@ -129,6 +138,7 @@ class RobustConfig:
     rollback_inliers: float = 0.9
     rollback_median_px: float = 0.5
     verify_geometric: bool = False
+    verify_near: bool = True
     focal_retry: bool = True
     lens_check: bool = True
     refine_reduced: bool = False
@@ -171,7 +181,8 @@ class RobustConfig:
         if self.sh_degree is not None:
             check_choice(self.sh_degree, n + "sh_degree", (0, 1, 2, 3))
         for name in ("use_candidates", "antialiasing", "record_trace", "verify_geometric",
-                     "focal_retry", "lens_check", "refine_reduced", "refine_model_side"):
+                     "verify_near", "focal_retry", "lens_check", "refine_reduced",
+                     "refine_model_side"):
             check_bool(getattr(self, name), n + name)
 
     @classmethod
@@ -516,6 +527,22 @@ def _distortion_signal(state: LocalizationState, cfg: RobustConfig, obs: Optiona
     return out
 
 
+def _near_geometric(state: LocalizationState, cfg: RobustConfig, best: GeometricOutcome,
+                    w2c: np.ndarray, depth: float) -> bool:
+    """Whether ``best``'s last render-and-match may decide the verdict of ``w2c`` (``verify_near``).
+
+    That render is of the full model, its score alone is ``ok``, and ``w2c`` is within the
+    geometric stage's stop of the pose it rendered.
+    """
+    obs = best.observation
+    if obs is None or not best.converged or _on_reduced(state, "geometric") \
+            or not _convincing(best.score, cfg, min_inliers=cfg.verdict.ok_inliers):
+        return False
+    rot, trans = pose_motion(obs.w2c, w2c)
+    g = cfg.geometric
+    return rot <= g.stop_rot_deg and trans <= g.stop_trans_rel * depth
+
+
 def _passes_rollback(sc: PoseScore, geo: PoseScore, cfg: RobustConfig) -> bool:
     """Whether a refined pose's score keeps the geometric one's agreement (else rolled back)."""
     return (sc.inliers >= cfg.rollback_inliers * geo.inliers
@@ -573,6 +600,8 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
     # (not when the matches' focal fit moved the pose and focal length off that render's)
     reuse = (cfg.verify_geometric and ref.iterations == 0 and best.converged
              and start is best.w2c and not _on_reduced(state, "geometric"))
+    reuse = reuse or (cfg.verify_near and _near_geometric(state, cfg, best, ref.w2c, depth)
+                      and start is best.w2c)
     if reuse:  # the PnP step that ended the geometric stage was below its stop: judged there
         sc, judged = geo, best.observation
     else:  # the refinement's last render is judged when it is of the full model

@@ -1197,7 +1197,8 @@ def test_the_cheap_mode_matches_by_mutual_nn_and_judges_on_the_geometric_render(
     runs = {}
     for verify_geometric in (True, False):
         calls.update(glue=0, mnn=0)
-        cfg = dataclasses.replace(cheap, verify_geometric=verify_geometric)
+        cfg = dataclasses.replace(cheap, verify_geometric=verify_geometric,
+                                  verify_near=verify_geometric)
         res = localize(model, Query(q, scene.intrinsics), matcher=xfeat, init_c2w=init,
                        gt_c2w=scene.gt_c2w, config=cfg, cache_dir=False)
         assert calls["glue"] == 0, "the cheap mode ran LightGlue"
@@ -1530,6 +1531,90 @@ def test_the_focal_fit_ends_where_the_reprojection_error_is_stationary():
     g_end = grad(fit.w2c)
     assert np.abs(g_end).max() < 1e-4 * np.abs(g_start).max(), (g_start, g_end)
     assert fit.focal_scale == pytest.approx(0.96, abs=0.005)
+
+
+def _near_runs(demo, xfeat, monkeypatch, configs, refine_move_deg=0.0):
+    """Localize the demo from 20 deg off with each config: [(result, LightGlue calls)].
+
+    ``refine_move_deg``: the refinement's pose turned by that much more (about the camera).
+    """
+    from icomma_plugin.localization import robust
+    from icomma_plugin.localize import localize
+
+    scene, model, q, cams = demo
+    init = perturb_pose(scene.gt_c2w, 20.0, 0.05, 5, pivot="camera")
+    calls = {"glue": 0}
+    glue = xfeat._match_features
+
+    def counted(*a, **k):
+        calls["glue"] += 1
+        return glue(*a, **k)
+
+    monkeypatch.setattr(xfeat, "_match_features", counted)
+    if refine_move_deg:
+        refine = robust.refine_photometric
+
+        def moved(*a, **k):
+            import dataclasses
+
+            out = refine(*a, **k)
+            c2w = perturb_pose(np.linalg.inv(out.w2c), refine_move_deg, 0.0, 1, pivot="camera")
+            return dataclasses.replace(out, w2c=np.linalg.inv(c2w), observation=None)
+
+        monkeypatch.setattr(robust, "refine_photometric", moved)
+    runs = []
+    for cfg in configs:
+        calls["glue"] = 0
+        res = localize(model, Query(q, scene.intrinsics), matcher=xfeat, init_c2w=init,
+                       gt_c2w=scene.gt_c2w, cameras=cams, cache_dir=False, config=cfg)
+        runs.append((res, calls["glue"]))
+    return runs
+
+
+def test_a_refined_pose_near_an_ok_geometric_render_is_judged_on_it(demo, xfeat, monkeypatch):
+    """``verify_near``: one matcher call fewer, the same pose and verdict, the same signals."""
+    from icomma_plugin.localization.robust import RobustConfig
+
+    (near, n_near), (final, n_final) = _near_runs(
+        demo, xfeat, monkeypatch, [RobustConfig(), RobustConfig(verify_near=False)])
+    assert near.details["verified_on"] == "geometric"
+    assert final.details["verified_on"] == "final"
+    assert n_near == n_final - 1  # the matcher's call at the returned pose
+    np.testing.assert_array_equal(near.c2w, final.c2w)  # the verdict's render moves no pose
+    assert near.verdict.status == final.verdict.status == "ok", near.verdict.reason
+    assert near.rot_err_deg < 0.1
+    # judged on the geometric stage's best render: its score is the one the verdict reads
+    best = max(near.details["hypotheses"], key=lambda h: h["score"]["inliers"])
+    assert near.verdict.signals["inliers"] == best["score"]["inliers"]
+    verify = [r for r in near.trace if r["stage_name"] == "verify"]
+    assert len(verify) == 1 and verify[0]["accepted"] and verify[0]["inliers"] == best["score"][
+        "inliers"]
+
+
+def test_a_refinement_that_moved_past_the_stop_gets_its_own_render_and_match(
+        demo, xfeat, monkeypatch):
+    """Moved further than ``geometric.stop_rot_deg`` from that render: checked as before."""
+    from icomma_plugin.localization.robust import RobustConfig
+
+    cfg = RobustConfig()
+    (res, n), = _near_runs(demo, xfeat, monkeypatch, [cfg],
+                           refine_move_deg=2 * cfg.geometric.stop_rot_deg)
+    assert res.details["verified_on"] == "final"
+    # the turned pose is checked by its own render, so the roll-back can see it
+    verify = [r for r in res.trace if r["stage_name"] == "verify"]
+    assert len(verify) == 1 and verify[0]["inliers"] != res.details["hypotheses"][0]["score"][
+        "inliers"] or res.details["rolled_back"]
+
+
+def test_a_geometric_render_not_ok_alone_decides_no_verdict(demo, xfeat, monkeypatch):
+    """A render whose score alone is not ``ok`` (here: a mean displacement asked below any)."""
+    from icomma_plugin.localization.robust import RobustConfig
+    from icomma_plugin.localization.verify import VerdictConfig
+
+    strict = RobustConfig(verdict=VerdictConfig(ok_mean_px=1e-6, ok_median_px=1e-6))
+    (res, _), = _near_runs(demo, xfeat, monkeypatch, [strict])
+    assert res.details["verified_on"] == "final"
+    assert res.verdict.status == "uncertain"
 
 
 def test_a_pose_moved_by_the_focal_fit_is_judged_on_its_own_render(demo200, xfeat):
