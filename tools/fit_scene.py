@@ -141,7 +141,9 @@ def parse_args(argv=None) -> argparse.Namespace:
         "such as (0.25, 0.5); the syntax of every tool's --set)",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing model folder")
-    p.add_argument("--no-progress", action="store_true", help="no tqdm progress bar")
+    p.add_argument("--no-progress", action="store_true",
+                   help="no tqdm progress bar (a log line every minute instead, with the time "
+                   "left, unless --log-every)")
     p.add_argument(
         "--log-every",
         type=int,
@@ -218,9 +220,19 @@ def evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
-def make_progress(bar, log_every: int):
-    """The fit's progress callback: a tqdm bar (or None) and a log line every `log_every`."""
-    t_start = time.perf_counter()
+#: Without a bar or ``--log-every``, a log line this often [s]: an hour's fit in a job's log
+#: (``--no-progress``) still says how far it is.
+LOG_SECONDS = 60.0
+
+
+def make_progress(bar, log_every: int, log_seconds: float = LOG_SECONDS, clock=time.perf_counter):
+    """The fit's progress callback: a tqdm bar (or None) and a log line every `log_every`.
+
+    With neither, a log line every `log_seconds` of `clock`, with the time left at the rate so
+    far.
+    """
+    t_start = clock()
+    last = [t_start]
 
     def progress(it, total, info):
         if bar is not None:
@@ -237,8 +249,18 @@ def make_progress(bar, log_every: int):
             log.info(
                 "iteration %d/%d: loss %.4f, train-view PSNR %.2f dB, %d Gaussians, %.0f s",
                 it, total, info.get("loss", float("nan")), info.get("psnr", float("nan")),
-                int(info.get("num_gaussians", 0)), time.perf_counter() - t_start,
+                int(info.get("num_gaussians", 0)), clock() - t_start,
             )
+        elif bar is None and not log_every:
+            now = clock()
+            if now - last[0] >= log_seconds or it == total:
+                last[0] = now
+                spent = now - t_start
+                left = spent / max(it, 1) * (total - it)
+                log.info("iteration %d/%d (%.0f %%): loss %.4f, %d Gaussians, %.0f s, about "
+                         "%.0f s left", it, total, 100.0 * it / max(total, 1),
+                         info.get("loss", float("nan")), int(info.get("num_gaussians", 0)),
+                         spent, left)
 
     return progress
 

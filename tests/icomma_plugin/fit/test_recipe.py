@@ -95,3 +95,28 @@ def test_tool_fits_then_evaluates_with_a_grid(tmp_path, capsys):
     grid = model / "eval_test_grid.png"
     assert ev["grid"] == str(grid) and grid.is_file()
     assert main(["-m", str(tmp_path / "nowhere"), "--evaluate", "--threads", "1"]) == 2
+
+
+def test_without_a_bar_the_fit_logs_a_line_a_minute_with_the_time_left(caplog):
+    """``--no-progress``: a log line every ``log_seconds`` of the clock, and at the end."""
+    import logging
+
+    from tools.fit_scene import make_progress
+
+    now = [0.0]
+    progress = make_progress(None, 0, log_seconds=60.0, clock=lambda: now[0])
+    with caplog.at_level(logging.INFO, logger="fit_scene"):
+        for it in range(1, 101):  # one step every 2 s: a line at steps 30, 60, 90 and 100
+            now[0] = 2.0 * it
+            progress(it, 100, {"loss": 0.5, "num_gaussians": 1000})
+    lines = [r.getMessage() for r in caplog.records if "iteration" in r.getMessage()]
+    assert [line.split()[1] for line in lines] == ["30/100", "60/100", "90/100", "100/100"]
+    assert "about 140 s left" in lines[0] and "about 0 s left" in lines[-1]
+    # with --log-every the steps say when, and the clock adds nothing
+    caplog.clear()
+    every = make_progress(None, 25, log_seconds=60.0, clock=lambda: now[0])
+    with caplog.at_level(logging.INFO, logger="fit_scene"):
+        for it in range(1, 101):
+            now[0] = 2.0 * it
+            every(it, 100, {"loss": 0.5, "num_gaussians": 1000})
+    assert len([r for r in caplog.records if "iteration" in r.getMessage()]) == 4
