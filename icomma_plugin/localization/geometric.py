@@ -15,6 +15,7 @@ taken: the photometric refinement and the final verification that follow check i
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 from dataclasses import dataclass, field
 from typing import List, Optional, Tuple
@@ -108,6 +109,12 @@ class GeometricConfig:
         answer, or on a foggy render, they find the way; near it, the render's own sub-pixel
         correspondences are the precise ones (on lego, pooling them to the end left the median
         error at 0.064 deg against 0.026; docs/LOCALIZATION.md).
+    full_model_within_deg: with a level of detail (the Localizer's reduced model serves the
+        stage), a round whose pose the last PnP step moved by less than this (and not from a
+        render that scored below the best: ``patience``) renders the full model: near the answer
+        the stage's last render-and-match is then the full model's, which the verdict may read
+        (``RobustConfig.verify_near``) instead of rendering and matching the full model once
+        more at nearly the same pose. None: every round the reduced model.
     coarse_scale: the first rounds render and match at this share of the working resolution
         (1: all at the working resolution) until a proposal moves the pose by less than
         ``coarse_until_deg``: far from the answer, a quarter of the pixels finds the way.
@@ -133,6 +140,7 @@ class GeometricConfig:
     anchor_photos: int = 2
     anchor_max_angle_deg: float = 60.0
     anchor_until_inliers: Optional[int] = 80
+    full_model_within_deg: Optional[float] = 1.0
     coarse_scale: float = 1.0
     coarse_until_deg: float = 2.0
 
@@ -166,6 +174,7 @@ class GeometricConfig:
         check_int(self.anchor_until_inliers, n + "anchor_until_inliers", 0, optional=True)
         check_real(self.coarse_scale, n + "coarse_scale", 0.0, 1.0, lo_open=True)
         check_real(self.coarse_until_deg, n + "coarse_until_deg", 0.0)
+        check_real(self.full_model_within_deg, n + "full_model_within_deg", 0.0, optional=True)
 
 
 @dataclass
@@ -341,9 +350,15 @@ def run_geometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Geometri
     inliers_per_round: List[int] = []
     rounds, dips = 0, 0  # dips: rounds in a row whose render scored below the best
     level = cfg.first_scale(scale)
+    last_step = None  # the rotation of the PnP step that led to this round's pose [deg]
     for r in range(cfg.max_rounds):
         rounds = r + 1
-        obs = state.observe(w2c, level)
+        # (not after a dip: rounds that go on from a worse render seldom end the stage)
+        near = (state.reduced is not None and cfg.full_model_within_deg is not None
+                and last_step is not None and last_step < cfg.full_model_within_deg
+                and dips == 0)
+        with state.full_model() if near else contextlib.nullcontext():
+            obs = state.observe(w2c, level)
         sc = score_observation(obs, state, cfg.inlier_px)
         if r == 0:
             start_cov = sc.coverage
@@ -380,6 +395,7 @@ def run_geometric(state: LocalizationState, w2c_start: np.ndarray, cfg: Geometri
         if pnp is None:
             break
         drot, dtrans = pose_motion(w2c, pnp.w2c)
+        last_step = drot
         depth = scene_depth if scene_depth else median_depth(obs.depth, obs.alpha)
         small = drot < cfg.stop_rot_deg and dtrans < cfg.stop_trans_rel * depth  # (the stop)
         if join is not None:

@@ -438,7 +438,7 @@ def _on_reduced(state: LocalizationState, stage: str) -> bool:
 def _full_model_score(state: LocalizationState, g: GeometricOutcome, scale: float,
                       inlier_px: float) -> Tuple[Optional[PoseScore], Optional[Observation]]:
     """``g``'s score and the render it scores, measured again on the full model if reduced."""
-    if g.score is None or not _on_reduced(state, "geometric"):
+    if g.score is None or not g.observation.reduced:
         return g.score, g.observation
     with state.serving("verify"):
         return observe_and_score(state, g.w2c, scale, inlier_px)
@@ -535,7 +535,7 @@ def _near_geometric(state: LocalizationState, cfg: RobustConfig, best: Geometric
     geometric stage's stop of the pose it rendered.
     """
     obs = best.observation
-    if obs is None or not best.converged or _on_reduced(state, "geometric") \
+    if obs is None or not best.converged or obs.reduced \
             or not _convincing(best.score, cfg, min_inliers=cfg.verdict.ok_inliers):
         return False
     rot, trans = pose_motion(obs.w2c, w2c)
@@ -599,7 +599,7 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
     geo = best.score
     # (not when the matches' focal fit moved the pose and focal length off that render's)
     reuse = (cfg.verify_geometric and ref.iterations == 0 and best.converged
-             and start is best.w2c and not _on_reduced(state, "geometric"))
+             and start is best.w2c and not best.observation.reduced)
     reuse = reuse or (cfg.verify_near and _near_geometric(state, cfg, best, ref.w2c, depth)
                       and start is best.w2c)
     if reuse:  # the PnP step that ended the geometric stage was below its stop: judged there

@@ -76,7 +76,8 @@ class Observation:
     refined against the query (``geometric.render_correspondences``), by Newton iterations, so
     that the PnP and the verdict's focal refit of one render refine them once. lifted: those
     correspondences lifted to world points, ``(points, query pixels)`` (read-only) by how they
-    were made, so that they are lifted once too.
+    were made, so that they are lifted once too. reduced: rendered from the reduced model (a
+    level of detail), which the verdict does not read.
     """
 
     w2c: np.ndarray
@@ -85,6 +86,7 @@ class Observation:
     depth: torch.Tensor
     alpha: torch.Tensor
     matches: Any = None
+    reduced: bool = False
     subpixel: Dict[int, torch.Tensor] = field(default_factory=dict)
     lifted: Dict[tuple, Tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
@@ -163,8 +165,13 @@ class LocalizationState:
         self._last_record = self._t0
         self._nested: List[Tuple[float, float]] = []
         self._serving: Tuple[str, bool] = ("other", False)
+        self.last_reduced = False  # whether the last render was of the reduced model
 
     # ------------------------------------------------------------------ which model renders
+    def full_model(self):
+        """Renders in the block are of the full model, counted as the stage served now."""
+        return self.serving(self._serving[0], reduced=False)
+
     @contextlib.contextmanager
     def serving(self, stage: str, reduced: bool = False):
         """Renders in the block are counted as ``stage``'s; with ``reduced``, of the reduced model.
@@ -192,6 +199,7 @@ class LocalizationState:
             scene = self.scene
         seen = self.rendered.setdefault(stage, {"gaussians": [], "renders": 0, "reduced": False})
         seen["reduced"] = seen["reduced"] or scene is not self.scene
+        self.last_reduced = scene is not self.scene
         count = int(scene.means.shape[0])
         if count not in seen["gaussians"]:
             seen["gaussians"].append(count)
@@ -298,7 +306,8 @@ class LocalizationState:
         with torch.no_grad():
             out = self.render(w2c, scale)
         color = out.color.clamp(0.0, 1.0)  # matchers take images in [0, 1]
-        obs = Observation(np.asarray(w2c, np.float64).copy(), scale, color, out.depth, out.alpha)
+        obs = Observation(np.asarray(w2c, np.float64).copy(), scale, color, out.depth, out.alpha,
+                          reduced=self.last_reduced)
         if match and self.matcher is not None:
             obs.matches = self.match(color, scale)
         return obs

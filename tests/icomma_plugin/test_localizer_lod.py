@@ -184,3 +184,55 @@ def test_extra_refinement_steps_only_without_a_level_of_detail(demo, xfeat, capp
     assert len(full) == 4 or (len(full) in (2, 3) and not full[-1]), steps
     with pytest.raises(ValueError, match="RefineConfig.extra_iterations"):
         RefineConfig(extra_iterations=-1)
+
+
+def test_near_the_answer_the_geometric_stage_renders_the_full_model_and_the_verdict_reads_it(
+        demo, xfeat, capped):
+    """``geometric.full_model_within_deg``: the full model near the answer, read by the verdict.
+
+    The rounds after a PnP step under it are the full model's, so the verdict may read the
+    stage's last render (``verify_near``); without it every round is the reduced model's and the
+    verdict renders the full model again.
+    """
+    import dataclasses
+
+    scene, model, cams = demo
+    full = model.num_gaussians
+    runs = {}
+    for within in (30.0, None):  # (30: every round after the first, from this start)
+        geo = dataclasses.replace(SMALL.geometric, full_model_within_deg=within)
+        method = dataclasses.replace(SMALL, geometric=geo)
+        loc = Localizer(model, xfeat, method, cameras=cams, cache_dir=False, lod=capped)
+        runs[within] = loc.localize(_query(scene), init_c2w=_start(scene), gt_c2w=scene.gt_c2w)
+    near, reduced = runs[30.0], runs[None]
+    geo_near = near.details["lod"]["stages"]["geometric"]
+    geo_reduced = reduced.details["lod"]["stages"]["geometric"]
+    assert full in geo_near["gaussians"] and min(geo_near["gaussians"]) < full, geo_near
+    assert geo_reduced["gaussians"] == [min(geo_near["gaussians"])], geo_reduced
+    assert near.details["verified_on"] == "geometric", near.details
+    assert reduced.details["verified_on"] == "final"
+    assert "verify" not in near.details["lod"]["stages"]  # no render of the full model again
+    for res in (near, reduced):
+        assert res.verdict.status == "ok" and res.rot_err_deg < 0.5, res.verdict.reason
+
+
+def test_an_observation_says_whether_the_reduced_model_rendered_it(demo, xfeat, capped):
+    """``Observation.reduced`` (the verdict never reads a reduced render) follows the model."""
+    from icomma_plugin.localization.state import LocalizationState
+
+    scene, model, cams = demo
+    loc = Localizer(model, xfeat, SMALL, cameras=cams, cache_dir=False, lod=capped)
+    state = LocalizationState(model, _query(scene), torch.zeros(3),
+                              reduced=loc._reduced_scene(None))
+    w2c = np.linalg.inv(scene.gt_c2w)
+    with state.serving("geometric", reduced=True):
+        small = state.observe(w2c, match=False)
+        with state.full_model():
+            whole = state.observe(w2c, match=False)
+        again = state.observe(w2c, match=False)
+    outside = state.observe(w2c, match=False)
+    assert small.reduced and again.reduced and not whole.reduced and not outside.reduced
+    assert not torch.equal(small.color, whole.color)  # (the cap renders another image)
+    seen = state.rendered["geometric"]
+    assert sorted(seen["gaussians"]) == sorted({model.num_gaussians, seen["gaussians"][0]})
+    assert seen["renders"] == 3
