@@ -83,9 +83,10 @@ class RobustConfig:
         and that render's score alone would be ``ok``, the verdict is decided on it too (as
         ``verify_geometric``) instead of a new render-and-match at the returned pose: a pose that
         close to a render the verdict calls right is right, and the matcher's second call at
-        nearly the same pose costs a pose 7-10 % (docs/SPEED.md). A refinement that moved
-        further, a render that is not ``ok`` alone, or a render of a reduced model (a level of
-        detail) is checked as before, and so can be rolled back.
+        nearly the same pose costs a pose 3-14 % (docs/SPEED.md). A refinement that moved
+        further, a render that is not ``ok`` alone, or a render of a reduced model (with a level
+        of detail the stage renders the full one near the answer:
+        ``geometric.full_model_within_deg``) is checked as before, and so can be rolled back.
         ``details["verified_on"]`` says which render decided.
     refine_reduced: with a level of detail, the photometric refinement renders the reduced model
         too (its check and the verdict always render the full model). Off by default: the pose is
