@@ -528,8 +528,8 @@ def _distortion_signal(state: LocalizationState, cfg: RobustConfig, obs: Optiona
     return out
 
 
-def _near_geometric(state: LocalizationState, cfg: RobustConfig, best: GeometricOutcome,
-                    w2c: np.ndarray, depth: float) -> bool:
+def _near_geometric(cfg: RobustConfig, best: GeometricOutcome, w2c: np.ndarray,
+                    depth: float) -> bool:
     """Whether ``best``'s last render-and-match may decide the verdict of ``w2c`` (``verify_near``).
 
     That render is of the full model, its score alone is ``ok``, and ``w2c`` is within the
@@ -601,8 +601,8 @@ def _refine_and_verify(state: LocalizationState, cfg: RobustConfig, scale: float
     # (not when the matches' focal fit moved the pose and focal length off that render's)
     reuse = (cfg.verify_geometric and ref.iterations == 0 and best.converged
              and start is best.w2c and not best.observation.reduced)
-    reuse = reuse or (cfg.verify_near and _near_geometric(state, cfg, best, ref.w2c, depth)
-                      and start is best.w2c)
+    reuse = reuse or (cfg.verify_near and start is best.w2c
+                      and _near_geometric(cfg, best, ref.w2c, depth))
     if reuse:  # the PnP step that ended the geometric stage was below its stop: judged there
         sc, judged = geo, best.observation
     else:  # the refinement's last render is judged when it is of the full model
