@@ -35,6 +35,22 @@ def test_auto_iterations():
         auto_iterations(0, 100)
 
 
+def test_a_time_budget_of_the_users_gives_as_many_steps_as_fit_up_to_upstreams():
+    from icomma_plugin.fit.config import UPSTREAM_ITERATIONS
+
+    # goldcape: 40 minutes hold upstream's 30000 steps; bird's larger photos fewer
+    assert auto_iterations(104, 228 * 228, seconds=2400) == UPSTREAM_ITERATIONS
+    bird = auto_iterations(161, 272 * 480, seconds=2400)
+    assert bird == 27500 and bird * step_seconds(272 * 480) <= 2400
+    # past the recipe's own cap of 100 steps a photo and MAX_ITERATIONS, not below the floor
+    assert auto_iterations(43, 270 * 480, seconds=1800) > max(MAX_ITERATIONS, 100 * 43)
+    assert auto_iterations(104, 228 * 228, seconds=10) == MIN_ITERATIONS
+    for bad in (0, -5.0):
+        with pytest.raises(ValueError, match="seconds"):
+            auto_iterations(104, 100, seconds=bad)
+    assert FitConfig.for_capture(104, 228, 228, seconds=2400).iterations == UPSTREAM_ITERATIONS
+
+
 def test_for_capture():
     photo = FitConfig.for_capture(100, 200, 200)
     render = FitConfig.for_capture(100, 200, 200, object_render=True)
@@ -62,6 +78,16 @@ def test_tool_builds_the_recipe_of_the_capture():
     assert cfg.iterations == 5000 and cfg.coarse_to_fine == ()
     with pytest.raises(ValueError, match="unknown FitConfig field"):
         build_config(parse_args(["-m", "x", "--set", "nope=1"]), cap)
+    # a time budget instead of the recipe's length, with either recipe
+    cfg = build_config(parse_args(["-m", "x", "--minutes", "40"]), cap)
+    assert cfg.iterations == 30000 and cfg.coarse_to_fine == CAPTURE_RECIPE["coarse_to_fine"]
+    assert cfg.densify_until_iter == 15000  # the schedule scaled to the run, as upstream's
+    cfg = build_config(parse_args(["-m", "x", "--minutes", "40", "--recipe", "scaled"]), cap)
+    assert cfg.iterations == 30000 and cfg.coarse_to_fine == ()
+    with pytest.raises(ValueError, match="give one"):
+        build_config(parse_args(["-m", "x", "--minutes", "40", "--iterations", "700"]), cap)
+    with pytest.raises(ValueError, match="--minutes must be > 0"):
+        build_config(parse_args(["-m", "x", "--minutes", "0"]), cap)
 
 
 def fit_tiny_capture(tmp_path, iterations: int):
