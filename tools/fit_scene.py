@@ -249,11 +249,11 @@ LOG_SECONDS = 60.0
 def make_progress(bar, log_every: int, log_seconds: float = LOG_SECONDS, clock=time.perf_counter):
     """The fit's progress callback: a tqdm bar (or None) and a log line every `log_every`.
 
-    With neither, a log line every `log_seconds` of `clock`, with the time left at the rate so
-    far.
+    With neither, a log line every `log_seconds` of `clock`, with the time left at the rate
+    since the last line (a step's cost grows through a run: coarse-to-fine, densification).
     """
     t_start = clock()
-    last = [t_start]
+    last = [t_start, 0]  # the time and the iteration of the last line
 
     def progress(it, total, info):
         if bar is not None:
@@ -275,9 +275,10 @@ def make_progress(bar, log_every: int, log_seconds: float = LOG_SECONDS, clock=t
         elif bar is None and not log_every:
             now = clock()
             if now - last[0] >= log_seconds or it == total:
-                last[0] = now
+                rate = (now - last[0]) / max(it - last[1], 1)
+                last[:] = [now, it]
                 spent = now - t_start
-                left = spent / max(it, 1) * (total - it)
+                left = rate * (total - it)
                 log.info("iteration %d/%d (%.0f %%): loss %.4f, %d Gaussians, %.0f s, about "
                          "%.0f s left", it, total, 100.0 * it / max(total, 1),
                          info.get("loss", float("nan")), int(info.get("num_gaussians", 0)),

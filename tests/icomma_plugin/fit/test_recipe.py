@@ -132,12 +132,15 @@ def test_without_a_bar_the_fit_logs_a_line_a_minute_with_the_time_left(caplog):
     now = [0.0]
     progress = make_progress(None, 0, log_seconds=60.0, clock=lambda: now[0])
     with caplog.at_level(logging.INFO, logger="fit_scene"):
-        for it in range(1, 101):  # one step every 2 s: a line at steps 30, 60, 90 and 100
-            now[0] = 2.0 * it
+        for it in range(1, 101):  # 2 s a step, then 3 s from step 30 on
+            now[0] = 2.0 * it if it <= 30 else 60.0 + 3.0 * (it - 30)
             progress(it, 100, {"loss": 0.5, "num_gaussians": 1000})
     lines = [r.getMessage() for r in caplog.records if "iteration" in r.getMessage()]
-    assert [line.split()[1] for line in lines] == ["30/100", "60/100", "90/100", "100/100"]
-    assert "about 140 s left" in lines[0] and "about 0 s left" in lines[-1]
+    assert [line.split()[1] for line in lines] == ["30/100", "50/100", "70/100", "90/100",
+                                                   "100/100"]
+    # the time left at the last minute's rate: 2 s a step, then 3
+    assert "about 140 s left" in lines[0] and "about 150 s left" in lines[1]
+    assert "about 0 s left" in lines[-1]
     # with --log-every the steps say when, and the clock adds nothing
     caplog.clear()
     every = make_progress(None, 25, log_seconds=60.0, clock=lambda: now[0])
