@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Callable, Dict, Optional
+from typing import Callable, Dict, Optional, Tuple
 
 import torch
 
@@ -212,6 +212,20 @@ class GaussianTrainState:
         self.grad_accum = self.grad_accum[keep]
         self.denom = self.denom[keep]
         self.max_radii2D = self.max_radii2D[keep]
+
+    @torch.no_grad()
+    def non_finite(self) -> Tuple[torch.Tensor, Dict[str, int]]:
+        """The Gaussians with a NaN or infinite raw parameter: (bool [P], {parameter: count})."""
+        bad = torch.zeros(self.num_gaussians, dtype=torch.bool, device=self.device)
+        counts: Dict[str, int] = {}
+        for n in PARAM_NAMES:
+            p = self.params[n].detach()
+            rows = ~torch.isfinite(p).reshape(p.shape[0], -1).all(1)
+            k = int(rows.sum())
+            if k:
+                counts[n] = k
+                bad |= rows
+        return bad, counts
 
     @torch.no_grad()
     def append(self, new: Dict[str, torch.Tensor]) -> None:

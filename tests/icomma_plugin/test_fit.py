@@ -326,15 +326,11 @@ def test_tiny_end_to_end_fit():
     assert set(res.timings) >= {"render", "backward", "adam", "densify"}
 
 
-def test_steps_scan_for_nan_now_and_then_and_a_bad_parameter_is_named(monkeypatch):
-    """The rasterizer's NaN scans (a host sync per tensor) run every ``_SCAN_EVERY`` steps.
-
-    A parameter that goes bad between them is named at the next scan.
-    """
-    from gaussian_renderer_pose._validate import RasterizerInputError
+def _scanning_trainer(monkeypatch, every: int = 5):
+    """A tiny fit whose NaN scans run every ``every`` steps; (trainer, list of validate flags)."""
     from icomma_plugin.fit import trainer as trainer_mod
 
-    monkeypatch.setattr(trainer_mod, "_SCAN_EVERY", 5)
+    monkeypatch.setattr(trainer_mod, "_SCAN_EVERY", every)
     rendered = _render_views(_gt_model(), _ring_poses(4), size=24)
     xyz, rgb = random_cube_points(100, 0.8, seed=0)
     cfg = FitConfig.scaled_schedule(40, sh_degree=1, num_random_points=100)
@@ -348,15 +344,49 @@ def test_steps_scan_for_nan_now_and_then_and_a_bad_parameter_is_named(monkeypatc
         return real(*a, validate=validate, **k)
 
     monkeypatch.setattr(trainer_mod, "rasterize_gaussians", counting)
+    return trainer, scans
+
+
+def test_steps_scan_for_nan_now_and_then_and_a_bad_gaussian_is_removed(monkeypatch, caplog):
+    """The NaN scans (a host sync per tensor) run every ``_SCAN_EVERY`` steps.
+
+    A Gaussian whose parameter goes bad between them is removed at the next scan, with a warning
+    naming the parameter, and the fit goes on (a long fit is not lost to one bad gradient).
+    """
+    import logging
+
+    trainer, scans = _scanning_trainer(monkeypatch)
     for _ in range(7):
         trainer.train_step()
     assert scans == [True, False, False, False, False, True, False]
+    before = trainer.state.num_gaussians
     with torch.no_grad():
         trainer.state.get("opacity_logit")[5] = float("nan")
-    with pytest.raises(RasterizerInputError, match="opacit"):
+        trainer.state.get("means")[7, 1] = float("inf")
+    with caplog.at_level(logging.WARNING, logger="icomma_plugin.fit.trainer"):
+        for _ in range(5):  # the scan at step 11
+            trainer.train_step()
+    assert trainer.removed_non_finite == 2
+    assert any("opacity_logit 1" in r.getMessage() and "means 1" in r.getMessage()
+               for r in caplog.records), [r.getMessage() for r in caplog.records]
+    bad, _ = trainer.state.non_finite()
+    assert not bool(bad.any()) and trainer.state.num_gaussians <= before - 2 + 100  # (densify)
+    res = trainer.run()
+    assert res.removed_non_finite == 2 and res.iterations == 40
+
+
+def test_a_fit_whose_gaussians_go_bad_by_the_many_stops_and_says_so(monkeypatch):
+    """More than ``MAX_NON_FINITE_SHARE`` of the Gaussians at once: a diverged fit (raises)."""
+    trainer, _ = _scanning_trainer(monkeypatch)
+    for _ in range(6):
+        trainer.train_step()
+    n = trainer.state.num_gaussians // 20  # 5 %
+    with torch.no_grad():
+        trainer.state.get("scale_log")[:n] = float("nan")
+    with pytest.raises(FloatingPointError, match=f"scale_log {n}.*lower the learning rates"):
         for _ in range(5):
             trainer.train_step()
-    assert trainer.iteration <= 11
+    assert trainer.iteration == 11
 
 
 def test_random_background_draws_a_colour_each_step_and_recomposites_only_alpha_views():
