@@ -2,7 +2,10 @@
 r"""Make an upstream-size model (300k, 1M Gaussians) from a fitted model folder, by splitting.
 
 Every Gaussian is split into children sampled from its own Gaussian
-(``icomma_plugin.lod.split_gaussians``) until ``--target`` Gaussians; the split model is rendered
+(``icomma_plugin.lod.split_gaussians``) until ``--target`` Gaussians; as upstream's densification
+is followed by more optimisation, the split model is then fitted for ``--distill-steps`` steps to
+the original's renders from the model's cameras at ``--distill-side`` px
+(``icomma_plugin.fit.distill``; the check cameras left out); the split model is rendered
 beside the original from ``--check-cameras`` of the model's cameras at each ``--check-sides``
 size, the PSNR of split vs original printed, and the folder written (upstream layout:
 ``cfg_args``, ``cameras.json``, ``point_cloud/iteration_<N>/point_cloud.ply``, plus
@@ -44,6 +47,10 @@ def parse_args(argv=None) -> argparse.Namespace:
                     help="extra children in proportion to opacity ** this (default: 4 in "
                          "preserve mode, 0 in upstream mode)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--distill-steps", type=int, default=100,
+                    help="steps fitting the split model to the original's renders (0 = none)")
+    ap.add_argument("--distill-side", type=int, default=None,
+                    help="image size (longer side) of those renders (default: the cameras')")
     ap.add_argument("--check-cameras", type=int, default=4,
                     help="cameras of cameras.json rendered for the check (evenly spaced)")
     ap.add_argument("--check-sides", default="200,800", help="image sizes (longer side) checked")
@@ -75,6 +82,33 @@ def check_renders(original, split, cameras: Sequence, sides: Sequence[int],
     return rows
 
 
+def distill_split(split, mf, check_cameras: Sequence, steps: int, side=None):
+    """``split`` fitted to the original model's renders from the cameras not in the check."""
+    from icomma_plugin.fit.distill import distill
+    from icomma_plugin.io.cameras_json import entry_to_intrinsics
+
+    if steps == 0:
+        return split
+    held = {e.img_name for e in check_cameras}
+    pairs = []
+    for e in mf.cameras:
+        if e.img_name in held:
+            continue
+        intr = entry_to_intrinsics(e)
+        if side is not None:
+            intr = intr.scaled(side / max(intr.width, intr.height))
+        pairs.append((intr, torch.tensor(e.w2c, dtype=torch.float32)))
+    if not pairs:
+        return split
+    bg = (1.0, 1.0, 1.0) if mf.white_background else (0.0, 0.0, 0.0)
+
+    def progress(it, total, info):
+        if it % 50 == 0 or it == total:
+            print(f"distillation {it}/{total}: loss {info['loss']:.4f}", flush=True)
+
+    return distill(split, mf.model, pairs, steps, background=bg, progress=progress)
+
+
 def main(argv=None) -> int:
     """Split, check, write (module docstring); returns the exit status."""
     a = parse_args(argv)
@@ -91,6 +125,9 @@ def main(argv=None) -> int:
         print(f"error: --target {a.target} is below the model's {mf.model.num_gaussians:,} "
               "Gaussians", file=sys.stderr)
         return 2
+    if a.distill_steps < 0 or (a.distill_side is not None and a.distill_side < 8):
+        print("error: --distill-steps must be >= 0 and --distill-side >= 8", file=sys.stderr)
+        return 2
     t0 = time.perf_counter()
     split = split_gaussians(mf.model, target=a.target, mode=a.mode, spread=a.spread,
                             opacity_power=a.opacity_power,
@@ -98,10 +135,14 @@ def main(argv=None) -> int:
     split_s = time.perf_counter() - t0
     step = max(1, len(mf.cameras) // max(1, a.check_cameras))
     cams = mf.cameras[::step][: a.check_cameras]
+    t0 = time.perf_counter()
+    split = distill_split(split, mf, cams, a.distill_steps, a.distill_side)
+    distill_s = time.perf_counter() - t0
     sides = [int(s) for s in a.check_sides.split(",") if s.strip()]
     rows = check_renders(mf.model, split, cams, sides, mf.white_background)
     print(f"{mf.model.num_gaussians:,} -> {split.num_gaussians:,} Gaussians ({a.mode}, "
-          f"{split_s:.1f} s); PSNR of split vs original:")
+          f"{split_s:.1f} s; {a.distill_steps} distillation steps, {distill_s:.1f} s); PSNR of "
+          "split vs original (cameras not distilled on):")
     print("| camera | side | PSNR dB |\n|---|---|---|")
     for r in rows:
         print(f"| {r['camera']} | {r['side']} | {r['psnr']:.2f} |")
@@ -121,7 +162,8 @@ def main(argv=None) -> int:
     write_json_atomic(out / "split.json", {
         "source": str(mf.path), "source_gaussians": mf.model.num_gaussians,
         "gaussians": split.num_gaussians, "mode": a.mode, "spread": a.spread,
-        "opacity_power": a.opacity_power, "seed": a.seed,
+        "opacity_power": a.opacity_power, "seed": a.seed, "distill_steps": a.distill_steps,
+        "distill_side": a.distill_side, "distill_seconds": round(distill_s, 1),
         "min_psnr_db": worst if math.isfinite(worst) else None, "checks": rows})
     print(f"wrote {ply}")
     return 0

@@ -10,10 +10,12 @@
 - `ExposureState`: per-photo affine colour transforms (upstream `--train_test_exp`);
   `NeighbourExposure`: a new view's, predicted from the nearest training photos'.
 - `evaluate_views` / `write_grid`: PSNR with and without exposure, photos beside renders.
+- `distill`: one model fitted to another's renders (a split model back to its parent's image).
 Losses and PSNR count only valid pixels (`FitView.valid`, from `View.load_image`). The recipe
 and its measurements: docs/FITTING.md.
 """
 from .config import FitConfig
+from .distill import DISTILL_CONFIG, distill
 from .init import mean_knn_sq_dist, model_from_points, plane_sweep_points, random_cube_points
 from .losses import photometric_loss, psnr, ssim
 from .evaluate import evaluate_model_folder, evaluate_views, write_grid
@@ -25,10 +27,11 @@ from .state import GaussianTrainState, expon_lr
 from .trainer import FitResult, FitView, Trainer, render_state
 
 __all__ = [
-    "ExposureState", "FitConfig", "FitResult", "FitView", "GaussianTrainState", "InitCloud",
+    "DISTILL_CONFIG", "ExposureState", "FitConfig", "FitResult", "FitView", "GaussianTrainState",
+    "InitCloud",
     "ModelFolderExistsError", "NeighbourExposure", "SceneFitResult", "Trainer",
     "evaluate_model_folder",
-    "evaluate_views", "expon_lr", "far_field_points", "fit_affine_colour", "fit_scene",
+    "distill", "evaluate_views", "expon_lr", "far_field_points", "fit_affine_colour", "fit_scene",
     "initial_points", "mean_knn_sq_dist", "model_from_points", "photometric_loss",
     "plane_sweep_points", "psnr", "random_cube_points", "render_state", "resolution_scale",
     "ssim", "write_grid",
