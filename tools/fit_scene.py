@@ -50,7 +50,7 @@ if __package__:
 else:  # run as a script from a checkout
     from tools._common import choose_threads, parse_overrides  # noqa: E402
 from icomma_plugin.fit import FitConfig, fit_scene  # noqa: E402
-from icomma_plugin.fit.config import auto_iterations  # noqa: E402
+from icomma_plugin.fit.config import auto_iterations, step_seconds  # noqa: E402
 
 log = logging.getLogger("fit_scene")
 
@@ -86,9 +86,10 @@ def parse_args(argv=None) -> argparse.Namespace:
         "--minutes",
         type=float,
         default=None,
-        help="a time budget instead of the recipe's own length: the steps that fit in it on a "
-        "2-core machine, up to upstream's 30000 (goldcape 40 minutes: +1.8 dB held out, "
-        "localized twice as close; docs/FITTING.md). Not with --iterations",
+        help="a time budget instead of the recipe's own length: the steps that fit in it on "
+        "this machine (a few steps of a synthetic fit timed first), up to upstream's 30000 "
+        "(goldcape 40 minutes: +1.8 dB held out, localized twice as close; docs/FITTING.md). "
+        "Not with --iterations",
     )
     p.add_argument(
         "--recipe",
@@ -176,6 +177,17 @@ def parse_args(argv=None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
+def timed_step_factor() -> float:
+    """This machine's fitter step over the machine `step_seconds` models (a few steps timed)."""
+    from icomma_plugin.fit import timing
+
+    factor = timing.step_time_factor()
+    log.info("--minutes: a fitter step here takes %.2fx the reference machine's (timed on a "
+             "synthetic fit; torch threads: %d); the budget is counted at that rate", factor,
+             torch.get_num_threads())
+    return factor
+
+
 def build_config(args: argparse.Namespace, capture=None) -> FitConfig:
     """The FitConfig of the command line: the recipe plus the flags and ``--set``s.
 
@@ -209,16 +221,23 @@ def build_config(args: argparse.Namespace, capture=None) -> FitConfig:
             raise ValueError("--minutes and --iterations both set the run's length: give one")
         if not args.minutes > 0:
             raise ValueError(f"--minutes must be > 0, got {args.minutes}")
-        seconds = 60.0 * args.minutes
-    if args.recipe == "capture" and capture is not None:
-        return FitConfig.for_capture(capture.train_views, capture.width, capture.height,
-                                     capture.object_render, args.iterations, seconds, **over)
-    if seconds is not None:
         if capture is None:
             raise ValueError("--minutes needs the capture's photos to time a step")
-        iterations = auto_iterations(capture.train_views, capture.width * capture.height, seconds)
-        return FitConfig.scaled_schedule(iterations, **over)
-    return FitConfig.scaled_schedule(args.iterations or 5000, **over)
+        factor = timed_step_factor()
+        seconds = 60.0 * args.minutes / factor
+    if args.recipe == "capture" and capture is not None:
+        cfg = FitConfig.for_capture(capture.train_views, capture.width, capture.height,
+                                    capture.object_render, args.iterations, seconds, **over)
+    elif seconds is not None:
+        cfg = FitConfig.scaled_schedule(
+            auto_iterations(capture.train_views, capture.width * capture.height, seconds), **over)
+    else:
+        cfg = FitConfig.scaled_schedule(args.iterations or 5000, **over)
+    if seconds is not None:  # what the budget bought (at least MIN_ITERATIONS, at most 30000)
+        log.info("--minutes %g: %d steps, about %.0f minutes of steps here", args.minutes,
+                 cfg.iterations,
+                 cfg.iterations * step_seconds(capture.width * capture.height) * factor / 60.0)
+    return cfg
 
 
 def evaluate(args: argparse.Namespace) -> int:

@@ -64,8 +64,11 @@ def test_for_capture():
     assert fixed.densify_until_iter == round(0.5 * 1234)  # the scaled schedule
 
 
-def test_tool_builds_the_recipe_of_the_capture():
+def test_tool_builds_the_recipe_of_the_capture(monkeypatch):
+    from icomma_plugin.fit import timing
     from tools.fit_scene import build_config, parse_args
+
+    monkeypatch.setattr(timing, "step_time_factor", lambda: 1.0)  # the reference machine
 
     cap = CaptureInfo(train_views=104, width=228, height=228, object_render=False)
     cfg = build_config(parse_args(["-m", "x"]), cap)
@@ -84,6 +87,12 @@ def test_tool_builds_the_recipe_of_the_capture():
     assert cfg.densify_until_iter == 15000  # the schedule scaled to the run, as upstream's
     cfg = build_config(parse_args(["-m", "x", "--minutes", "40", "--recipe", "scaled"]), cap)
     assert cfg.iterations == 30000 and cfg.coarse_to_fine == ()
+    # a machine whose steps take twice as long gets half the steps (10 minutes: 9500 at 1x)
+    assert build_config(parse_args(["-m", "x", "--minutes", "10"]), cap).iterations == 9500
+    monkeypatch.setattr(timing, "step_time_factor", lambda: 2.0)
+    assert build_config(parse_args(["-m", "x", "--minutes", "10"]), cap).iterations == 4500
+    with pytest.raises(ValueError, match="needs the capture's photos"):
+        build_config(parse_args(["-m", "x", "--minutes", "10"]), None)
     with pytest.raises(ValueError, match="give one"):
         build_config(parse_args(["-m", "x", "--minutes", "40", "--iterations", "700"]), cap)
     with pytest.raises(ValueError, match="--minutes must be > 0"):
