@@ -84,7 +84,7 @@ def check_renders(original, split, cameras: Sequence, sides: Sequence[int],
 
 def distill_split(split, mf, check_cameras: Sequence, steps: int, side=None):
     """``split`` fitted to the original model's renders from the cameras not in the check."""
-    from icomma_plugin.fit.distill import distill
+    from icomma_plugin.fit.distillation import distill
     from icomma_plugin.io.cameras_json import entry_to_intrinsics
 
     if steps == 0:

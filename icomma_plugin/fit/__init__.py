@@ -15,7 +15,7 @@ Losses and PSNR count only valid pixels (`FitView.valid`, from `View.load_image`
 and its measurements: docs/FITTING.md.
 """
 from .config import FitConfig
-from .distill import DISTILL_CONFIG, distill
+from .distillation import DISTILL_CONFIG, distill
 from .init import mean_knn_sq_dist, model_from_points, plane_sweep_points, random_cube_points
 from .losses import photometric_loss, psnr, ssim
 from .evaluate import evaluate_model_folder, evaluate_views, write_grid

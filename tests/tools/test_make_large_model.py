@@ -49,7 +49,7 @@ def test_refuses_below_min_psnr_and_bad_target(demo_folder, tmp_path, capsys):
 
 
 def test_distilled_on_the_cameras_outside_the_check(demo_folder, tmp_path, monkeypatch):
-    import icomma_plugin.fit.distill as distill_module
+    import icomma_plugin.fit.distillation as distill_module
     from tools.make_large_model import main
 
     src, P = demo_folder

@@ -1,4 +1,4 @@
-"""icomma_plugin.fit.distill: a split model fitted back to its parent's image."""
+"""icomma_plugin.fit.distillation: a split model fitted back to its parent's image."""
 from __future__ import annotations
 
 import numpy as np
@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from icomma_plugin.camera import Intrinsics
-from icomma_plugin.fit.distill import distill
+from icomma_plugin.fit.distillation import distill
 from icomma_plugin.fit.losses import psnr
 from icomma_plugin.gaussians import GaussianModel
 from icomma_plugin.lod import split_gaussians
