@@ -55,8 +55,8 @@ def step_time_factor(steps: int = 5, warmup: int = 3,
     """This machine's step time over the development machine's, at the current thread count.
 
     Times ``steps`` steps of a fixed synthetic fit (100k Gaussians at 228x228, SH degree 3;
-    about 4 s on the development machine, most of it the first steps, which set up the loss's
-    kernels: ``warmup``) after ``warmup`` and returns the median over
+    about 2 s in all on the development machine) after ``warmup`` steps (the first three of a
+    process took 0.5 s each in the loss there) and returns the median over
     `REFERENCE_PROBE_SECONDS`, within `FACTOR_BOUNDS`. ``trainer`` and ``clock`` are for tests.
     """
     if steps < 1 or warmup < 0:
