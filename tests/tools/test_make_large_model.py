@@ -31,7 +31,7 @@ def test_split_checked_and_written(demo_folder, tmp_path, capsys):
     assert folder.cfg["principal_point"] == load_model_folder(src).principal_point == "centre"
     info = json.loads((out / "split.json").read_text())
     assert info["gaussians"] == 2 * P + 3 and info["mode"] == "preserve"
-    assert info["distill_steps"] == 3
+    assert info["distill_steps"] == 3 and len(info["checks_before_distill"]) == 2
     assert len(info["checks"]) == 2 and info["min_psnr_db"] >= 35.0
     assert "PSNR of split vs original" in capsys.readouterr().out
 
