@@ -34,6 +34,11 @@ if str(REPO_ROOT) not in sys.path:
 import torch  # noqa: E402
 
 
+#: The default size (longer side) of the renders the split model is fitted to: a model of
+#: 1920x1080 photos is fitted at 800x450, as it is checked.
+MAX_DISTILL_SIDE = 800
+
+
 def parse_args(argv=None) -> argparse.Namespace:
     """The command line (module docstring)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -51,7 +56,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--distill-steps", type=int, default=100,
                     help="steps fitting the split model to the original's renders (0 = none)")
     ap.add_argument("--distill-side", type=int, default=None,
-                    help="image size (longer side) of those renders (default: the cameras')")
+                    help="image size (longer side) of those renders (default: the cameras', "
+                         f"at most {MAX_DISTILL_SIDE})")
+    ap.add_argument("--distill-cameras", type=int, default=100,
+                    help="cameras rendered for the fit, evenly spaced (each render is held in "
+                         "memory: 100 at 800x450 take 0.4 GB)")
     ap.add_argument("--check-cameras", type=int, default=4,
                     help="cameras of cameras.json rendered for the check (evenly spaced)")
     ap.add_argument("--check-sides", default="200,800", help="image sizes (longer side) checked")
@@ -83,24 +92,29 @@ def check_renders(original, split, cameras: Sequence, sides: Sequence[int],
     return rows
 
 
-def distill_split(split, mf, check_cameras: Sequence, steps: int, side=None):
-    """``split`` fitted to the original model's renders from the cameras not in the check."""
+def distill_split(split, mf, check_cameras: Sequence, steps: int, side=None,
+                  max_cameras: int = 100):
+    """``split`` fitted to the original model's renders from the cameras not in the check.
+
+    At most ``max_cameras`` of them (evenly spaced), at ``side`` px (None: their own size, at
+    most `MAX_DISTILL_SIDE`).
+    """
     from icomma_plugin.fit.distillation import distill
     from icomma_plugin.io.cameras_json import entry_to_intrinsics
 
-    if steps == 0:
-        return split
     held = {e.img_name for e in check_cameras}
-    pairs = []
-    for e in mf.cameras:
-        if e.img_name in held:
-            continue
-        intr = entry_to_intrinsics(e)
-        if side is not None:
-            intr = intr.scaled(side / max(intr.width, intr.height))
-        pairs.append((intr, torch.tensor(e.w2c, dtype=torch.float32)))
-    if not pairs:
+    entries = [e for e in mf.cameras if e.img_name not in held]
+    if steps == 0 or not entries:
         return split
+    entries = entries[::math.ceil(len(entries) / max_cameras)]
+    pairs = []
+    for e in entries:
+        intr = entry_to_intrinsics(e)
+        longer = max(intr.width, intr.height)
+        target = side if side is not None else min(longer, MAX_DISTILL_SIDE)
+        if target != longer:
+            intr = intr.scaled(target / longer)
+        pairs.append((intr, torch.tensor(e.w2c, dtype=torch.float32)))
     bg = (1.0, 1.0, 1.0) if mf.white_background else (0.0, 0.0, 0.0)
 
     def progress(it, total, info):
@@ -126,8 +140,10 @@ def main(argv=None) -> int:
         print(f"error: --target {a.target} is below the model's {mf.model.num_gaussians:,} "
               "Gaussians", file=sys.stderr)
         return 2
-    if a.distill_steps < 0 or (a.distill_side is not None and a.distill_side < 8):
-        print("error: --distill-steps must be >= 0 and --distill-side >= 8", file=sys.stderr)
+    if a.distill_steps < 0 or a.distill_cameras < 1 or (a.distill_side is not None
+                                                         and a.distill_side < 8):
+        print("error: --distill-steps must be >= 0, --distill-cameras >= 1 and --distill-side "
+              ">= 8", file=sys.stderr)
         return 2
     t0 = time.perf_counter()
     split = split_gaussians(mf.model, target=a.target, mode=a.mode, spread=a.spread,
@@ -141,7 +157,7 @@ def main(argv=None) -> int:
     before = (check_renders(mf.model, split, cams, sides, mf.white_background)
               if a.distill_steps > 0 else None)
     t0 = time.perf_counter()
-    split = distill_split(split, mf, cams, a.distill_steps, a.distill_side)
+    split = distill_split(split, mf, cams, a.distill_steps, a.distill_side, a.distill_cameras)
     distill_s = time.perf_counter() - t0
     rows = check_renders(mf.model, split, cams, sides, mf.white_background)
     print(f"{mf.model.num_gaussians:,} -> {split.num_gaussians:,} Gaussians ({a.mode}, "
@@ -168,7 +184,8 @@ def main(argv=None) -> int:
         "source": str(mf.path), "source_gaussians": mf.model.num_gaussians,
         "gaussians": split.num_gaussians, "mode": a.mode, "spread": a.spread,
         "opacity_power": a.opacity_power, "seed": a.seed, "distill_steps": a.distill_steps,
-        "distill_side": a.distill_side, "distill_seconds": round(distill_s, 1),
+        "distill_side": a.distill_side, "distill_cameras": a.distill_cameras,
+        "distill_seconds": round(distill_s, 1),
         "min_psnr_db": worst if math.isfinite(worst) else None, "checks": rows,
         "checks_before_distill": before})
     print(f"wrote {ply}")

@@ -70,5 +70,10 @@ def test_distilled_on_the_cameras_outside_the_check(demo_folder, tmp_path, monke
     fitted = {tuple(w2c.numpy().ravel()) for _, w2c in seen["cameras"]}
     assert len(seen["cameras"]) == len(folder.cameras) - 2 and not fitted & checked
     assert all(max(intr.width, intr.height) == 24 for intr, _ in seen["cameras"])
-    assert main(["-m", str(src), "-o", str(tmp_path / "x"), "--target", str(P + 1),
-                 "--distill-steps", "-1"]) == 2
+    # at most --distill-cameras of them, evenly spaced
+    assert main(["-m", str(src), "-o", str(tmp_path / "few"), "--target", str(P + 1),
+                 "--check-sides", "48", "--check-cameras", "2", "--distill-cameras", "3"]) == 0
+    assert 2 <= len(seen["cameras"]) <= 3
+    for bad in (["--distill-steps", "-1"], ["--distill-cameras", "0"]):
+        assert main(["-m", str(src), "-o", str(tmp_path / "x"), "--target", str(P + 1),
+                     *bad]) == 2
