@@ -78,6 +78,5 @@ def distill(student: GaussianModel, teacher: GaussianModel,
     extent = cameras_extent([torch.linalg.inv(v.w2c) for v in views])
     trainer = Trainer(student, views, max(extent, 1e-6), cfg, background=tuple(bg.tolist()),
                       progress=progress)
-    while trainer.state.active_sh_degree < student.sh_degree:
-        trainer.state.oneup_sh_degree()
+    trainer.state.active_sh_degree = trainer.state.max_sh_degree  # as tools/bench_fit.py
     return trainer.run().model
