@@ -45,7 +45,7 @@ class _RasterizeGaussians(torch.autograd.Function):
         means3D,  # [P, 3]
         means2D,  # [P, 3] or None (gradient holder only)
         opacities,  # [P, 1]
-        shs,  # [P, M, 3] or None
+        shs,  # [P, M, 3] or None ([P, 1, 3] with shs_rest)
         colors_precomp,  # [P, 3] or None
         scales,  # [P, 3] or None
         rotations,  # [P, 4] or None
@@ -54,14 +54,16 @@ class _RasterizeGaussians(torch.autograd.Function):
         viewmatrix,  # [4, 4]
         projmatrix,  # [4, 4]
         campos,  # [3]
+        shs_rest,  # [P, M - 1, 3] or None
         settings,  # tuple (H, W, tanfovx, tanfovy, scale_modifier, sh_degree, prefiltered, aa)
     ):
         tensors = [
             _f32c(t) for t in (means3D, opacities, shs, colors_precomp, scales, rotations,
-                               cov3D_precomp, bg, viewmatrix, projmatrix, campos)
+                               cov3D_precomp, bg, viewmatrix, projmatrix, campos, shs_rest)
         ]
-        # The op's arguments are the tensors then the settings (csrc/ops.h GRP_RASTER_INPUTS).
-        outs = _native_ops().rasterize_forward(*tensors, *settings)
+        # The op's arguments are the tensors, the settings, then shs_rest (csrc/ops.h
+        # GRP_RASTER_INPUTS).
+        outs = _native_ops().rasterize_forward(*tensors[:-1], *settings, tensors[-1])
         color, invdepth, depth_acc, alpha, *state = outs
         radii = state[0]
         ctx.settings = settings
@@ -79,7 +81,8 @@ class _RasterizeGaussians(torch.autograd.Function):
         device = tensors[0].device  # means3D: every saved tensor lives there
         need = ctx.needs_input_grad
         want_camera = bool(need[9] or need[10] or need[11])
-        want_gaussians = any(need[:8])  # means3D .. cov3D_precomp (bg's gradient is always made)
+        # means3D .. cov3D_precomp, shs_rest (bg's gradient is always made)
+        want_gaussians = any(need[:8]) or bool(need[12])
 
         def g(t, shape):
             if t is None:
@@ -87,13 +90,13 @@ class _RasterizeGaussians(torch.autograd.Function):
             return t.contiguous()
 
         grads = _native_ops().rasterize_backward(
-            *tensors, *ctx.settings, *state,
+            *tensors[:-1], *ctx.settings, tensors[-1], *state,
             g(grad_color, (3, H, W)), g(grad_invdepth, (1, H, W)), g(grad_depth_acc, (1, H, W)),
             g(grad_alpha, (1, H, W)), want_camera, want_gaussians,
         )
         # grads: means3D, means2D, opacities, shs, colors_precomp, scales, rotations,
-        # cov3D_precomp, bg, viewmatrix, projmatrix, campos (the order of forward's inputs); None
-        # where not computed.
+        # cov3D_precomp, bg, viewmatrix, projmatrix, campos, shs_rest (the order of forward's
+        # inputs); None where not computed.
         out = [o if need[i] else None for i, o in enumerate(grads)]
         return (*out, None)
 
@@ -120,6 +123,7 @@ def rasterize_gaussians_native(
     sh_degree: int,
     prefiltered: bool = False,
     antialiasing: bool = False,
+    shs_rest: Optional[torch.Tensor] = None,  # [P, M - 1, 3]; shs is then [P, 1, 3]
 ) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Native twin of `reference.rasterize_gaussians_reference`.
 
@@ -132,13 +136,17 @@ def rasterize_gaussians_native(
         ok, why = _backend.native_status("cuda")
         if not ok:
             raise _backend.NativeUnavailable(why)
+        if shs_rest is not None:
+            # The CPU kernel reads the two SH tensors in place; the CUDA one, not yet run on a
+            # GPU with them, gets their concatenation.
+            shs, shs_rest = torch.cat([shs, shs_rest], dim=1), None
     settings = (
         int(image_height), int(image_width), float(tanfovx), float(tanfovy), float(scale_modifier),
         int(sh_degree), bool(prefiltered), bool(antialiasing),
     )
     return _RasterizeGaussians.apply(
         means3D, means2D, opacities, shs, colors_precomp, scales, rotations, cov3D_precomp, bg,
-        viewmatrix, projmatrix, campos, settings,
+        viewmatrix, projmatrix, campos, shs_rest, settings,
     )
 
 

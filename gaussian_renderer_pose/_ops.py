@@ -86,6 +86,7 @@ def _rasterize_backward_fake(*args, **kwargs):
         like("viewmatrix") if cam else None,
         like("projmatrix") if cam else None,
         like("campos") if cam else None,
+        like("shs_rest") if gauss and a["shs_rest"] is not None else None,
     )
 
 

@@ -104,6 +104,7 @@ def validate(
     rotations=None,
     cov3D_precomp=None,
     check_finite: bool = True,
+    shs_rest=None,
 ) -> Dict[str, object]:
     """Check everything; return normalised arguments for the backend contract.
 
@@ -113,7 +114,8 @@ def validate(
         settings: a `GaussianRasterizationSettings` (image size, fov, camera tensors, ...).
         means2D: [P, 3] or absent (None or an empty tensor).
         shs: [P, M, 3] spherical-harmonic coefficients, M >= (sh_degree + 1)**2; exactly one of
-            shs / colors_precomp.
+            shs / colors_precomp. With ``shs_rest``: [P, 1, 3], the first coefficient only.
+        shs_rest: [P, M - 1, 3] the coefficients after the first, or absent (all in ``shs``).
         colors_precomp: [P, 3].
         scales: [P, 3], given together with rotations; exactly one of (scales, rotations) /
             cov3D_precomp.
@@ -159,6 +161,7 @@ def validate(
     else:
         opacities = _check_tensor("opacities", opacities, (P, 1))
     shs = None if is_absent(shs) else shs
+    shs_rest = None if is_absent(shs_rest) else shs_rest
     colors_precomp = None if is_absent(colors_precomp) else colors_precomp
     scales = None if is_absent(scales) else scales
     rotations = None if is_absent(rotations) else rotations
@@ -184,13 +187,25 @@ def validate(
     tensors: Dict[str, Optional[torch.Tensor]] = {"means3D": means3D, "opacities": opacities}
     if means2D is not None:
         tensors["means2D"] = _check_tensor("means2D", means2D, (P, 3))
+    if shs_rest is not None and shs is None:
+        raise RasterizerInputError(
+            "shs_rest must come with shs (its first coefficient), got shs=None")
     if shs is not None:
-        tensors["shs"] = _check_tensor("shs", shs, (P, None, 3))
         need = (sh_degree + 1) ** 2
-        if shs.shape[1] < need:
+        if shs_rest is None:
+            tensors["shs"] = _check_tensor("shs", shs, (P, None, 3))
+            count, got = shs.shape[1], f"shape {_shape(shs)}"
+        else:
+            tensors["shs"] = _check_tensor("shs (with shs_rest)", shs, (P, 1, 3))
+            tensors["shs_rest"] = _check_tensor("shs_rest", shs_rest, (P, None, 3))
+            count = 1 + shs_rest.shape[1]
+            got = f"1 + {shs_rest.shape[1]} (shs_rest {_shape(shs_rest)})"
+            if shs_rest.shape[1] == 0:  # degree 0: nothing after the first coefficient
+                del tensors["shs_rest"]
+        if count < need:
             raise RasterizerInputError(
                 f"shs must have at least (sh_degree+1)**2 = {need} coefficients for "
-                f"sh_degree={sh_degree}, got shape {_shape(shs)}"
+                f"sh_degree={sh_degree}, got {got}"
             )
     if colors_precomp is not None:
         tensors["colors_precomp"] = _check_tensor("colors_precomp", colors_precomp, (P, 3))
@@ -224,6 +239,7 @@ def validate(
         "means2D": tensors.get("means2D"),
         "opacities": opacities,
         "shs": shs,
+        "shs_rest": tensors.get("shs_rest"),
         "colors_precomp": colors_precomp,
         "scales": scales,
         "rotations": rotations,

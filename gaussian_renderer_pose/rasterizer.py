@@ -88,6 +88,7 @@ def rasterize_gaussians(
     rotations: Optional[torch.Tensor] = None,
     cov3D_precomp: Optional[torch.Tensor] = None,
     validate: bool = True,
+    shs_rest: Optional[torch.Tensor] = None,
 ) -> RasterOutput:
     """Render; see the module docstring for conventions and numerics.
 
@@ -99,6 +100,12 @@ def rasterize_gaussians(
     opacities, shs, colors_precomp, scales, rotations, cov3D_precomp), whose cost grows with the
     scene; use it only for tensors already checked (e.g. a scene rendered many times, checked
     once). Types, shapes, dtypes, devices, the settings and the camera tensors are still checked.
+
+    ``shs_rest`` [P, M - 1, 3]: the SH coefficients after the first, with ``shs`` [P, 1, 3]
+    holding the first; the image and gradients are those of their concatenation along dim 1.
+    A fitter keeps the two as separate parameters (upstream's ``features_dc`` /
+    ``features_rest``, with their own learning rates): the CPU kernel reads and writes them
+    where they are instead of a copy of both every step (other backends concatenate them).
     """
     if not isinstance(settings, GaussianRasterizationSettings):
         raise RasterizerInputError(
@@ -115,6 +122,7 @@ def rasterize_gaussians(
         rotations=rotations,
         cov3D_precomp=cov3D_precomp,
         check_finite=validate,
+        shs_rest=shs_rest,
     )
     fn = _dispatch.select_backend(settings.backend, means3D.device, means3D.dtype)
     color, radii, invdepth, depth_acc, alpha = fn(
@@ -138,6 +146,7 @@ def rasterize_gaussians(
         sh_degree=args["sh_degree"],
         prefiltered=args["prefiltered"],
         antialiasing=args["antialiasing"],
+        shs_rest=args["shs_rest"],
     )
     covered = alpha > 1e-6
     depth = torch.where(

@@ -201,7 +201,8 @@ def render(
         model.means,
         model.opacities(),
         settings,
-        shs=model.shs(),
+        shs=model.sh_dc,
+        shs_rest=model.sh_rest,
         scales=model.scales(),
         rotations=model.rotations(),
     )

@@ -173,7 +173,7 @@ def _digest(fn: Callable, scene: Dict[str, object]) -> Dict[str, object]:
                 "cov3D_precomp", "bg", "viewmatrix", "projmatrix", "campos")),
             settings["image_height"], settings["image_width"], settings["tanfovx"],
             settings["tanfovy"], settings["scale_modifier"], settings["sh_degree"],
-            settings["prefiltered"], settings["antialiasing"])[4:]
+            settings["prefiltered"], settings["antialiasing"], None)[4:]
     return {"images": sha(color, invdepth, depth_acc, alpha, radii), "camera_grad": sha(*grads),
             "state": sha(*state),
             "color_sum": float(color.detach().double().sum()),

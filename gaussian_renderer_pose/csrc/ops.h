@@ -28,6 +28,7 @@ namespace grp {
   X(Tensor, means3D)           /* [P, 3] world-space means                               */ \
   X(Tensor, opacities)         /* [P, 1] activated opacities in [0, 1]                   */ \
   X(OptTensor, shs)            /* [P, M, 3] SH coefficients, M >= (sh_degree + 1)^2      */ \
+                               /*        (with shs_rest: [P, 1, 3], the first only)      */ \
   X(OptTensor, colors_precomp) /* [P, 3] RGB used instead of SH when given               */ \
   X(OptTensor, scales)         /* [P, 3] activated scales (times scale_modifier)         */ \
   X(OptTensor, rotations)      /* [P, 4] quaternion (w, x, y, z), NOT normalised         */ \
@@ -44,7 +45,10 @@ namespace grp {
   X(Float, scale_modifier)                                                                  \
   X(Int, sh_degree)            /* 0..3                                                   */ \
   X(Bool, prefiltered)         /* accepted, no effect: culling is always done            */ \
-  X(Bool, antialiasing)
+  X(Bool, antialiasing)                                                                     \
+  X(OptTensor, shs_rest)       /* [P, M - 1, 3] the SH coefficients after the first, or  */ \
+                               /*        undefined (all of them in shs); last, as the    */ \
+                               /*        backends' keyword argument                      */
 
 // Output images of the forward.
 #define GRP_RASTER_IMAGES(X)                                                                \
@@ -98,7 +102,8 @@ namespace grp {
   X(Tensor, grad_bg)                                                                        \
   X(OptTensor, grad_viewmatrix)                                                             \
   X(OptTensor, grad_projmatrix)                                                             \
-  X(OptTensor, grad_campos)
+  X(OptTensor, grad_campos)                                                                 \
+  X(OptTensor, grad_shs_rest)
 
 #define GRP_FORWARD_OUTPUTS(X) GRP_RASTER_IMAGES(X) GRP_SAVED_STATE(X)
 

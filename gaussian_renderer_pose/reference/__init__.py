@@ -39,11 +39,15 @@ def rasterize_gaussians_reference(
     sh_degree: int,
     prefiltered: bool = False,
     antialiasing: bool = False,
+    shs_rest: Optional[torch.Tensor] = None,
 ) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """-> (color [3,H,W], radii [P] int32, invdepth [1,H,W], depth_acc [1,H,W], alpha [1,H,W]).
 
     `prefiltered` is accepted for API parity and ignored (as upstream's culling ignores it).
+    `shs_rest`: the SH coefficients after the first (``shs`` then holds the first), joined here.
     """
+    if shs_rest is not None:
+        shs = torch.cat([shs, shs_rest], dim=1)
     P = means3D.shape[0]
     proj = preprocess(
         means3D,

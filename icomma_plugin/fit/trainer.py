@@ -144,8 +144,9 @@ def render_state(state: GaussianTrainState, view: FitView, bg: torch.Tensor, bac
         prefiltered=False, debug=False, antialiasing=False, backend=backend,
     )
     return rasterize_gaussians(
-        means, state.opacities(), settings, means2D=means2D, shs=state.shs(),
-        scales=state.scales(), rotations=state.rotations(), validate=validate,
+        means, state.opacities(), settings, means2D=means2D, shs=state.get("sh_dc"),
+        shs_rest=state.get("sh_rest"), scales=state.scales(), rotations=state.rotations(),
+        validate=validate,
     )
 
 

@@ -115,17 +115,17 @@ def test_no_camera_gradient_when_not_requested():
     # The C++ backward returns no camera gradient at all when not asked (nothing computed).
     tensors, settings = _direct_args(scene)
     ops = _ops()
-    outs = ops.rasterize_forward(*tensors, *settings, False, False)
+    outs = ops.rasterize_forward(*tensors, *settings, False, False, None)
     H, W = scene.height, scene.width
     state = outs[4:]  # radii and the saved state
-    grads = ops.rasterize_backward(*tensors, *settings, False, False, *state, torch.ones(3, H, W),
-                                   torch.zeros(1, H, W), torch.zeros(1, H, W),
-                                   torch.zeros(1, H, W), False, True)
+    grads = ops.rasterize_backward(*tensors, *settings, False, False, None, *state,
+                                   torch.ones(3, H, W), torch.zeros(1, H, W),
+                                   torch.zeros(1, H, W), torch.zeros(1, H, W), False, True)
     assert grads[9] is None and grads[10] is None and grads[11] is None
-    grads_cam = ops.rasterize_backward(*tensors, *settings, False, False, *state,
+    grads_cam = ops.rasterize_backward(*tensors, *settings, False, False, None, *state,
                                        torch.ones(3, H, W), torch.zeros(1, H, W),
                                        torch.zeros(1, H, W), torch.zeros(1, H, W), True, True)
-    assert all(t is not None for t in grads_cam[9:])
+    assert all(t is not None for t in grads_cam[9:12]) and grads_cam[12] is None  # no shs_rest
     for a, b in zip(grads[:9], grads_cam[:9]):
         assert (a is None and b is None) or torch.equal(a, b)
 
@@ -178,19 +178,19 @@ def test_torch_check_errors_are_runtime_errors():
     ops = _ops()
     for what, tensors, settings in _bad_calls(scene):
         with pytest.raises(RuntimeError):
-            ops.rasterize_forward(*tensors, *settings, False, False)
+            ops.rasterize_forward(*tensors, *settings, False, False, None)
             pytest.fail(f"no error for {what}")
     # backward with saved state that does not belong to the inputs
     tensors, settings = _direct_args(scene)
-    outs = ops.rasterize_forward(*tensors, *settings, False, False)
+    outs = ops.rasterize_forward(*tensors, *settings, False, False, None)
     H, W = scene.height, scene.width
     g = [torch.zeros(3, H, W), torch.zeros(1, H, W), torch.zeros(1, H, W), torch.zeros(1, H, W)]
     radii, state = outs[4], outs[5:]
     with pytest.raises(RuntimeError):
-        ops.rasterize_backward(*tensors, *settings, False, False, radii[:-1], *state, *g, True,
-                               True)
+        ops.rasterize_backward(*tensors, *settings, False, False, None, radii[:-1], *state, *g,
+                               True, True)
     with pytest.raises(RuntimeError):
-        ops.rasterize_backward(*tensors, *settings, False, False, radii, *state,
+        ops.rasterize_backward(*tensors, *settings, False, False, None, radii, *state,
                                torch.zeros(3, H + 1, W), *g[1:], True, True)
     with pytest.raises(RuntimeError):
         ops.mark_visible(scene.means3D.double(), tensors[8], tensors[9])
@@ -272,7 +272,7 @@ def test_tile_lists_hold_exactly_the_tiles_an_alpha_box_reaches():
                        opacity_range=(0.005, 0.08), frac_behind=0.0)
     compare(scene)
     tensors, settings = _direct_args(scene)
-    outs = _ops().rasterize_forward(*tensors, *settings, False, False)
+    outs = _ops().rasterize_forward(*tensors, *settings, False, False, None)
     radii, geom, binning, tile_ranges = outs[4], outs[5], outs[6], outs[7]
     tile = _ops()._C.TILE_SIZE
     H, W = scene.height, scene.width

@@ -37,7 +37,8 @@ def test_op_schemas_follow_the_backend_contract():
     from gaussian_renderer_pose._native import rasterize_gaussians_native
 
     contract = list(inspect.signature(rasterize_gaussians_native).parameters)
-    tensors = contract[:contract.index("campos") + 1]  # means3D .. campos
+    # means3D .. campos, then the optional tensors among the keyword arguments
+    tensors = contract[:contract.index("campos") + 1] + ["shs_rest"]
     inputs = [n for n in contract if n != "means2D"]  # means2D only carries a gradient
     ops = _ops()
     fwd, bwd = ops.rasterize_forward._schema, ops.rasterize_backward._schema
@@ -51,8 +52,11 @@ def test_op_schemas_follow_the_backend_contract():
 
 
 def _op_inputs(device, *, colors="sh", covariance="scale_rot", antialiasing=False, num=24,
-               requires_grad=True):
-    """(tensors, settings) of rasterize_forward for a small scene on `device`."""
+               requires_grad=True, split_sh=False):
+    """(tensors, settings) of rasterize_forward for a small scene on `device`.
+
+    settings: the scalars, then shs_rest.
+    """
     scene = make_scene(num, height=24, width=40, sh_degree=2, seed=7, colors=colors,
                        covariance=covariance, antialiasing=antialiasing)
     cam = camera_matrices(scene.w2c, scene.fx, scene.fy, scene.width, scene.height)
@@ -61,8 +65,12 @@ def _op_inputs(device, *, colors="sh", covariance="scale_rot", antialiasing=Fals
            cam.campos]
     tensors = [None if t is None else
                t.detach().to(device).contiguous().requires_grad_(requires_grad) for t in raw]
+    shs_rest = None
+    if split_sh:  # the first SH coefficient in shs, the others in shs_rest (the last argument)
+        shs_rest = tensors[2][:, 1:].detach().contiguous().requires_grad_(requires_grad)
+        tensors[2] = tensors[2][:, :1].detach().contiguous().requires_grad_(requires_grad)
     settings = (scene.height, scene.width, cam.tanfovx, cam.tanfovy, 1.0, scene.sh_degree, False,
-                antialiasing)
+                antialiasing, shs_rest)
     return tensors, settings
 
 
@@ -71,6 +79,7 @@ FORWARD_CASES = {
     "precomp colours+cov3D, antialiasing": dict(colors="precomp", covariance="precomp",
                                                 antialiasing=True),
     "no Gaussians": dict(num=0),
+    "sh in two tensors": dict(split_sh=True),
 }
 
 
@@ -82,7 +91,8 @@ def test_opcheck_forward(device, case):
 
 
 @pytest.mark.parametrize("device", DEVICES)
-@pytest.mark.parametrize("case", ["sh+scale_rot", "precomp colours+cov3D, antialiasing"])
+@pytest.mark.parametrize("case", ["sh+scale_rot", "precomp colours+cov3D, antialiasing",
+                                  "sh in two tensors"])
 @pytest.mark.parametrize("camera,gaussians", [(True, True), (False, True), (True, False),
                                               (False, False)])
 def test_opcheck_backward(device, case, camera, gaussians):

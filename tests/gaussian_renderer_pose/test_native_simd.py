@@ -57,7 +57,7 @@ def _forward(sc, order, colors=False, antialiasing=False):
         sc["means3D"][order].contiguous(), sc["opacities"][order].contiguous(), shs, col,
         sc["scales"][order].contiguous(), sc["rotations"][order].contiguous(), None, sc["bg"],
         sc["viewmatrix"], sc["projmatrix"], sc["campos"], s["image_height"], s["image_width"],
-        s["tanfovx"], s["tanfovy"], 1.0, s["sh_degree"], False, antialiasing)
+        s["tanfovx"], s["tanfovy"], 1.0, s["sh_degree"], False, antialiasing, None)
     return out[4], out[5]  # radii, geom
 
 

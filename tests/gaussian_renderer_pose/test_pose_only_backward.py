@@ -154,7 +154,7 @@ def _op_call(scene, camera: bool, gaussians: bool):
         scene.rotations, scene.cov3D_precomp, scene.bg, cam.viewmatrix, cam.projmatrix,
         cam.campos)]
     settings = (scene.height, scene.width, cam.tanfovx, cam.tanfovy, scene.scale_modifier,
-                scene.sh_degree, False, scene.antialiasing)
+                scene.sh_degree, False, scene.antialiasing, None)
     outs = ops.rasterize_forward(*tensors, *settings)
     g = torch.Generator().manual_seed(2)
     H, W = scene.height, scene.width

@@ -36,7 +36,8 @@ struct RasterArgs {
   bool antialiasing = false;
   const float* means = nullptr;       // [P, 3]
   const float* opac = nullptr;        // [P, 1]
-  const float* shs = nullptr;         // [P, M, 3]   (or nullptr)
+  const float* shs = nullptr;         // [P, M, 3]   (or nullptr); [P, 1, 3] with shs_rest
+  const float* shs_rest = nullptr;    // [P, M - 1, 3] (or nullptr: every coefficient in shs)
   const float* colors = nullptr;      // [P, 3]      (or nullptr)
   const float* scales = nullptr;      // [P, 3]      (or nullptr)
   const float* rots = nullptr;        // [P, 4]      (or nullptr)
@@ -57,6 +58,7 @@ struct GaussianGrads {
   float* scales;   // [P, 3]
   float* rots;     // [P, 4]
   float* cov3d;    // [P, 6]
+  float* shs_rest; // [P, M - 1, 3] (SH in two tensors; shs is then [P, 1, 3])
 };
 
 // Output images of the forward render.
@@ -157,10 +159,26 @@ GRP_FORCE_INLINE void write_geom_record(const RasterArgs& a, int64_t g, Vec2 pix
   for (int k = kGBoxY + 1; k < kGStride; ++k) gd[k] = 0.f;  // padding
 }
 
+// Most SH coefficients read (degree 3), 3 floats each.
+constexpr int kMaxShFloats = 16 * 3;
+
+// The SH coefficients of Gaussian g, 3 floats each: a pointer into shs, or, with the SH in two
+// tensors (shs_rest), the (sh_degree + 1)^2 that are read, gathered into buf[kMaxShFloats]. The
+// values are the same either way, so is every result computed from them.
+GRP_FORCE_INLINE const float* gaussian_sh(const RasterArgs& a, int64_t g, float* buf) {
+  if (a.shs_rest == nullptr) return a.shs + g * a.M * 3;
+  const int n = (a.sh_degree + 1) * (a.sh_degree + 1);
+  const float* rest = a.shs_rest + g * (a.M - 1) * 3;
+  for (int c = 0; c < 3; ++c) buf[c] = a.shs[3 * g + c];
+  for (int k = 3; k < 3 * n; ++k) buf[k] = rest[k - 3];
+  return buf;
+}
+
 // The colour of Gaussian g seen from campos (precomputed, or SH clamped at 0).
 GRP_FORCE_INLINE Vec3 gaussian_colour(const RasterArgs& a, int64_t g, Vec3 m) {
   if (a.colors != nullptr) return load3(a.colors + 3 * g);
-  const Vec3 rgb = eval_sh(a.sh_degree, a.shs + g * a.M * 3, m, load3(a.campos));
+  float buf[kMaxShFloats];
+  const Vec3 rgb = eval_sh(a.sh_degree, gaussian_sh(a, g, buf), m, load3(a.campos));
   return {rgb.x < 0.f ? 0.f : rgb.x, rgb.y < 0.f ? 0.f : rgb.y, rgb.z < 0.f ? 0.f : rgb.z};
 }
 
@@ -253,8 +271,18 @@ GRP_FORCE_INLINE void gaussian_backward_one(const RasterArgs& a, int64_t g, cons
       out.colors[3 * g + 2] = s[8];
     }
   } else if (gauss || a.sh_degree > 0) {  // at degree 0 the colour ignores the camera
-    const Vec3 dv = eval_sh_vjp(a.sh_degree, a.shs + g * a.M * 3, m, cpos, {s[6], s[7], s[8]},
-                                gauss ? out.shs + g * a.M * 3 : nullptr);
+    // With the SH in two tensors the gradient goes through dbuf, then to its two rows (the
+    // coefficients not read keep the zeros the caller filled in).
+    float buf[kMaxShFloats], dbuf[kMaxShFloats];
+    float* dsh = !gauss ? nullptr : a.shs_rest != nullptr ? dbuf : out.shs + g * a.M * 3;
+    const Vec3 dv = eval_sh_vjp(a.sh_degree, gaussian_sh(a, g, buf), m, cpos, {s[6], s[7], s[8]},
+                                dsh);
+    if (gauss && a.shs_rest != nullptr) {
+      const int n = (a.sh_degree + 1) * (a.sh_degree + 1);
+      float* rest = out.shs_rest + g * (a.M - 1) * 3;
+      for (int c = 0; c < 3; ++c) out.shs[3 * g + c] = dbuf[c];
+      for (int k = 3; k < 3 * n; ++k) rest[k - 3] = dbuf[k];
+    }
     if (a.sh_degree > 0) {
       dm.x += dv.x;
       dm.y += dv.y;

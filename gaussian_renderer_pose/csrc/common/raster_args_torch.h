@@ -58,8 +58,15 @@ RasterArgs fill_raster_args(const Check& check, const Inputs& in) {
     check(in.colors_precomp, "colors_precomp", {P, 3});
     a.colors = in.colors_precomp.template data_ptr<float>();
   } else {
-    check(in.shs, "shs", {P, -1, 3});
-    a.M = in.shs.size(1);
+    if (in.shs_rest.defined()) {  // the first coefficient in shs, the others in shs_rest
+      check(in.shs, "shs", {P, 1, 3});
+      check(in.shs_rest, "shs_rest", {P, -1, 3});
+      a.M = 1 + in.shs_rest.size(1);
+      a.shs_rest = in.shs_rest.template data_ptr<float>();
+    } else {
+      check(in.shs, "shs", {P, -1, 3});
+      a.M = in.shs.size(1);
+    }
     TORCH_CHECK(a.M >= (sh_degree + 1) * (sh_degree + 1), "shs has ", a.M,
                 " coefficients, sh_degree ", sh_degree, " needs ", (sh_degree + 1) * (sh_degree + 1));
     a.shs = in.shs.template data_ptr<float>();
@@ -152,33 +159,48 @@ inline RenderOutputs render_outputs(ForwardOutputs& f) {
           f.last_contrib.data_ptr<int32_t>()};
 }
 
-// The backward's outputs with zero-filled per-Gaussian gradients (undefined where the input is
-// absent, and all undefined unless gaussian_grads: compute_gaussian_grads of ../ops.h); grad_bg
-// and the camera gradients are left to the backend.
-inline BackwardOutputs zero_gaussian_grads(const RasterArgs& a, bool gaussian_grads,
-                                           const at::TensorOptions& fopt) {
+// The backward's per-Gaussian gradients, allocated by make(sizes, options) (undefined where the
+// input is absent, and all undefined unless gaussian_grads: compute_gaussian_grads of ../ops.h);
+// grad_bg and the camera gradients are left to the backend.
+template <typename Make>
+BackwardOutputs allocate_gaussian_grads(const RasterArgs& a, bool gaussian_grads,
+                                        const at::TensorOptions& fopt, const Make& make) {
   const int64_t P = a.P;
   BackwardOutputs g;
   if (!gaussian_grads) return g;
-  g.grad_means3D = at::zeros({P, 3}, fopt);
-  g.grad_means2D = at::zeros({P, 3}, fopt);
-  g.grad_opacities = at::zeros({P, 1}, fopt);
-  if (a.colors != nullptr) g.grad_colors_precomp = at::zeros({P, 3}, fopt);
-  else g.grad_shs = at::zeros({P, a.M, 3}, fopt);
-  if (a.cov3d != nullptr) {
-    g.grad_cov3D_precomp = at::zeros({P, 6}, fopt);
+  g.grad_means3D = make({P, 3}, fopt);
+  g.grad_means2D = make({P, 3}, fopt);
+  g.grad_opacities = make({P, 1}, fopt);
+  if (a.colors != nullptr) {
+    g.grad_colors_precomp = make({P, 3}, fopt);
+  } else if (a.shs_rest != nullptr) {
+    g.grad_shs = make({P, 1, 3}, fopt);
+    g.grad_shs_rest = make({P, a.M - 1, 3}, fopt);
   } else {
-    g.grad_scales = at::zeros({P, 3}, fopt);
-    g.grad_rotations = at::zeros({P, 4}, fopt);
+    g.grad_shs = make({P, a.M, 3}, fopt);
+  }
+  if (a.cov3d != nullptr) {
+    g.grad_cov3D_precomp = make({P, 6}, fopt);
+  } else {
+    g.grad_scales = make({P, 3}, fopt);
+    g.grad_rotations = make({P, 4}, fopt);
   }
   return g;
+}
+
+// allocate_gaussian_grads with zero-filled tensors.
+inline BackwardOutputs zero_gaussian_grads(const RasterArgs& a, bool gaussian_grads,
+                                           const at::TensorOptions& fopt) {
+  return allocate_gaussian_grads(
+      a, gaussian_grads, fopt,
+      [](at::IntArrayRef sizes, const at::TensorOptions& o) { return at::zeros(sizes, o); });
 }
 
 inline GaussianGrads gaussian_grad_ptrs(BackwardOutputs& g) {
   auto ptr = [](at::Tensor& t) { return t.defined() ? t.data_ptr<float>() : nullptr; };
   return {ptr(g.grad_means3D),   ptr(g.grad_means2D),        ptr(g.grad_opacities),
           ptr(g.grad_shs),       ptr(g.grad_colors_precomp), ptr(g.grad_scales),
-          ptr(g.grad_rotations), ptr(g.grad_cov3D_precomp)};
+          ptr(g.grad_rotations), ptr(g.grad_cov3D_precomp), ptr(g.grad_shs_rest)};
 }
 
 }  // namespace grp

@@ -43,11 +43,17 @@ void for_each_chunk(int nchunks, const F& fn) {
   });
 }
 
+// The size of the block alloc_huge gives for `bytes`: at least 2 MiB, a multiple of 2 MiB.
+inline size_t huge_size(size_t bytes) {
+  const size_t huge = size_t(2) << 20;
+  return (std::max(bytes, huge) + huge - 1) / huge * huge;
+}
+
 // Memory of 2 MiB or more, 2 MiB aligned and advised as transparent huge pages; nullptr on
-// failure. *bytes is rounded up to a multiple of 2 MiB.
+// failure. *bytes is rounded up to huge_size(*bytes).
 inline void* alloc_huge(size_t* bytes) {
   const size_t huge = size_t(2) << 20;
-  *bytes = (std::max(*bytes, huge) + huge - 1) / huge * huge;
+  *bytes = huge_size(*bytes);
   void* p = std::aligned_alloc(huge, *bytes);
 #if defined(MADV_HUGEPAGE)
   if (p != nullptr) madvise(p, *bytes, MADV_HUGEPAGE);
@@ -92,9 +98,9 @@ class ScratchArray {
 };
 
 // A process-wide cache of freed blocks for the large outputs of the CPU kernel (the forward's
-// saved state and images). A fresh block costs a page fault and a zero-fill per 4 KiB page when
-// first written (about 40 ns a Gaussian for the 64-byte geom records alone); a block handed back
-// by a dead tensor does not. At most kMaxCachedBytes are kept (the environment variable
+// saved state and images, the backward's gradients). A fresh block costs a page fault and a
+// zero-fill per 4 KiB page when first written (about 40 ns a Gaussian for the 64-byte geom
+// records alone); a block handed back by a dead tensor does not. At most kMaxCachedBytes are kept (the environment variable
 // GRP_CPU_CACHE_MB, read once, overrides it; 0 disables the cache). Thread-safe; never destroyed
 // (tensors may die after static destructors have run).
 class BlockCache {
@@ -111,6 +117,9 @@ class BlockCache {
     for (int64_t s : sizes) numel *= s;
     size_t bytes = (size_t)numel * at::elementSize(at::typeMetaToScalarType(options.dtype()));
     if (limit_ == 0 || bytes < kMinBytes) return at::empty(sizes, options);
+    // Blocks are whole huge pages: match on the size alloc_huge would give, so that a request
+    // just over a multiple of 2 MiB finds the block of the same request again.
+    bytes = huge_size(bytes);
     void* p = take(&bytes);
     if (p == nullptr) p = alloc_huge(&bytes);
     if (p == nullptr) return at::empty(sizes, options);

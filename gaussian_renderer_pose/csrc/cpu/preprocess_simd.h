@@ -156,13 +156,19 @@ inline V3 sh_lanes(const RasterArgs& a, int64_t g0, const V3& m) {
     basis[15] = kShC3_6 * x * (xx - 3.f * yy);
     n = 16;
   }
-  // As eval_sh: each product rounded, then summed in order of k.
-  const int stride = (int)a.M * 3;
+  // As eval_sh: each product rounded, then summed in order of k. Coefficient k, channel c: in
+  // shs, or (SH in two tensors, gaussian_sh) the first in shs and the others in shs_rest.
+  const bool split = a.shs_rest != nullptr;
+  const int stride = split ? 3 : (int)a.M * 3, rest_stride = (int)(a.M - 1) * 3;
+  const auto coef = [&](int k, int c) {
+    return split && k > 0 ? load_lanes(a.shs_rest, g0, rest_stride, 3 * (k - 1) + c)
+                          : load_lanes(a.shs, g0, stride, 3 * k + c);
+  };
   V3 rgb = {splat(0.f), splat(0.f), splat(0.f)};
   for (int k = 0; k < n; ++k) {
-    rgb.x += round_here(basis[k] * load_lanes(a.shs, g0, stride, 3 * k + 0));
-    rgb.y += round_here(basis[k] * load_lanes(a.shs, g0, stride, 3 * k + 1));
-    rgb.z += round_here(basis[k] * load_lanes(a.shs, g0, stride, 3 * k + 2));
+    rgb.x += round_here(basis[k] * coef(k, 0));
+    rgb.y += round_here(basis[k] * coef(k, 1));
+    rgb.z += round_here(basis[k] * coef(k, 2));
   }
   return {rgb.x + 0.5f, rgb.y + 0.5f, rgb.z + 0.5f};
 }

@@ -554,8 +554,14 @@ void backward_tile(const RasterArgs& in, int64_t tile, const float* geom, const 
 // live slots in tile order and chains them through gaussian_backward_one (../common/raster.h),
 // which writes gout (not when gout.means3D == nullptr: camera terms only); the camera terms go to
 // cam[kCamGrad] (double, in Gaussian order) when cam != nullptr. A Gaussian without a live slot
-// reaches no pixel: its gradients are zero (gout is zero-filled) and it is skipped.
+// reaches no pixel: its gradients are zero and it is skipped. gout comes uninitialised (recycled
+// blocks, rasterize_backward_cpu): the block's rows are zeroed here first, in parallel and in
+// cache just before they are written, instead of a serial zero-fill of fresh pages.
 // ------------------------------------------------------------------------------------------------
+inline void zero_rows(float* t, int64_t width, int64_t g0, int64_t g1) {
+  if (t != nullptr) std::memset(t + g0 * width, 0, (size_t)((g1 - g0) * width) * sizeof(float));
+}
+
 void gaussian_backward_block(const RasterArgs& in, int64_t blk, const int32_t* rad,
                              const int64_t* off, const float* slots, const uint8_t* live,
                              const GaussianGrads& gout, double* cam) {
@@ -563,8 +569,19 @@ void gaussian_backward_block(const RasterArgs& in, int64_t blk, const int32_t* r
   double* dP = cam ? cam + 16 : nullptr;
   double* dC = cam ? cam + 32 : nullptr;
   const Vec3 cpos = load3(in.campos);
-  const int64_t g1 = std::min(in.P, (blk + 1) * kGaussBlock);
-  for (int64_t g = blk * kGaussBlock; g < g1; ++g) {
+  const int64_t g0 = blk * kGaussBlock, g1 = std::min(in.P, (blk + 1) * kGaussBlock);
+  if (gout.means3D != nullptr) {
+    zero_rows(gout.means3D, 3, g0, g1);
+    zero_rows(gout.means2D, 3, g0, g1);
+    zero_rows(gout.opac, 1, g0, g1);
+    zero_rows(gout.shs, in.shs_rest != nullptr ? 3 : 3 * in.M, g0, g1);
+    zero_rows(gout.shs_rest, 3 * (in.M - 1), g0, g1);
+    zero_rows(gout.colors, 3, g0, g1);
+    zero_rows(gout.scales, 3, g0, g1);
+    zero_rows(gout.rots, 4, g0, g1);
+    zero_rows(gout.cov3d, 6, g0, g1);
+  }
+  for (int64_t g = g0; g < g1; ++g) {
     if (rad[g] <= 0) continue;
     float s[kSlot] = {0};
     bool reached = false;
@@ -722,7 +739,10 @@ BackwardOutputs rasterize_backward_cpu(const BackwardInputs& b) {
                   b.tile_ranges.data_ptr<int32_t>()[num_tiles] == num_rendered,
               "saved binning state does not match the inputs");
   const auto fopt = b.means3D.options();
-  BackwardOutputs grads = zero_gaussian_grads(in, b.compute_gaussian_grads, fopt);
+  cpu::BlockCache& cache = cpu::BlockCache::instance();
+  BackwardOutputs grads = allocate_gaussian_grads(
+      in, b.compute_gaussian_grads, fopt,
+      [&cache](at::IntArrayRef sizes, const at::TensorOptions& o) { return cache.empty(sizes, o); });
   grads.grad_bg = at::empty({3}, fopt);
   const bool want_slots = b.compute_camera_grad || b.compute_gaussian_grads;
   thread_local BackwardScratch scratch;
