@@ -137,3 +137,36 @@ def test_forward_outputs_are_a_function_of_the_inputs(device):
         again = ops.rasterize_forward(*tensors, *settings)
         for name, a, b in zip([*IMAGES, *STATE], first, again):
             assert torch.equal(a, b), f"{name} differs between two identical calls"
+
+
+@pytest.mark.parametrize("num", [60, 100_000])  # torch's allocator; the kernel's block cache
+@pytest.mark.parametrize("split_sh", [False, True])
+def test_backward_gradients_are_a_function_of_the_inputs(num, split_sh):
+    # The CPU backward writes the Gaussians' gradients into uninitialised (recycled) memory and
+    # zeroes each block's rows itself: a Gaussian that reaches no pixel must still get exact
+    # zeros when the memory handed back held NaNs from the call before.
+    ops = _ops()
+    tensors, settings = _op_inputs("cpu", num=num, requires_grad=False, split_sh=split_sh)
+    with torch.no_grad():
+        outs = ops.rasterize_forward(*tensors, *settings)
+    radii = outs[4]
+    assert int((radii == 0).sum()) > 0, "the scene should have Gaussians that reach no pixel"
+    H, W = settings[:2]
+    g = torch.Generator().manual_seed(5)
+    cots = [torch.rand(s, generator=g) for s in ((3, H, W), (1, H, W), (1, H, W), (1, H, W))]
+
+    def gaussian_grads():
+        grads = ops.rasterize_backward(*tensors, *settings, *outs[4:], *cots, False, True)
+        return [t for i, t in enumerate(grads) if t is not None and i not in (8, 9, 10, 11)]
+
+    first = [t.clone() for t in gaussian_grads()]
+    for _ in range(3):
+        dirty = gaussian_grads()
+        for t in dirty:
+            t.fill_(float("nan"))  # handed back to the allocator / block cache full of NaNs
+        del dirty
+        again = gaussian_grads()
+        assert len(again) == len(first)
+        for a, b in zip(first, again):
+            assert torch.equal(a, b)
+            assert not bool(a[radii == 0].any()), "a Gaussian that reaches no pixel got a gradient"

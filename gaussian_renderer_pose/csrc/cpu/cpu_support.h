@@ -100,9 +100,9 @@ class ScratchArray {
 // A process-wide cache of freed blocks for the large outputs of the CPU kernel (the forward's
 // saved state and images, the backward's gradients). A fresh block costs a page fault and a
 // zero-fill per 4 KiB page when first written (about 40 ns a Gaussian for the 64-byte geom
-// records alone); a block handed back by a dead tensor does not. At most kMaxCachedBytes are kept (the environment variable
-// GRP_CPU_CACHE_MB, read once, overrides it; 0 disables the cache). Thread-safe; never destroyed
-// (tensors may die after static destructors have run).
+// records alone); a block handed back by a dead tensor does not. At most kMaxCachedBytes are
+// kept (the environment variable GRP_CPU_CACHE_MB, read once, overrides it; 0 disables the
+// cache). Thread-safe; never destroyed (tensors may die after static destructors have run).
 class BlockCache {
  public:
   static BlockCache& instance() {
