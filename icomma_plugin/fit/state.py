@@ -128,10 +128,6 @@ class GaussianTrainState:
         """Unit quaternions [P, 4] (w, x, y, z)."""
         return torch.nn.functional.normalize(self.params["quat"], dim=-1)
 
-    def shs(self) -> torch.Tensor:
-        """SH coefficients [P, M, 3]: the DC term then the rest."""
-        return torch.cat([self.params["sh_dc"], self.params["sh_rest"]], dim=1)
-
     def to_model(self) -> GaussianModel:
         """A detached copy as a GaussianModel (full SH degree)."""
         return GaussianModel(

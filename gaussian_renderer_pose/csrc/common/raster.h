@@ -174,6 +174,17 @@ GRP_FORCE_INLINE const float* gaussian_sh(const RasterArgs& a, int64_t g, float*
   return buf;
 }
 
+// The inverse of gaussian_sh's gather for a gradient, SH in two tensors: d[3 (sh_degree + 1)^2]
+// to Gaussian g's rows of dshs [P, 1, 3] and dshs_rest [P, M - 1, 3] (the coefficients not read
+// are left as they are).
+GRP_FORCE_INLINE void scatter_sh_grad(const RasterArgs& a, int64_t g, const float* d, float* dshs,
+                                      float* dshs_rest) {
+  const int n = (a.sh_degree + 1) * (a.sh_degree + 1);
+  float* rest = dshs_rest + g * (a.M - 1) * 3;
+  for (int c = 0; c < 3; ++c) dshs[3 * g + c] = d[c];
+  for (int k = 3; k < 3 * n; ++k) rest[k - 3] = d[k];
+}
+
 // The colour of Gaussian g seen from campos (precomputed, or SH clamped at 0).
 GRP_FORCE_INLINE Vec3 gaussian_colour(const RasterArgs& a, int64_t g, Vec3 m) {
   if (a.colors != nullptr) return load3(a.colors + 3 * g);
@@ -277,12 +288,7 @@ GRP_FORCE_INLINE void gaussian_backward_one(const RasterArgs& a, int64_t g, cons
     float* dsh = !gauss ? nullptr : a.shs_rest != nullptr ? dbuf : out.shs + g * a.M * 3;
     const Vec3 dv = eval_sh_vjp(a.sh_degree, gaussian_sh(a, g, buf), m, cpos, {s[6], s[7], s[8]},
                                 dsh);
-    if (gauss && a.shs_rest != nullptr) {
-      const int n = (a.sh_degree + 1) * (a.sh_degree + 1);
-      float* rest = out.shs_rest + g * (a.M - 1) * 3;
-      for (int c = 0; c < 3; ++c) out.shs[3 * g + c] = dbuf[c];
-      for (int k = 3; k < 3 * n; ++k) rest[k - 3] = dbuf[k];
-    }
+    if (gauss && a.shs_rest != nullptr) scatter_sh_grad(a, g, dbuf, out.shs, out.shs_rest);
     if (a.sh_degree > 0) {
       dm.x += dv.x;
       dm.y += dv.y;
