@@ -87,7 +87,8 @@ def parse_args(argv=None) -> argparse.Namespace:
         type=float,
         default=None,
         help="a time budget instead of the recipe's own length: the steps that fit in it on "
-        "this machine (a few steps of a synthetic fit timed first), up to upstream's 30000 "
+        "this machine (a few steps of a synthetic fit timed first; the steps after "
+        "densification planned again at the step time measured there), up to upstream's 30000 "
         "(goldcape 40 minutes: +1.8 dB held out, localized twice as close; docs/FITTING.md). "
         "Not with --iterations",
     )
@@ -225,6 +226,8 @@ def build_config(args: argparse.Namespace, capture=None) -> FitConfig:
             raise ValueError("--minutes needs the capture's photos to time a step")
         factor = timed_step_factor()
         seconds = 60.0 * args.minutes / factor
+        # ... and the run's tail planned again at the step time measured when densification ends
+        over.setdefault("time_budget", 60.0 * args.minutes)
     if args.recipe == "capture" and capture is not None:
         cfg = FitConfig.for_capture(capture.train_views, capture.width, capture.height,
                                     capture.object_render, args.iterations, seconds, **over)

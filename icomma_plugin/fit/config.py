@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, fields
 from typing import Optional, Tuple
 
-from ..checks import check_bool
+from ..checks import check_bool, check_real
 from ..io.datasets import PRINCIPAL_POINTS
 
 
@@ -21,6 +21,11 @@ class FitConfig:
 
     # schedule
     iterations: int = 5000
+    # seconds of steps on the machine that fits (``icomma-fit --minutes``), None: no budget.
+    # The run is planned from a predicted step time; when densification ends the rest of the
+    # run is planned again at the step time measured there, so that the steps take about this
+    # long (`Trainer`, "Re-planning the run's tail"; the schedule's fractions keep `iterations`).
+    time_budget: Optional[float] = None
     sh_degree: int = 3
     # active SH degree +1 every this many iterations (upstream 1000)
     sh_increase_interval: int = 500
@@ -117,6 +122,7 @@ class FitConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < lo:
                 raise ValueError(f"FitConfig.{name} must be an int >= {lo}, got {v!r}")
+        check_real(self.time_budget, "FitConfig.time_budget", 0.0, lo_open=True, optional=True)
         if not (isinstance(self.sh_degree, int) and 0 <= self.sh_degree <= 3):
             raise ValueError(f"FitConfig.sh_degree must be an int in 0..3, got {self.sh_degree!r}")
         if not (isinstance(self.max_gaussians_per_pixel, (int, float))

@@ -304,6 +304,7 @@ def _fit_metrics(trainer: Trainer, result: FitResult, train, test, cloud: InitCl
         "seconds_cpu": None if result.seconds_cpu is None else round(result.seconds_cpu, 2),
         "seconds_per_step": round(result.seconds_train / max(result.iterations, 1), 4),
         "removed_non_finite": result.removed_non_finite,
+        "replan": result.replan,
         "seconds_total": None,
         "resolution": [train[0].intrinsics.width, train[0].intrinsics.height],
         "init": {"source": cloud.source, "points": int(len(cloud.xyz)),

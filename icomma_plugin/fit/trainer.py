@@ -24,7 +24,8 @@ from gaussian_renderer_pose import (
 
 from ..camera import Intrinsics
 from ..gaussians import GaussianModel
-from .config import FitConfig
+from ..heap import retain_freed_memory
+from .config import UPSTREAM_ITERATIONS, FitConfig
 from .exposure import ExposureState
 from .losses import photometric_loss_and_grad, psnr
 from .state import GaussianTrainState, expon_lr
@@ -32,6 +33,13 @@ from .state import GaussianTrainState, expon_lr
 log = logging.getLogger(__name__)
 
 ProgressFn = Callable[[int, int, Dict[str, float]], None]
+
+# Re-planning the run's tail (FitConfig.time_budget): the step time is measured over the last
+# REPLAN_WINDOW steps before densification ends (its Gaussians are then nearly all there), and
+# the tail after it may shrink to REPLAN_TAIL[0] or grow to REPLAN_TAIL[1] times its plan (up to
+# upstream's 30000 steps): a machine that has grown slow still ends the learning rates' decay.
+REPLAN_WINDOW = 300
+REPLAN_TAIL = (0.25, 4.0)
 SaveFn = Callable[[int, GaussianModel], None]
 
 
@@ -124,6 +132,7 @@ class FitResult:
     timings: Dict[str, float]
     seconds_cpu: Optional[float] = None  # process CPU time of the loop (incl. evaluations)
     removed_non_finite: int = 0  # Gaussians removed because a parameter went NaN / infinite
+    replan: Optional[Dict[str, float]] = None  # the tail's new plan (`Trainer.replan`)
 
 
 def render_state(state: GaussianTrainState, view: FitView, bg: torch.Tensor, backend: str = "auto",
@@ -233,10 +242,16 @@ class Trainer:
         self.timings = dict.fromkeys(
             ("render", "loss", "backward", "stats", "densify", "adam", "exposure"), 0.0)
         self.max_steps = config.position_lr_max_steps or config.iterations
+        # the run's length: config.iterations until a time budget's re-plan (`_replan_tail`)
+        self.total_iterations = config.iterations
+        self.replan: Optional[Dict[str, float]] = None
         pixels = sum(v.intrinsics.width * v.intrinsics.height for v in self.train_views)
         self.max_gaussians = min(config.max_gaussians, max(1, int(
             config.max_gaussians_per_pixel * pixels / len(self.train_views))))
         self._setup_capture_parts(scene_centre, exposure)
+        # every step frees and allocates the same image-sized tensors: keep them in the heap
+        # (fox at 540x960: 177 -> 135 ms a step; icomma_plugin.heap)
+        retain_freed_memory()
 
     def _setup_capture_parts(self, scene_centre: Optional[Sequence[float]], exposure: bool):
         """The centre of the distance-scaled thresholds, exposures, the coarse-level cache."""
@@ -271,12 +286,26 @@ class Trainer:
             self._levels[factor] = [v.downsampled(factor) for v in self.train_views]
         return self._levels[factor][index]
 
+    def schedule_step(self, iteration: int) -> float:
+        """Where `iteration` falls on the planned run's learning-rate schedules.
+
+        `iteration` itself, except in a re-planned tail (`_replan_tail`): there the steps from
+        the re-plan to `total_iterations` are stretched (or squeezed) onto the planned ones, so
+        the learning rates go on from where they were and end where the plan ended them.
+        """
+        r = self.replan
+        if r is None or iteration <= r["at"]:
+            return iteration
+        return r["at"] + (iteration - r["at"]) * (r["planned"] - r["at"]) / (
+            r["iterations"] - r["at"])
+
     def _update_lr(self, iteration: int) -> None:
         c = self.config
         self.state.set_lr(
             "means",
-            expon_lr(iteration, c.position_lr_init * self.extent, c.position_lr_final * self.extent,
-                     self.max_steps, 0, c.position_lr_delay_mult),
+            expon_lr(self.schedule_step(iteration), c.position_lr_init * self.extent,
+                     c.position_lr_final * self.extent, self.max_steps, 0,
+                     c.position_lr_delay_mult),
         )
 
     def _loss_and_grad(self, index: int, color: torch.Tensor, gt: torch.Tensor,
@@ -384,9 +413,9 @@ class Trainer:
             t6 = time.perf_counter()
             tm["adam"] += t6 - t5
             if self.exposure is not None:
-                self.exposure.step(it)
+                self.exposure.step(self.schedule_step(it))
                 tm["exposure"] += time.perf_counter() - t6
-            if it % self.progress_every == 0 or it == c.iterations:
+            if it % self.progress_every == 0 or it == self.total_iterations:
                 info["psnr"] = psnr(shown, gt, view.valid)
         tm["render"] += t1 - t0
         tm["loss"] += t2 - t1
@@ -415,29 +444,67 @@ class Trainer:
         return float(sum(vals) / len(vals))
 
     # ------------------------------------------------------------------ the schedule
+    def _replan_step(self) -> int:
+        """Where a time budget's tail is planned again: where densification ends (or half-way)."""
+        c = self.config
+        end = c.densify_until_iter
+        return end if 0 < end < c.iterations else max(1, c.iterations // 2)
+
+    def _replan_tail(self, iteration: int, step_seconds: float, seconds_left: float) -> None:
+        """Set `total_iterations` so that the steps left take ``seconds_left`` at ``step_seconds``.
+
+        The tail's learning rates follow (`schedule_step`); `replan` records the new plan.
+        """
+        planned = self.config.iterations
+        tail = planned - iteration
+        fits = int(max(seconds_left, 0.0) / step_seconds) if step_seconds > 0 else tail
+        cap = max(planned, UPSTREAM_ITERATIONS) - iteration
+        fits = min(max(fits, math.ceil(REPLAN_TAIL[0] * tail)), int(REPLAN_TAIL[1] * tail), cap)
+        fits = max(1, fits // 100 * 100 if fits >= 100 else fits)
+        self.total_iterations = iteration + fits
+        self.replan = {"at": iteration, "planned": planned, "iterations": self.total_iterations,
+                       "step_seconds": step_seconds, "seconds_left": seconds_left}
+        log.info("time budget: steps take %.1f ms here when densification ends (step %d), %.0f s "
+                 "of the budget left: the run ends at step %d (planned %d)", 1e3 * step_seconds,
+                 iteration, seconds_left, self.total_iterations, planned)
+
     def run(self) -> FitResult:
-        """The whole schedule, from the current iteration to ``config.iterations``."""
+        """The whole schedule, from the current iteration to ``total_iterations``.
+
+        With ``config.time_budget``, the steps after densification are planned again where it
+        ends (`_replan_tail`).
+        """
         c = self.config
         t_start = time.perf_counter()
         cpu_start = time.process_time()  # this process's CPU time: wall time on a busy machine
         t_eval = 0.0
         last = {}
-        while self.iteration < c.iterations:
+        replan_at = self._replan_step() if c.time_budget is not None else None
+        window_start = None  # (iteration, seconds of steps) where the step time is measured from
+        while self.iteration < self.total_iterations:
             info = self.train_step()
             it = self.iteration
+            if replan_at is not None and self.replan is None:
+                if it == replan_at - min(REPLAN_WINDOW, max(1, replan_at // 4)):
+                    window_start = (it, time.perf_counter() - t_start - t_eval)
+                elif it == replan_at and window_start is not None:
+                    spent = time.perf_counter() - t_start - t_eval
+                    self._replan_tail(it, (spent - window_start[1]) / (it - window_start[0]),
+                                      c.time_budget - spent)
+            total = self.total_iterations
             if "psnr" in info:
                 last = info
-            if self.progress is not None and (it % self.progress_every == 0 or it == c.iterations):
+            if self.progress is not None and (it % self.progress_every == 0 or it == total):
                 self.progress(
                     it,
-                    c.iterations,
+                    total,
                     dict(last, num_gaussians=info["num_gaussians"], loss=info["loss"]),
                 )
             if (
                 c.eval_interval
                 and it % c.eval_interval == 0
                 and self.test_views
-                and it != c.iterations
+                and it != total
             ):
                 te = time.perf_counter()
                 p = self.evaluate()
@@ -453,7 +520,7 @@ class Trainer:
                 log.info(
                     "iteration %d: test PSNR %.2f dB, %d Gaussians", it, p, self.state.num_gaussians
                 )
-            if self.on_save is not None and it in c.save_iterations and it != c.iterations:
+            if self.on_save is not None and it in c.save_iterations and it != total:
                 self.on_save(it, self.state.to_model())
         seconds = time.perf_counter() - t_start - t_eval
         seconds_cpu = time.process_time() - cpu_start
@@ -471,5 +538,5 @@ class Trainer:
             model=model, iterations=self.iteration, num_gaussians=self.state.num_gaussians,
             seconds_train=seconds, test_psnr=test_psnr, test_views=len(self.test_views),
             history=self.history, timings=dict(self.timings), seconds_cpu=seconds_cpu,
-            removed_non_finite=self.removed_non_finite,
+            removed_non_finite=self.removed_non_finite, replan=self.replan,
         )
