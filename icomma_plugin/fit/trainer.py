@@ -33,6 +33,7 @@ from .state import GaussianTrainState, expon_lr
 log = logging.getLogger(__name__)
 
 ProgressFn = Callable[[int, int, Dict[str, float]], None]
+SaveFn = Callable[[int, GaussianModel], None]
 
 # Re-planning the run's tail (FitConfig.time_budget): the step time is measured over the last
 # REPLAN_WINDOW steps before densification ends (its Gaussians are then nearly all there), and
@@ -40,7 +41,6 @@ ProgressFn = Callable[[int, int, Dict[str, float]], None]
 # upstream's 30000 steps): a machine that has grown slow still ends the learning rates' decay.
 REPLAN_WINDOW = 300
 REPLAN_TAIL = (0.25, 4.0)
-SaveFn = Callable[[int, GaussianModel], None]
 
 
 @dataclass
