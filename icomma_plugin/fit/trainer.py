@@ -479,17 +479,20 @@ class Trainer:
         cpu_start = time.process_time()  # this process's CPU time: wall time on a busy machine
         t_eval = 0.0
         last = {}
-        replan_at = self._replan_step() if c.time_budget is not None else None
-        window_start = None  # (iteration, seconds of steps) where the step time is measured from
+        replan_at = measure_from = None
+        if c.time_budget is not None:  # the step time is measured from measure_from to replan_at
+            replan_at = self._replan_step()
+            measure_from = replan_at - min(REPLAN_WINDOW, max(1, replan_at // 4))
+        measured = None  # the seconds of steps at measure_from
         while self.iteration < self.total_iterations:
             info = self.train_step()
             it = self.iteration
-            if replan_at is not None and self.replan is None:
-                if it == replan_at - min(REPLAN_WINDOW, max(1, replan_at // 4)):
-                    window_start = (it, time.perf_counter() - t_start - t_eval)
-                elif it == replan_at and window_start is not None:
-                    spent = time.perf_counter() - t_start - t_eval
-                    self._replan_tail(it, (spent - window_start[1]) / (it - window_start[0]),
+            if self.replan is None and it in (measure_from, replan_at):
+                spent = time.perf_counter() - t_start - t_eval
+                if it == measure_from:
+                    measured = spent
+                elif measured is not None:
+                    self._replan_tail(it, (spent - measured) / (it - measure_from),
                                       c.time_budget - spent)
             total = self.total_iterations
             if "psnr" in info:
