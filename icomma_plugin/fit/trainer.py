@@ -12,7 +12,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Dict, List, Optional, Sequence
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import torch
 
@@ -41,6 +41,11 @@ SaveFn = Callable[[int, GaussianModel], None]
 # upstream's 30000 steps): a machine that has grown slow still ends the learning rates' decay.
 REPLAN_WINDOW = 300
 REPLAN_TAIL = (0.25, 4.0)
+# ... and looked at once more REPLAN_CHECK_SHARE of the way through the new tail: the step time
+# of its last REPLAN_WINDOW steps then sets the rest, within REPLAN_CHECK_RANGE times the rest as
+# planned (fox's tail ran at 64.5 ms a step where 61.2 had been measured: 22 s over 10 minutes).
+REPLAN_CHECK_SHARE = 0.75
+REPLAN_CHECK_RANGE = (0.5, 2.0)
 
 
 @dataclass
@@ -296,8 +301,11 @@ class Trainer:
         r = self.replan
         if r is None or iteration <= r["at"]:
             return iteration
-        return r["at"] + (iteration - r["at"]) * (r["planned"] - r["at"]) / (
-            r["iterations"] - r["at"])
+        at, pos, end = r["at"], float(r["at"]), r["iterations"]
+        check = r.get("check")
+        if check is not None and iteration > check["at"]:  # (the rest planned once more)
+            at, pos, end = check["at"], check["schedule_at"], check["iterations"]
+        return pos + (iteration - at) * (r["planned"] - pos) / (end - at)
 
     def _update_lr(self, iteration: int) -> None:
         c = self.config
@@ -468,32 +476,75 @@ class Trainer:
                  "of the budget left: the run ends at step %d (planned %d)", 1e3 * step_seconds,
                  iteration, seconds_left, self.total_iterations, planned)
 
+    def _check_tail(self, iteration: int, step_seconds: float, seconds_left: float) -> None:
+        """Plan the rest of a re-planned tail once more (``replan["check"]``).
+
+        As `_replan_tail`, with the steps left bounded by REPLAN_CHECK_RANGE times those planned
+        and the end rounded down to a multiple of 100 steps.
+        """
+        r = self.replan
+        left = self.total_iterations - iteration
+        fits = int(max(seconds_left, 0.0) / step_seconds) if step_seconds > 0 else left
+        cap = max(r["planned"], UPSTREAM_ITERATIONS) - iteration
+        fits = max(1, min(max(fits, math.ceil(REPLAN_CHECK_RANGE[0] * left)),
+                          int(REPLAN_CHECK_RANGE[1] * left), cap))
+        end = (iteration + fits) // 100 * 100
+        end = end if end > iteration else iteration + fits
+        r["check"] = {"at": iteration, "schedule_at": self.schedule_step(iteration),
+                      "step_seconds": step_seconds, "seconds_left": seconds_left,
+                      "iterations": end}
+        log.info("time budget: steps take %.1f ms at step %d, %.0f s left: the run ends at step "
+                 "%d (was %d)", 1e3 * step_seconds, iteration, seconds_left, end,
+                 self.total_iterations)
+        self.total_iterations = end
+
+    def _budget_windows(self) -> List[Tuple[int, int]]:
+        """The steps ``(from, to)`` whose time sets a budget's tail, in the order they come.
+
+        The first ends where densification ends (`_replan_tail`); the second, REPLAN_CHECK_SHARE
+        into the tail it plans (`_check_tail`), is known only then (`_check_window`).
+        """
+        at = self._replan_step()
+        return [(at - min(REPLAN_WINDOW, max(1, at // 4)), at)]
+
+    def _check_window(self, at: int) -> List[Tuple[int, int]]:
+        """The second look's window in the tail re-planned at step ``at`` (none if too short)."""
+        look = at + math.ceil(REPLAN_CHECK_SHARE * (self.total_iterations - at))
+        if look - at < 2 or look >= self.total_iterations:
+            return []
+        return [(look - min(REPLAN_WINDOW, (look - at) // 2), look)]
+
     def run(self) -> FitResult:
         """The whole schedule, from the current iteration to ``total_iterations``.
 
         With ``config.time_budget``, the steps after densification are planned again where it
-        ends (`_replan_tail`).
+        ends (`_replan_tail`), and their rest once more three quarters of the way (`_check_tail`).
         """
         c = self.config
         t_start = time.perf_counter()
         cpu_start = time.process_time()  # this process's CPU time: wall time on a busy machine
         t_eval = 0.0
         last = {}
-        replan_at = measure_from = None
-        if c.time_budget is not None:  # the step time is measured from measure_from to replan_at
-            replan_at = self._replan_step()
-            measure_from = replan_at - min(REPLAN_WINDOW, max(1, replan_at // 4))
-        measured = None  # the seconds of steps at measure_from
+        # the budget's measuring windows still to come, and the seconds of steps at one's start
+        windows = self._budget_windows() if c.time_budget is not None else []
+        measured = None
         while self.iteration < self.total_iterations:
             info = self.train_step()
             it = self.iteration
-            if self.replan is None and it in (measure_from, replan_at):
+            if windows and it in windows[0]:
                 spent = time.perf_counter() - t_start - t_eval
-                if it == measure_from:
+                w0, w1 = windows[0]
+                if it == w0:
                     measured = spent
                 elif measured is not None:
-                    self._replan_tail(it, (spent - measured) / (it - measure_from),
-                                      c.time_budget - spent)
+                    pace, left = (spent - measured) / (w1 - w0), c.time_budget - spent
+                    windows.pop(0)
+                    measured = None
+                    if self.replan is None:
+                        self._replan_tail(it, pace, left)
+                        windows = self._check_window(it)
+                    else:
+                        self._check_tail(it, pace, left)
             total = self.total_iterations
             if "psnr" in info:
                 last = info
