@@ -48,6 +48,16 @@ REPLAN_CHECK_SHARE = 0.75
 REPLAN_CHECK_RANGE = (0.5, 2.0)
 
 
+def _steps_that_fit(seconds_left: float, step_seconds: float, planned: int,
+                    bounds: Tuple[float, float], cap: int) -> int:
+    """Steps that take ``seconds_left`` at ``step_seconds``.
+
+    Within ``bounds`` times ``planned`` (the steps as planned), and at most ``cap``.
+    """
+    fits = int(max(seconds_left, 0.0) / step_seconds) if step_seconds > 0 else planned
+    return min(max(fits, math.ceil(bounds[0] * planned)), int(bounds[1] * planned), cap)
+
+
 @dataclass
 class FitView:
     """A posed image in memory: rgb [3, H, W] in [0, 1] (composited over the background).
@@ -465,9 +475,8 @@ class Trainer:
         """
         planned = self.config.iterations
         tail = planned - iteration
-        fits = int(max(seconds_left, 0.0) / step_seconds) if step_seconds > 0 else tail
-        cap = max(planned, UPSTREAM_ITERATIONS) - iteration
-        fits = min(max(fits, math.ceil(REPLAN_TAIL[0] * tail)), int(REPLAN_TAIL[1] * tail), cap)
+        fits = _steps_that_fit(seconds_left, step_seconds, tail, REPLAN_TAIL,
+                               max(planned, UPSTREAM_ITERATIONS) - iteration)
         fits = max(1, fits // 100 * 100 if fits >= 100 else fits)
         self.total_iterations = iteration + fits
         self.replan = {"at": iteration, "planned": planned, "iterations": self.total_iterations,
@@ -483,11 +492,9 @@ class Trainer:
         and the end rounded down to a multiple of 100 steps.
         """
         r = self.replan
-        left = self.total_iterations - iteration
-        fits = int(max(seconds_left, 0.0) / step_seconds) if step_seconds > 0 else left
-        cap = max(r["planned"], UPSTREAM_ITERATIONS) - iteration
-        fits = max(1, min(max(fits, math.ceil(REPLAN_CHECK_RANGE[0] * left)),
-                          int(REPLAN_CHECK_RANGE[1] * left), cap))
+        fits = max(1, _steps_that_fit(seconds_left, step_seconds,
+                                      self.total_iterations - iteration, REPLAN_CHECK_RANGE,
+                                      max(r["planned"], UPSTREAM_ITERATIONS) - iteration))
         end = (iteration + fits) // 100 * 100
         end = end if end > iteration else iteration + fits
         r["check"] = {"at": iteration, "schedule_at": self.schedule_step(iteration),
