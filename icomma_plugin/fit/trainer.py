@@ -505,21 +505,20 @@ class Trainer:
                  self.total_iterations)
         self.total_iterations = end
 
-    def _budget_windows(self) -> List[Tuple[int, int]]:
-        """The steps ``(from, to)`` whose time sets a budget's tail, in the order they come.
-
-        The first ends where densification ends (`_replan_tail`); the second, REPLAN_CHECK_SHARE
-        into the tail it plans (`_check_tail`), is known only then (`_check_window`).
-        """
+    def _replan_window(self) -> Tuple[int, int]:
+        """The steps ``(from, to)`` whose time sets a budget's tail (`_replan_tail`)."""
         at = self._replan_step()
-        return [(at - min(REPLAN_WINDOW, max(1, at // 4)), at)]
+        return at - min(REPLAN_WINDOW, max(1, at // 4)), at
 
-    def _check_window(self, at: int) -> List[Tuple[int, int]]:
-        """The second look's window in the tail re-planned at step ``at`` (none if too short)."""
+    def _check_window(self, at: int) -> Optional[Tuple[int, int]]:
+        """The second look's steps ``(from, to)`` in the tail re-planned at step ``at``.
+
+        REPLAN_CHECK_SHARE into that tail (`_check_tail`); None when the tail is too short.
+        """
         look = at + math.ceil(REPLAN_CHECK_SHARE * (self.total_iterations - at))
         if look - at < 2 or look >= self.total_iterations:
-            return []
-        return [(look - min(REPLAN_WINDOW, (look - at) // 2), look)]
+            return None
+        return look - min(REPLAN_WINDOW, (look - at) // 2), look
 
     def run(self) -> FitResult:
         """The whole schedule, from the current iteration to ``total_iterations``.
@@ -532,26 +531,25 @@ class Trainer:
         cpu_start = time.process_time()  # this process's CPU time: wall time on a busy machine
         t_eval = 0.0
         last = {}
-        # the budget's measuring windows still to come, and the seconds of steps at one's start
-        windows = self._budget_windows() if c.time_budget is not None else []
+        # the budget's next measuring window (from, to), and the seconds of steps at its start
+        window = self._replan_window() if c.time_budget is not None else None
         measured = None
         while self.iteration < self.total_iterations:
             info = self.train_step()
             it = self.iteration
-            if windows and it in windows[0]:
+            if window is not None and it in window:
                 spent = time.perf_counter() - t_start - t_eval
-                w0, w1 = windows[0]
-                if it == w0:
+                if it == window[0]:
                     measured = spent
                 elif measured is not None:
-                    pace, left = (spent - measured) / (w1 - w0), c.time_budget - spent
-                    windows.pop(0)
+                    pace, left = (spent - measured) / (window[1] - window[0]), c.time_budget - spent
                     measured = None
                     if self.replan is None:
                         self._replan_tail(it, pace, left)
-                        windows = self._check_window(it)
+                        window = self._check_window(it)
                     else:
                         self._check_tail(it, pace, left)
+                        window = None
             total = self.total_iterations
             if "psnr" in info:
                 last = info
